@@ -1,0 +1,190 @@
+"""Adapter over the ``anny`` parametric body (Apache-2.0, assets in the wheel).
+
+A subject is built once from phenotype parameters; ``AnnyBody.pose`` then poses
+it for a batch of frames and returns everything the data pipeline and the
+models need: posed vertices, the 24 skeleton joints, per-vertex skinning
+transforms (POP's ``vtransf``), all in metres, Z up, body facing -Y.
+
+Rotations are given per skeleton joint as axis-angle vectors in anny's
+``local-ref`` parameterisation: a rotation of a bone expressed in axes that, in
+the rest pose, are (almost) the world axes. So a hip flexion (leg forward, to
+-Y) is a rotation about -X, a knee flexion about +X, turning the whole body is
+a rotation of the pelvis about +Z.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .skeleton import ANNY_BONE_OF_JOINT, JOINT_NAMES, NUM_JOINTS
+
+#: Phenotype parameters anny accepts, each in [0, 1] (0.5 = average).
+PHENOTYPE_KEYS: tuple[str, ...] = ("gender", "age", "muscle", "weight", "height", "proportions")
+
+
+def default_cache_dir() -> str:
+    """Where anny's parsed assets are cached (``$ANNY_CACHE_DIR`` wins)."""
+    return os.environ.get("ANNY_CACHE_DIR") or os.path.join(
+        os.path.expanduser("~"), ".cache", "pocoloco", "anny"
+    )
+
+
+@functools.lru_cache(maxsize=1)
+def load_anny_model():
+    """The anny model in float32 on CPU, loaded once per process.
+
+    The first call in a fresh cache parses the MakeHuman assets (~2.5 min on a
+    2-core CPU); later calls load a compact cached file (~1 s).
+    """
+    os.environ.setdefault("ANNY_CACHE_DIR", default_cache_dir())
+    os.makedirs(os.environ["ANNY_CACHE_DIR"], exist_ok=True)
+    import anny  # deferred: importing anny initialises warp
+
+    return anny.Anny().to(dtype=torch.float32)
+
+
+def _rotvec_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula. (..., 3) axis-angle -> (..., 3, 3) rotation matrix."""
+    angle = rotvec.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    axis = rotvec / angle
+    x, y, z = axis.unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*rotvec.shape[:-1], 3, 3)
+    s = torch.sin(angle)[..., None]
+    c = torch.cos(angle)[..., None]
+    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(k)
+    return eye + s * k + (1 - c) * (k @ k)
+
+
+@dataclass
+class PosedBody:
+    """A batch of T posed bodies (numpy float32, metres, Z up).
+
+    vertices: (T, V, 3) posed surface vertices.
+    joints:   (T, J, 3) the 24 skeleton joints (``skeleton.JOINT_NAMES``).
+    vtransf:  (T, V, 3, 3) linear part of each vertex's skinning transform
+              sum_k w_vk A_k (POP's ``vtransf``), mapping rest-pose offsets to
+              posed offsets.
+    """
+
+    vertices: np.ndarray
+    joints: np.ndarray
+    vtransf: np.ndarray
+
+
+class AnnyBody:
+    """One subject: an anny body with fixed phenotype.
+
+    Attributes (numpy):
+        faces:       (F, 3) int64 triangle vertex indices.
+        uv:          (Vt, 2) float32 texture coordinates.
+        uv_faces:    (F, 3) int64 indices into ``uv`` per face corner.
+        template:    (V, 3) float32 rest-pose (A-pose) vertices of this subject.
+        template_joints: (J, 3) float32 skeleton joints in the rest pose.
+        vertex_joint: (V,) int64 the skeleton joint that moves each vertex most
+                     (its body part), used for labels and colliders.
+    """
+
+    def __init__(self, phenotype: dict[str, float] | None = None):
+        phenotype = dict(phenotype or {})
+        unknown = set(phenotype) - set(PHENOTYPE_KEYS)
+        if unknown:
+            raise ValueError(f"unknown phenotype keys {sorted(unknown)}; expected {PHENOTYPE_KEYS}")
+        for k, v in phenotype.items():
+            if not (0.0 <= float(v) <= 1.0):
+                raise ValueError(f"phenotype {k}={v} is outside [0, 1]")
+        self.phenotype = {k: float(phenotype.get(k, 0.5)) for k in PHENOTYPE_KEYS}
+        self.model = load_anny_model()
+        labels = list(self.model.bone_labels)
+        self.num_bones = len(labels)
+        self.bone_of_joint = torch.tensor([labels.index(ANNY_BONE_OF_JOINT[n]) for n in JOINT_NAMES])
+
+        self.faces = self.model.faces.cpu().numpy().astype(np.int64)
+        self.uv = self.model.texture_coordinates.cpu().numpy().astype(np.float32)
+        self.uv_faces = self.model.face_texture_coordinate_indices.cpu().numpy().astype(np.int64)
+
+        rest = self._forward(torch.zeros(1, NUM_JOINTS, 3), torch.zeros(1, 3))
+        self.template = rest.vertices[0]
+        self.template_joints = rest.joints[0]
+        self.vertex_joint = self._vertex_joint(labels)
+
+    @property
+    def num_vertices(self) -> int:
+        return self.template.shape[0]
+
+    def _vertex_joint(self, labels: list[str]) -> np.ndarray:
+        """Map each vertex to the skeleton joint of its heaviest-weighted bone's
+        nearest skeleton ancestor (fingers -> hand, toes -> foot, ...)."""
+        parents = self.model.bone_parents
+        parents = parents.tolist() if torch.is_tensor(parents) else list(parents)
+        joint_of_bone = {int(b): j for j, b in enumerate(self.bone_of_joint.tolist())}
+        bone_to_joint = np.zeros(self.num_bones, dtype=np.int64)
+        for b in range(self.num_bones):
+            a = b
+            while a not in joint_of_bone and parents[a] >= 0:
+                a = parents[a]
+            bone_to_joint[b] = joint_of_bone.get(a, 0)
+        w = self.model.vertex_bone_weights.cpu().numpy()
+        idx = self.model.vertex_bone_indices.cpu().numpy()
+        heaviest = idx[np.arange(len(idx)), w.argmax(1)]
+        return bone_to_joint[heaviest]
+
+    def _forward(self, joint_rotvecs: torch.Tensor, root_translation: torch.Tensor) -> PosedBody:
+        """joint_rotvecs (T, J, 3), root_translation (T, 3) -> PosedBody."""
+        t = joint_rotvecs.shape[0]
+        pose = torch.eye(4).expand(t, self.num_bones, 4, 4).clone()
+        pose[:, self.bone_of_joint, :3, :3] = _rotvec_to_matrix(joint_rotvecs)
+        pheno = {k: torch.full((t,), v) for k, v in self.phenotype.items()}
+        with torch.no_grad():
+            out = self.model(pose_parameters=pose, phenotype_kwargs=pheno)
+        bone_poses = out["bone_poses"]  # (T, B, 4, 4)
+        skin = bone_poses @ torch.linalg.inv(out["rest_bone_poses"])  # A_k, (T, B, 4, 4)
+        w = self.model.vertex_bone_weights  # (V, 9)
+        idx = self.model.vertex_bone_indices  # (V, 9)
+        vtransf = (w[None, :, :, None, None] * skin[:, idx, :3, :3]).sum(2)  # (T, V, 3, 3)
+        shift = root_translation[:, None, :]
+        return PosedBody(
+            vertices=(out["vertices"] + shift).numpy().astype(np.float32),
+            joints=(bone_poses[:, self.bone_of_joint, :3, 3] + shift).numpy().astype(np.float32),
+            vtransf=vtransf.numpy().astype(np.float32),
+        )
+
+    def pose(
+        self,
+        joint_rotvecs: np.ndarray | torch.Tensor,
+        root_translation: np.ndarray | torch.Tensor | None = None,
+        chunk: int = 32,
+    ) -> PosedBody:
+        """Pose the subject for T frames.
+
+        Args:
+            joint_rotvecs: (T, 24, 3) or (24, 3) axis-angle per skeleton joint
+                (anny ``local-ref`` axes, see module docstring). Joint 0 is the
+                global orientation.
+            root_translation: (T, 3) or (3,) metres added to everything; None = 0.
+            chunk: frames posed per anny call (bounds memory).
+        Returns:
+            PosedBody with a leading T axis (kept even for a single pose).
+        """
+        rot = torch.as_tensor(np.asarray(joint_rotvecs, dtype=np.float32))
+        if rot.ndim == 2:
+            rot = rot[None]
+        if rot.ndim != 3 or rot.shape[1:] != (NUM_JOINTS, 3):
+            raise ValueError(f"joint_rotvecs must have shape (T, {NUM_JOINTS}, 3), got {tuple(rot.shape)}")
+        if not torch.isfinite(rot).all():
+            raise ValueError("joint_rotvecs contains NaN or inf")
+        if root_translation is None:
+            trans = torch.zeros(rot.shape[0], 3)
+        else:
+            trans = torch.as_tensor(np.asarray(root_translation, dtype=np.float32)).reshape(-1, 3)
+            if trans.shape[0] != rot.shape[0]:
+                raise ValueError(
+                    f"root_translation has {trans.shape[0]} frames but joint_rotvecs has {rot.shape[0]}"
+                )
+        parts = [self._forward(rot[i : i + chunk], trans[i : i + chunk]) for i in range(0, rot.shape[0], chunk)]
+        return PosedBody(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("vertices", "joints", "vtransf")))

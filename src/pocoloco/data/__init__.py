@@ -1,0 +1,1 @@
+"""Synthetic capture pipeline, on-disk formats, datasets and readers."""
