@@ -84,8 +84,13 @@ class AnnyBody:
         faces:       (F, 3) int64 triangle vertex indices.
         uv:          (Vt, 2) float32 texture coordinates.
         uv_faces:    (F, 3) int64 indices into ``uv`` per face corner.
-        template:    (V, 3) float32 rest-pose (A-pose) vertices of this subject.
-        template_joints: (J, 3) float32 skeleton joints in the rest pose.
+        template:    (V, 3) float32 bind-pose (A-pose) vertices of this subject:
+                     the pose in which skinning is exact, ``vtransf`` maps
+                     offsets in this pose to posed offsets.
+        template_joints: (J, 3) float32 skeleton joints in the bind pose.
+        zero_pose:   PosedBody of the all-zero rotation pose (T=1). It differs
+                     slightly from the bind pose (anny's ``local-ref`` zero
+                     tilts the upper spine and shoulders by ~0.1 rad).
         vertex_joint: (V,) int64 the skeleton joint that moves each vertex most
                      (its body part), used for labels and colliders.
     """
@@ -108,9 +113,12 @@ class AnnyBody:
         self.uv = self.model.texture_coordinates.cpu().numpy().astype(np.float32)
         self.uv_faces = self.model.face_texture_coordinate_indices.cpu().numpy().astype(np.int64)
 
-        rest = self._forward(torch.zeros(1, NUM_JOINTS, 3), torch.zeros(1, 3))
-        self.template = rest.vertices[0]
-        self.template_joints = rest.joints[0]
+        zero = self._run_anny(torch.zeros(1, NUM_JOINTS, 3))
+        # anny's posed output has the pelvis at the origin; shift the bind pose to match
+        origin = zero["rest_bone_poses"][0, self.bone_of_joint[0], :3, 3]
+        self.template = (zero["rest_vertices"][0] - origin).numpy().astype(np.float32)
+        self.template_joints = (zero["rest_bone_poses"][0, self.bone_of_joint, :3, 3] - origin).numpy().astype(np.float32)
+        self.zero_pose = self._forward(torch.zeros(1, NUM_JOINTS, 3), torch.zeros(1, 3))
         self.vertex_joint = self._vertex_joint(labels)
 
     @property
@@ -134,20 +142,24 @@ class AnnyBody:
         heaviest = idx[np.arange(len(idx)), w.argmax(1)]
         return bone_to_joint[heaviest]
 
-    def _forward(self, joint_rotvecs: torch.Tensor, root_translation: torch.Tensor) -> PosedBody:
-        """joint_rotvecs (T, J, 3), root_translation (T, 3) -> PosedBody."""
+    def _run_anny(self, joint_rotvecs: torch.Tensor) -> dict[str, torch.Tensor]:
+        """joint_rotvecs (T, J, 3) -> anny's raw output (bones not in the skeleton keep zero rotation)."""
         t = joint_rotvecs.shape[0]
         pose = torch.eye(4).expand(t, self.num_bones, 4, 4).clone()
         pose[:, self.bone_of_joint, :3, :3] = _rotvec_to_matrix(joint_rotvecs)
         pheno = {k: torch.full((t,), v) for k, v in self.phenotype.items()}
         with torch.no_grad():
-            out = self.model(pose_parameters=pose, phenotype_kwargs=pheno)
+            return self.model(pose_parameters=pose, phenotype_kwargs=pheno)
+
+    def _forward(self, joint_rotvecs: torch.Tensor, root_translation: torch.Tensor) -> PosedBody:
+        """joint_rotvecs (T, J, 3), root_translation (T, 3) -> PosedBody."""
+        out = self._run_anny(joint_rotvecs)
         bone_poses = out["bone_poses"]  # (T, B, 4, 4)
         skin = bone_poses @ torch.linalg.inv(out["rest_bone_poses"])  # A_k, (T, B, 4, 4)
         w = self.model.vertex_bone_weights  # (V, 9)
         idx = self.model.vertex_bone_indices  # (V, 9)
         vtransf = (w[None, :, :, None, None] * skin[:, idx, :3, :3]).sum(2)  # (T, V, 3, 3)
-        shift = root_translation[:, None, :]
+        shift = root_translation[:, None, :]  # anny puts the posed pelvis at the origin
         return PosedBody(
             vertices=(out["vertices"] + shift).numpy().astype(np.float32),
             joints=(bone_poses[:, self.bone_of_joint, :3, 3] + shift).numpy().astype(np.float32),
@@ -166,7 +178,8 @@ class AnnyBody:
             joint_rotvecs: (T, 24, 3) or (24, 3) axis-angle per skeleton joint
                 (anny ``local-ref`` axes, see module docstring). Joint 0 is the
                 global orientation.
-            root_translation: (T, 3) or (3,) metres added to everything; None = 0.
+            root_translation: (T, 3) or (3,) metres added to everything; None = 0
+                (the bind-pose pelvis is at the origin).
             chunk: frames posed per anny call (bounds memory).
         Returns:
             PosedBody with a leading T axis (kept even for a single pose).

@@ -1,0 +1,202 @@
+"""The ``pocoloco`` command. Entry points only: parse, call the library, report.
+
+User mistakes (bad paths, malformed files, wrong shapes, unknown presets)
+surface as one line ``pocoloco: error: ...`` and exit code 2; set
+``POCOLOCO_DEBUG=1`` to see the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from pathlib import Path
+
+EXIT_USER_ERROR = 2
+
+
+def _console():
+    from rich.console import Console
+
+    return Console()
+
+
+# --------------------------------------------------------------------------------------- data
+def cmd_data_synth(args: argparse.Namespace) -> None:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from .config import synth_preset
+    from .data.synth import synthesize
+
+    config = synth_preset(args.preset)
+    overrides = {
+        k: v
+        for k, v in dict(
+            seed=args.seed,
+            train_sequences=args.train_sequences,
+            test_sequences=args.test_sequences,
+            frames_per_sequence=args.frames,
+            num_points=args.points,
+        ).items()
+        if v is not None
+    }
+    for k, v in overrides.items():
+        if k != "seed" and v <= 0:
+            raise ValueError(f"--{k.replace('_', '-')} must be positive, got {v}")
+    config = dataclasses.replace(config, **overrides)
+    out = Path(args.out or f"data/{args.preset}")
+    console = _console()
+    console.print(f"[bold]pocoloco data synth[/] preset={args.preset} -> {out} (workers={args.workers})")
+    with Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=console,
+    ) as bar:
+        task = bar.add_task("frames", total=None)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        card = synthesize(config, out, workers=args.workers, progress=progress)
+    _print_card(card, out)
+
+
+def cmd_data_info(args: argparse.Namespace) -> None:
+    from .data.format import read_card
+
+    card = read_card(Path(args.path))
+    _print_card(card, Path(args.path))
+
+
+def _print_card(card: dict, path: Path) -> None:
+    from rich.table import Table
+
+    console = _console()
+    table = Table(title=f"dataset {path}  ({card.get('status', '?')})")
+    for col in ("subject", "garment", "train frames", "test frames", "rejected", "loose share %", "penetration max/mean mm"):
+        table.add_column(col, justify="right" if col != "subject" else "left")
+    for name, s in card.get("subjects", {}).items():
+        c = s.get("counts", {})
+        pen = s.get("penetration")
+        table.add_row(
+            name,
+            s.get("garment", "?"),
+            str(c.get("train", {}).get("frames", "-")),
+            str(c.get("test", {}).get("frames", "-")),
+            str(sum(v.get("rejected", 0) for v in c.values())) if c else "-",
+            f"{s['loose_share_percent']:.1f}" if "loose_share_percent" in s else "-",
+            f"{pen['max_mm']:.1f} / {pen['mean_mm']:.2f}" if pen else "-",
+        )
+    console.print(table)
+    cfg = card.get("config", {})
+    keys = ("train_sequences", "test_sequences", "frames_per_sequence", "fps", "num_points", "capture_cameras", "seed")
+    console.print("config: " + ", ".join(f"{k}={cfg.get(k)}" for k in keys))
+    norm = card.get("normalisation")
+    if norm:
+        console.print(f"normalisation (root-centred, on {norm['computed_on']}): mean={[round(m, 4) for m in norm['mean']]} std={norm['std']:.4f}")
+    gen = card.get("generation")
+    if gen:
+        per = gen["cpu_seconds_per_frame"]
+        console.print(
+            "generation: "
+            + ", ".join(f"{k} {v:.3f} s/frame" for k, v in per.items())
+            + f"; wall {gen['wall_seconds_last_run']:.0f} s with {gen['workers']} worker(s)"
+        )
+    if card.get("status") != "complete":
+        console.print("[yellow]incomplete: rerun the same `pocoloco data synth` command to resume[/]")
+
+
+def cmd_data_preview(args: argparse.Namespace) -> None:
+    from .data.preview import preview_dataset
+
+    path = preview_dataset(Path(args.path), out=args.out, num=args.num, split=args.split, seed=args.seed)
+    print(f"wrote {path}")
+
+
+def cmd_data_export(args: argparse.Namespace) -> None:
+    from .data.format import DatasetLayout, export_frame, read_card
+
+    root = Path(args.path)
+    read_card(root)
+    frames = DatasetLayout(root).iter_frames(args.split)
+    if args.subject:
+        frames = [f for f in frames if f[0] == args.subject]
+    if not frames:
+        raise ValueError(f"{root}: no frames for split {args.split!r}" + (f" and subject {args.subject!r}" if args.subject else ""))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for subject, sequence, frame_path in frames[: args.limit or None]:
+        target = out / f"{subject}_{sequence}_{Path(frame_path).stem}.{args.format}"
+        export_frame(frame_path, target, args.format)
+    print(f"wrote {min(len(frames), args.limit or len(frames))} {args.format} files to {out}")
+
+
+# --------------------------------------------------------------------------------------- main
+def build_parser() -> argparse.ArgumentParser:
+    from .config import SYNTH_PRESETS
+
+    p = argparse.ArgumentParser(prog="pocoloco", description="Point-cloud models of humans in loose clothing.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    data = sub.add_parser("data", help="synthetic data: generate, inspect, preview, export").add_subparsers(
+        dest="data_command", required=True
+    )
+    s = data.add_parser("synth", help="generate (or resume) a synthetic capture dataset")
+    s.add_argument("--preset", default="small", help=f"one of {', '.join(SYNTH_PRESETS)} (default: small)")
+    s.add_argument("--out", help="output folder (default: data/PRESET); rerun to resume")
+    s.add_argument("--workers", type=int, default=1, help="parallel worker processes (one sequence each)")
+    s.add_argument("--seed", type=int)
+    s.add_argument("--train-sequences", type=int)
+    s.add_argument("--test-sequences", type=int)
+    s.add_argument("--frames", type=int, help="stored frames per sequence")
+    s.add_argument("--points", type=int, help="points stored per frame")
+    s.set_defaults(func=cmd_data_synth)
+
+    s = data.add_parser("info", help="print a dataset's card as tables")
+    s.add_argument("path")
+    s.set_defaults(func=cmd_data_info)
+
+    s = data.add_parser("preview", help="PNG grid of rendered frames coloured by label")
+    s.add_argument("path")
+    s.add_argument("--out", help="PNG path (default: PATH/preview.png)")
+    s.add_argument("--num", type=int, default=4, help="frames per subject")
+    s.add_argument("--split", default="train", choices=["train", "test"])
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=cmd_data_preview)
+
+    s = data.add_parser("export", help="write frames as PLY (points, normals, labels) or POP-style NPZ")
+    s.add_argument("path")
+    s.add_argument("--out", required=True)
+    s.add_argument("--format", choices=["ply", "npz"], default="ply")
+    s.add_argument("--split", default="test", choices=["train", "test"])
+    s.add_argument("--subject")
+    s.add_argument("--limit", type=int, default=0, help="at most this many frames (0 = all)")
+    s.set_defaults(func=cmd_data_export)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "workers", 1) is not None and getattr(args, "workers", 1) < 1:
+        parser.error("--workers must be >= 1")
+    try:
+        args.func(args)
+    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError) as e:
+        if os.environ.get("POCOLOCO_DEBUG"):
+            raise
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        print(f"pocoloco: error: {msg}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("pocoloco: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

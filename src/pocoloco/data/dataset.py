@@ -1,0 +1,181 @@
+"""PyTorch dataset over a pocoloco dataset folder, with PocoLoco's normalisation.
+
+Normalisation (as in the PocoLoco code, see ``/work/shared/REFERENCE.md``):
+points and joints are centred on the root joint of their frame, then the
+dataset-wide per-axis mean is subtracted and the result divided by one scalar
+std; both statistics are computed on the training split and stored in
+``card.json``::
+
+    x_norm = (x - root - mean) / std            root = joints[root_joint]
+    x      = x_norm * std + mean + root         (Normalisation.denormalise)
+
+Samplers return points in the normalised frame; ``denormalise`` with the
+frame's root maps them back to metres in the input (world) frame.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from . import format as fmt
+
+__all__ = ["Normalisation", "PointCloudDataset"]
+
+
+@dataclass(frozen=True)
+class Normalisation:
+    """Root-centring plus one per-axis mean and one scalar std.
+
+    mean: (3,) float, metres. std: float > 0, metres. root_joint: index of the root joint.
+    Works on numpy arrays and torch tensors of shape (..., N, 3) / (..., J, 3).
+    """
+
+    mean: tuple[float, float, float]
+    std: float
+    root_joint: int = 0
+
+    def __post_init__(self) -> None:
+        if len(self.mean) != 3:
+            raise ValueError(f"Normalisation.mean must have 3 values, got {len(self.mean)}")
+        if not (np.isfinite(self.std) and self.std > 0):
+            raise ValueError(f"Normalisation.std must be finite and > 0, got {self.std}")
+
+    @classmethod
+    def from_card(cls, card: dict[str, Any]) -> Normalisation:
+        """Read ``card["normalisation"]``; a clear ValueError if the card has none."""
+        norm = card.get("normalisation")
+        if not norm:
+            raise ValueError("dataset card has no 'normalisation' (run format.refresh_card on the dataset)")
+        return cls(mean=tuple(float(x) for x in norm["mean"]), std=float(norm["std"]),
+                   root_joint=int(norm.get("root_joint", 0)))  # fmt: skip
+
+    @classmethod
+    def identity(cls) -> Normalisation:
+        """Root-centring only (mean 0, std 1)."""
+        return cls(mean=(0.0, 0.0, 0.0), std=1.0)
+
+    def _mean_like(self, x):
+        if isinstance(x, torch.Tensor):
+            return torch.tensor(self.mean, dtype=x.dtype, device=x.device)
+        return np.asarray(self.mean, dtype=x.dtype)
+
+    def root(self, joints):
+        """(..., J, 3) -> (..., 3) the root joint."""
+        return joints[..., self.root_joint, :]
+
+    def normalise(self, points, joints):
+        """points (..., N, 3), joints (..., J, 3) in metres -> both normalised (same types)."""
+        root = self.root(joints)[..., None, :]
+        mean = self._mean_like(points)
+        return (points - root - mean) / self.std, (joints - root - mean) / self.std
+
+    def denormalise(self, points, root):
+        """points (..., N, 3) normalised, root (..., 3) in metres -> points (..., N, 3) in metres."""
+        return points * self.std + self._mean_like(points) + root[..., None, :]
+
+
+class PointCloudDataset(Dataset):
+    """Frames of one split of a pocoloco dataset, as dicts of tensors.
+
+    Each item::
+
+        points:    (N, 3) float32, normalised (or root-centred only if normalise=False)
+        joints:    (24, 3) float32, same transform
+        root:      (3,) float32, the root joint in metres (to invert the normalisation)
+        normals:   (N, 3) float32 (only if with_normals)
+        labels:    (N,) int64 point classes (``format.LABEL_UNKNOWN`` for imported data)
+        subject:   int, index into ``dataset.subject_names``
+        frame_key: str, "<subject>/<split>/<sequence>/<frame index>"
+
+    N = ``num_points`` points are drawn without replacement from the frame's
+    points (None: keep all). ``random_subsample=True`` draws a new subset on
+    every access from torch's global RNG (seeded by ``torch.manual_seed`` and
+    per worker by ``DataLoader``), so epochs and workers differ;
+    ``random_subsample=False`` draws a fixed subset per index from
+    ``seed``. A frame with fewer than ``num_points`` points raises.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        split: str = "train",
+        num_points: int | None = 10_000,
+        subjects: Sequence[str] | None = None,
+        normalise: bool = True,
+        with_normals: bool = False,
+        seed: int = 0,
+        random_subsample: bool = True,
+    ):
+        self.root = os.fspath(root)
+        self.card = fmt.read_card(self.root)
+        if split not in fmt.SPLITS:
+            raise ValueError(f"unknown split {split!r}; expected one of {fmt.SPLITS}")
+        if num_points is not None and num_points < 1:
+            raise ValueError(f"num_points must be >= 1 or None, got {num_points}")
+        self.subject_names: list[str] = sorted(self.card["subjects"])
+        if subjects is not None:
+            if isinstance(subjects, str):
+                subjects = [subjects]
+            unknown = [s for s in subjects if s not in self.card["subjects"]]
+            if unknown:
+                raise ValueError(f"{self.root}: unknown subjects {unknown}; the card lists {self.subject_names}")
+        self.split = split
+        self.num_points = num_points
+        self.with_normals = with_normals
+        self.seed = seed
+        self.random_subsample = random_subsample
+        self.normalisation = Normalisation.from_card(self.card) if normalise else Normalisation.identity()
+        self.layout = fmt.DatasetLayout(self.root)
+        chosen = self.subject_names if subjects is None else sorted(subjects)
+        self.frames = self.layout.iter_frames(split, chosen)  # list of (subject, sequence, path)
+        if not self.frames:
+            raise ValueError(f"{self.root}: no frames in split {split!r} for subjects {chosen}")
+        self._subject_id = {s: i for i, s in enumerate(self.subject_names)}
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def frame_key(self, index: int) -> str:
+        subject, sequence, path = self.frames[index]
+        return f"{subject}/{self.split}/{sequence}/{os.path.basename(path)[:-4]}"
+
+    def _choose(self, index: int, n: int, path: str) -> np.ndarray | slice:
+        k = self.num_points
+        if k is None:
+            return slice(None)
+        if n < k:
+            raise ValueError(f"{path}: frame has {n} points, fewer than num_points={k}")
+        if self.random_subsample:
+            return torch.randperm(n)[:k].numpy()
+        rng = np.random.default_rng([self.seed, index])
+        return np.sort(rng.choice(n, size=k, replace=False))
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        if not 0 <= index < len(self):
+            raise IndexError(f"index {index} out of range for {len(self)} frames")
+        subject, _, path = self.frames[index]
+        keys = ["points", "joints", "labels"] + (["normals"] if self.with_normals else [])
+        arr = fmt.read_frame(path, keys, allow_missing=True)
+        assert isinstance(arr, dict)
+        n = arr["points"].shape[0]
+        sel = self._choose(index, n, path)
+        points, joints = self.normalisation.normalise(arr["points"][sel].astype(np.float32), arr["joints"])
+        labels = arr["labels"][sel] if "labels" in arr else np.full(len(points), fmt.LABEL_UNKNOWN, np.uint8)
+        item: dict[str, Any] = {
+            "points": torch.from_numpy(np.ascontiguousarray(points, np.float32)),
+            "joints": torch.from_numpy(np.ascontiguousarray(joints, np.float32)),
+            "root": torch.from_numpy(self.normalisation.root(arr["joints"]).astype(np.float32)),
+            "labels": torch.from_numpy(labels.astype(np.int64)),
+            "subject": self._subject_id[subject],
+            "frame_key": self.frame_key(index),
+        }
+        if self.with_normals:
+            item["normals"] = torch.from_numpy(np.ascontiguousarray(arr["normals"][sel], np.float32))
+        return item

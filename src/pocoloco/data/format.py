@@ -1,0 +1,609 @@
+"""The pocoloco on-disk dataset format (``"pocoloco-dataset"``, version 1).
+
+One folder per dataset; the full specification is ``docs/dataset_format.md``.
+In short::
+
+    DATASET/
+      card.json                                     # what the dataset is (see make_card)
+      subjects/<subject>/subject.npz                # body template, faces, UVs, garment rest mesh
+      subjects/<subject>/<split>/<sequence>/sequence.json
+      subjects/<subject>/<split>/<sequence>/motion.npz
+      subjects/<subject>/<split>/<sequence>/frames/000123.npz
+
+Every file is written atomically (temp file + ``os.replace``), so an
+interrupted generator never leaves a half-written frame behind.
+
+A frame (:class:`Frame`) holds one captured point cloud with its skeleton and,
+for synthetic data, the posed body. Shapes use N points, V body vertices,
+Vg garment vertices, J = 24 joints. Required keys: ``points``, ``normals``,
+``joints``, ``frame_index``; optional keys (absent for tight subjects or for
+data imported from published scans): ``labels``, ``parts``,
+``body_vertices``, ``vtransf``, ``garment_vertices``.
+
+Every reader validates at the boundary and raises a one-line
+``ValueError("<path>: <problem>")``.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS, NUM_JOINTS
+from ..utils.atomic import save_npz_atomic, write_json_atomic
+
+__all__ = [
+    "FORMAT_NAME", "FORMAT_VERSION", "SPLITS", "LABEL_UNKNOWN", "FRAME_KEYS", "REQUIRED_FRAME_KEYS",
+    "OPTIONAL_FRAME_KEYS", "Frame", "write_frame", "read_frame", "DatasetLayout", "make_card",
+    "read_card", "write_card", "compute_normalisation", "refresh_card", "export_frame",
+    "SubjectAsset", "write_subject", "read_subject", "Motion", "write_motion", "read_motion",
+    "write_sequence_meta", "read_sequence_meta",
+]  # fmt: skip
+
+FORMAT_NAME = "pocoloco-dataset"
+FORMAT_VERSION = 1
+SPLITS: tuple[str, ...] = ("train", "test")
+
+#: Label value for points whose class is unknown (imported data has no labels).
+LABEL_UNKNOWN = 255
+
+#: Frame npz keys and their on-disk dtypes.
+FRAME_KEYS: dict[str, np.dtype] = {
+    "points": np.dtype(np.float32),
+    "normals": np.dtype(np.float32),
+    "labels": np.dtype(np.uint8),
+    "parts": np.dtype(np.int8),
+    "joints": np.dtype(np.float32),
+    "body_vertices": np.dtype(np.float32),
+    "vtransf": np.dtype(np.float32),
+    "garment_vertices": np.dtype(np.float32),
+    "frame_index": np.dtype(np.int64),
+}
+REQUIRED_FRAME_KEYS: tuple[str, ...] = ("points", "normals", "joints", "frame_index")
+OPTIONAL_FRAME_KEYS: tuple[str, ...] = tuple(k for k in FRAME_KEYS if k not in REQUIRED_FRAME_KEYS)
+
+_FRAME_NAME = re.compile(r"^(\d+)\.npz$")
+
+
+# --------------------------------------------------------------------------- frames
+@dataclass(kw_only=True)
+class Frame:
+    """One captured frame.
+
+    points:           (N, 3) float32, metres, world frame (Z up).
+    normals:          (N, 3) float32 unit outward normals.
+    joints:           (J=24, 3) float32 skeleton joints (``skeleton.JOINT_NAMES``).
+    frame_index:      int, index of the frame in its sequence (``motion.npz`` row).
+    labels:           (N,) uint8 point class, or None (imported data). See the
+                      generator for the classes; ``LABEL_UNKNOWN`` = 255.
+    parts:            (N,) int8 body part (skeleton joint index) per point, -1 = none; or None.
+    body_vertices:    (V, 3) float32 posed body, or None (imported data).
+    vtransf:          (V, 3, 3) float32 per-vertex skinning transform, or None.
+    garment_vertices: (Vg, 3) float32 simulated garment, or None (tight subjects, imported data).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    joints: np.ndarray
+    frame_index: int
+    labels: np.ndarray | None = None
+    parts: np.ndarray | None = None
+    body_vertices: np.ndarray | None = None
+    vtransf: np.ndarray | None = None
+    garment_vertices: np.ndarray | None = None
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points.shape[0])
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The frame as a dict of on-disk arrays (None fields omitted)."""
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is not None:
+                out[f.name] = np.asarray(value)
+        return out
+
+
+def _check_array(src: str, key: str, arr: np.ndarray) -> np.ndarray:
+    """Validate dtype kind, finiteness and per-key shape; return it in the on-disk dtype."""
+    arr = np.asarray(arr)
+    target = FRAME_KEYS[key]
+    if target.kind == "f":
+        if arr.dtype.kind not in "fiu":
+            raise ValueError(f"{src}: '{key}' must be numeric, got dtype {arr.dtype}")
+    elif arr.dtype.kind not in "iub":
+        raise ValueError(f"{src}: '{key}' must be integer, got dtype {arr.dtype}")
+    if key == "frame_index":
+        if arr.shape != ():
+            raise ValueError(f"{src}: 'frame_index' must be a scalar, got shape {arr.shape}")
+        if int(arr) < 0:
+            raise ValueError(f"{src}: 'frame_index' must be >= 0, got {int(arr)}")
+        return arr.astype(target)
+    expected: tuple[Any, ...] = {
+        "points": ("N", 3), "normals": ("N", 3), "labels": ("N",), "parts": ("N",),
+        "joints": (NUM_JOINTS, 3), "body_vertices": ("V", 3), "vtransf": ("V", 3, 3),
+        "garment_vertices": ("Vg", 3),
+    }[key]  # fmt: skip
+    ok = arr.ndim == len(expected) and all(
+        isinstance(e, str) or s == e for s, e in zip(arr.shape, expected)
+    )
+    if not ok:
+        want = "(" + ", ".join(str(e) for e in expected) + ("," if len(expected) == 1 else "") + ")"
+        raise ValueError(f"{src}: '{key}' must have shape {want}, got {arr.shape}")
+    if target.kind == "f" and not np.isfinite(arr).all():
+        raise ValueError(f"{src}: '{key}' contains NaN or inf")
+    if key == "labels" and arr.size and (arr.min() < 0 or arr.max() > 255):
+        raise ValueError(f"{src}: 'labels' must be in [0, 255]")
+    if key == "parts" and arr.size and (arr.min() < -1 or arr.max() >= NUM_JOINTS):
+        raise ValueError(f"{src}: 'parts' must be in [-1, {NUM_JOINTS - 1}]")
+    return arr.astype(target, copy=False)
+
+
+def _check_consistency(src: str, arrays: Mapping[str, np.ndarray]) -> None:
+    """Cross-key checks: all per-point arrays share N, body arrays share V."""
+    per_point = [k for k in ("points", "normals", "labels", "parts") if k in arrays]
+    sizes = {k: arrays[k].shape[0] for k in per_point}
+    if len(set(sizes.values())) > 1:
+        desc = ", ".join(f"{k}={n}" for k, n in sizes.items())
+        raise ValueError(f"{src}: per-point arrays disagree on N ({desc})")
+    if "points" in arrays and arrays["points"].shape[0] == 0:
+        raise ValueError(f"{src}: 'points' is empty")
+    if "body_vertices" in arrays and "vtransf" in arrays:
+        if arrays["body_vertices"].shape[0] != arrays["vtransf"].shape[0]:
+            raise ValueError(
+                f"{src}: 'body_vertices' has {arrays['body_vertices'].shape[0]} vertices but "
+                f"'vtransf' has {arrays['vtransf'].shape[0]}"
+            )
+
+
+def _validate_frame_arrays(src: str, raw: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    out = {k: _check_array(src, k, v) for k, v in raw.items()}
+    _check_consistency(src, out)
+    return out
+
+
+def write_frame(path: str | os.PathLike, frame: Frame, compress: bool = False) -> None:
+    """Validate ``frame`` and write it atomically as an npz (uncompressed by default)."""
+    arrays = _validate_frame_arrays(os.fspath(path), frame.to_arrays())
+    save_npz_atomic(path, compress=compress, **arrays)
+
+
+def _load_npz(path: str, keys: Iterable[str] | None) -> tuple[set[str], dict[str, np.ndarray]]:
+    """Read ``keys`` (all if None; missing ones skipped) from an npz; errors become one-line ValueErrors."""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if not hasattr(z, "files"):
+                raise ValueError("not an npz archive")
+            names = set(z.files)
+            wanted = names if keys is None else [k for k in keys if k in names]
+            return names, {k: z[k] for k in wanted}
+    except Exception as e:  # zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error ...
+        msg = " ".join(str(e).split()) or type(e).__name__
+        raise ValueError(f"{path}: corrupt or truncated npz ({type(e).__name__}: {msg})") from None
+
+
+def read_frame(
+    path: str | os.PathLike, keys: Sequence[str] | None = None, *, allow_missing: bool = False
+) -> Frame | dict[str, np.ndarray]:
+    """Read and validate one frame npz.
+
+    keys=None: read every key and return a :class:`Frame` (required keys must
+    exist, optional ones become None). With ``keys``: read only those members
+    (fast: npz members are loaded lazily) and return a dict; a requested key
+    that is absent raises, unless ``allow_missing`` and the key is optional.
+
+    Raises ``ValueError("<path>: <problem>")`` for a truncated/corrupt archive,
+    a missing key, a wrong shape, or NaN/inf values.
+    """
+    src = os.fspath(path)
+    if keys is not None:
+        unknown = [k for k in keys if k not in FRAME_KEYS]
+        if unknown:
+            raise ValueError(f"read_frame: unknown frame keys {unknown}; known: {list(FRAME_KEYS)}")
+    names, raw = _load_npz(src, keys)
+    needed = REQUIRED_FRAME_KEYS if keys is None else [
+        k for k in keys if not (allow_missing and k in OPTIONAL_FRAME_KEYS)
+    ]  # fmt: skip
+    for k in needed:
+        if k not in names:
+            raise ValueError(f"{src}: missing key '{k}'")
+    raw = {k: v for k, v in raw.items() if k in FRAME_KEYS}  # ignore foreign extras
+    arrays = _validate_frame_arrays(src, raw)
+    if keys is not None:
+        return arrays
+    kwargs: dict[str, Any] = dict(arrays)
+    kwargs["frame_index"] = int(kwargs["frame_index"])
+    return Frame(**kwargs)
+
+
+# --------------------------------------------------------------------------- subject / sequence files
+@dataclass(kw_only=True)
+class SubjectAsset:
+    """``subjects/<subject>/subject.npz``: everything constant for a subject.
+
+    template:     (V, 3) float32 rest-pose body vertices.
+    faces:        (F, 3) int32 body triangles.
+    uv:           (U, 2) float32 texture coordinates.
+    uv_faces:     (F, 3) int32 per-face indices into ``uv``.
+    vertex_joint: (V,) int8 skeleton joint (body part) of each vertex.
+    phenotype:    dict of anny phenotype values (stored as a JSON string).
+    garment_rest_vertices: (Vg, 3) float32 or None (tight subjects).
+    garment_faces:         (Fg, 3) int32 or None.
+    """
+
+    template: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray
+    uv_faces: np.ndarray
+    vertex_joint: np.ndarray
+    phenotype: dict[str, Any] = field(default_factory=dict)
+    garment_rest_vertices: np.ndarray | None = None
+    garment_faces: np.ndarray | None = None
+
+
+def write_subject(path: str | os.PathLike, subject: SubjectAsset) -> None:
+    """Write ``subject.npz`` atomically (garment arrays omitted when None)."""
+    src = os.fspath(path)
+    t = np.asarray(subject.template, np.float32)
+    if t.ndim != 2 or t.shape[1] != 3:
+        raise ValueError(f"{src}: template must have shape (V, 3), got {t.shape}")
+    arrays: dict[str, np.ndarray] = {
+        "template": t,
+        "faces": np.asarray(subject.faces, np.int32),
+        "uv": np.asarray(subject.uv, np.float32),
+        "uv_faces": np.asarray(subject.uv_faces, np.int32),
+        "vertex_joint": np.asarray(subject.vertex_joint, np.int8),
+        "phenotype": np.asarray(json.dumps(subject.phenotype, sort_keys=True)),
+    }
+    if arrays["vertex_joint"].shape != (t.shape[0],):
+        raise ValueError(f"{src}: vertex_joint must have shape ({t.shape[0]},), got {arrays['vertex_joint'].shape}")
+    if (subject.garment_rest_vertices is None) != (subject.garment_faces is None):
+        raise ValueError(f"{src}: garment_rest_vertices and garment_faces must both be given or both None")
+    if subject.garment_rest_vertices is not None:
+        arrays["garment_rest_vertices"] = np.asarray(subject.garment_rest_vertices, np.float32)
+        arrays["garment_faces"] = np.asarray(subject.garment_faces, np.int32)
+    save_npz_atomic(path, **arrays)
+
+
+def read_subject(path: str | os.PathLike) -> SubjectAsset:
+    """Read ``subject.npz``; a missing key or bad phenotype JSON raises ``ValueError`` naming the file."""
+    src = os.fspath(path)
+    names, raw = _load_npz(src, None)
+    for k in ("template", "faces", "uv", "uv_faces", "vertex_joint", "phenotype"):
+        if k not in names:
+            raise ValueError(f"{src}: missing key '{k}'")
+    try:
+        phenotype = json.loads(str(raw["phenotype"]))
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{src}: 'phenotype' is not valid JSON ({e})") from None
+    return SubjectAsset(
+        template=raw["template"], faces=raw["faces"], uv=raw["uv"], uv_faces=raw["uv_faces"],
+        vertex_joint=raw["vertex_joint"], phenotype=phenotype,
+        garment_rest_vertices=raw.get("garment_rest_vertices"), garment_faces=raw.get("garment_faces"),
+    )  # fmt: skip
+
+
+@dataclass
+class Motion:
+    """``motion.npz``: joint_rotvecs (T, 24, 3) axis-angle (anny local-ref axes), root_translation (T, 3) metres."""
+
+    joint_rotvecs: np.ndarray
+    root_translation: np.ndarray
+
+
+def write_motion(path: str | os.PathLike, motion: Motion) -> None:
+    """Write ``motion.npz`` atomically after checking shapes."""
+    src = os.fspath(path)
+    r = np.asarray(motion.joint_rotvecs, np.float32)
+    t = np.asarray(motion.root_translation, np.float32)
+    if r.ndim != 3 or r.shape[1:] != (NUM_JOINTS, 3):
+        raise ValueError(f"{src}: joint_rotvecs must have shape (T, {NUM_JOINTS}, 3), got {r.shape}")
+    if t.shape != (r.shape[0], 3):
+        raise ValueError(f"{src}: root_translation must have shape ({r.shape[0]}, 3), got {t.shape}")
+    save_npz_atomic(path, joint_rotvecs=r, root_translation=t)
+
+
+def read_motion(path: str | os.PathLike) -> Motion:
+    """Read ``motion.npz`` with the same checks as :func:`write_motion`."""
+    src = os.fspath(path)
+    names, raw = _load_npz(src, ("joint_rotvecs", "root_translation"))
+    for k in ("joint_rotvecs", "root_translation"):
+        if k not in names:
+            raise ValueError(f"{src}: missing key '{k}'")
+    r, t = raw["joint_rotvecs"], raw["root_translation"]
+    if r.ndim != 3 or r.shape[1:] != (NUM_JOINTS, 3) or t.shape != (r.shape[0], 3):
+        raise ValueError(f"{src}: bad shapes joint_rotvecs {r.shape}, root_translation {t.shape}")
+    return Motion(r, t)
+
+
+def _read_json(path: str, what: str) -> Any:
+    if not os.path.isfile(path):
+        raise ValueError(f"{path}: missing ({what})")
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: malformed JSON ({' '.join(str(e).split())})") from None
+
+
+def write_sequence_meta(path: str | os.PathLike, meta: Mapping[str, Any]) -> None:
+    """Write ``sequence.json`` atomically; ``num_frames`` (int) is required.
+
+    Conventional keys: ``motion`` (list of segments {name, seed, kind, start, stop}),
+    ``fps``, ``num_frames``, ``rejected_frames`` (list of {frame, reason}),
+    ``source`` (for imported data: original folder and ``source_frame_ids``).
+    """
+    if not isinstance(meta.get("num_frames"), int):
+        raise ValueError(f"{os.fspath(path)}: sequence meta needs an integer 'num_frames'")
+    write_json_atomic(path, dict(meta))
+
+
+def read_sequence_meta(path: str | os.PathLike) -> dict[str, Any]:
+    """Read ``sequence.json``; malformed JSON or a missing ``num_frames`` raises ``ValueError``."""
+    src = os.fspath(path)
+    meta = _read_json(src, "sequence.json")
+    if not isinstance(meta, dict) or not isinstance(meta.get("num_frames"), int):
+        raise ValueError(f"{src}: sequence.json must be an object with an integer 'num_frames'")
+    return meta
+
+
+# --------------------------------------------------------------------------- layout and card
+class DatasetLayout:
+    """Paths inside a dataset folder. Pure path arithmetic plus directory listing."""
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = os.fspath(root)
+
+    @property
+    def card_path(self) -> str:
+        return os.path.join(self.root, "card.json")
+
+    def subject_dir(self, subject: str) -> str:
+        return os.path.join(self.root, "subjects", subject)
+
+    def subject_path(self, subject: str) -> str:
+        return os.path.join(self.subject_dir(subject), "subject.npz")
+
+    def split_dir(self, subject: str, split: str) -> str:
+        _check_split(split)
+        return os.path.join(self.subject_dir(subject), split)
+
+    def sequence_dir(self, subject: str, split: str, sequence: str) -> str:
+        return os.path.join(self.split_dir(subject, split), sequence)
+
+    def sequence_meta_path(self, subject: str, split: str, sequence: str) -> str:
+        return os.path.join(self.sequence_dir(subject, split, sequence), "sequence.json")
+
+    def motion_path(self, subject: str, split: str, sequence: str) -> str:
+        return os.path.join(self.sequence_dir(subject, split, sequence), "motion.npz")
+
+    def frames_dir(self, subject: str, split: str, sequence: str) -> str:
+        return os.path.join(self.sequence_dir(subject, split, sequence), "frames")
+
+    def frame_path(self, subject: str, split: str, sequence: str, index: int) -> str:
+        if index < 0:
+            raise ValueError(f"frame index must be >= 0, got {index}")
+        return os.path.join(self.frames_dir(subject, split, sequence), f"{index:06d}.npz")
+
+    def subjects(self) -> list[str]:
+        """Subject folders present on disk, sorted."""
+        d = os.path.join(self.root, "subjects")
+        if not os.path.isdir(d):
+            return []
+        return sorted(s for s in os.listdir(d) if os.path.isdir(os.path.join(d, s)))
+
+    def sequences(self, subject: str, split: str) -> list[str]:
+        """Sequence folders of a subject's split present on disk, sorted."""
+        d = self.split_dir(subject, split)
+        if not os.path.isdir(d):
+            return []
+        return sorted(s for s in os.listdir(d) if os.path.isdir(os.path.join(d, s)))
+
+    def frame_indices(self, subject: str, split: str, sequence: str) -> list[int]:
+        """Indices of the frame files present, sorted (temporary files are ignored)."""
+        d = self.frames_dir(subject, split, sequence)
+        if not os.path.isdir(d):
+            return []
+        return sorted(int(m.group(1)) for n in os.listdir(d) if (m := _FRAME_NAME.match(n)))
+
+    def iter_frames(self, split: str, subjects: Sequence[str] | None = None) -> list[tuple[str, str, str]]:
+        """All frames of a split as (subject, sequence, frame_path), sorted by subject, sequence, index."""
+        _check_split(split)
+        out = []
+        for s in self.subjects() if subjects is None else subjects:
+            for seq in self.sequences(s, split):
+                for i in self.frame_indices(s, split, seq):
+                    out.append((s, seq, self.frame_path(s, split, seq, i)))
+        return out
+
+
+def _check_split(split: str) -> None:
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
+
+
+def _pocoloco_version() -> str:
+    from .. import __version__
+
+    return __version__
+
+
+def make_card(
+    *,
+    subjects: Mapping[str, Mapping[str, Any]],
+    generation_config: Mapping[str, Any] | None = None,
+    counts: Mapping[str, Any] | None = None,
+    normalisation: Mapping[str, Any] | None = None,
+    loose_share: Mapping[str, float] | None = None,
+) -> dict[str, Any]:
+    """A new card dict with the format header, skeleton, creation time and version filled in.
+
+    subjects: {name: {"garment_kind": str, "phenotype": {...}, ...}}.
+    counts:   {subject: {split: {"sequences": int, "frames": int, "rejected_frames": int}}}.
+    normalisation: {"root_joint": 0, "mean": [3], "std": float, "computed_on": "train"}.
+    loose_share: {subject: fraction of points labelled loose garment}.
+    """
+    return {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "pocoloco_version": _pocoloco_version(),
+        "generation_config": dict(generation_config or {}),
+        "skeleton": {"joint_names": list(JOINT_NAMES), "parents": list(JOINT_PARENTS)},
+        "subjects": {k: dict(v) for k, v in subjects.items()},
+        "counts": {k: dict(v) for k, v in (counts or {}).items()},
+        "normalisation": dict(normalisation) if normalisation is not None else None,
+        "loose_share": dict(loose_share or {}),
+    }
+
+
+def _validate_card(src: str, card: Any) -> None:
+    if not isinstance(card, dict):
+        raise ValueError(f"{src}: card must be a JSON object")
+    if card.get("format") != FORMAT_NAME:
+        raise ValueError(f"{src}: not a pocoloco dataset card (format is {card.get('format')!r}, expected {FORMAT_NAME!r})")
+    if card.get("version") != FORMAT_VERSION:
+        raise ValueError(f"{src}: unsupported dataset format version {card.get('version')!r} (this code reads {FORMAT_VERSION})")
+    if not isinstance(card.get("subjects"), dict):
+        raise ValueError(f"{src}: card has no 'subjects' object")
+    norm = card.get("normalisation")
+    if norm is not None:
+        ok = (
+            isinstance(norm, dict)
+            and isinstance(norm.get("mean"), list) and len(norm["mean"]) == 3
+            and isinstance(norm.get("std"), (int, float)) and norm["std"] > 0
+        )  # fmt: skip
+        if not ok:
+            raise ValueError(f"{src}: 'normalisation' must be {{'mean': [3 floats], 'std': float > 0, ...}}, got {norm!r}")
+
+
+def read_card(root: str | os.PathLike) -> dict[str, Any]:
+    """Read and validate ``<root>/card.json``.
+
+    Raises ``ValueError`` naming the path when the folder is not a pocoloco
+    dataset (no card), the JSON is malformed, the format name or version differ.
+    """
+    root = os.fspath(root)
+    path = os.path.join(root, "card.json")
+    if not os.path.isdir(root):
+        raise ValueError(f"{root}: not a pocoloco dataset (no such folder)")
+    if not os.path.isfile(path):
+        raise ValueError(f"{root}: not a pocoloco dataset (no card.json)")
+    card = _read_json(path, "card.json")
+    _validate_card(path, card)
+    return card
+
+
+def write_card(root: str | os.PathLike, card: Mapping[str, Any]) -> None:
+    """Validate ``card`` (format name, version, subjects, normalisation) and write it atomically."""
+    path = os.path.join(os.fspath(root), "card.json")
+    card = dict(card)
+    _validate_card(path, card)
+    write_json_atomic(path, card)
+
+
+# --------------------------------------------------------------------------- statistics
+def compute_normalisation(frame_paths: Iterable[str | os.PathLike], root_joint: int = 0) -> dict[str, Any]:
+    """Dataset normalisation: per-axis mean and one scalar std of root-centred points.
+
+    For every frame, c = points - joints[root_joint] (N, 3). Over all points of
+    all frames (each point weighs the same): mean = (3,) per-axis mean of c,
+    std = sqrt(mean over all points and all 3 axes of (c - mean)^2).
+
+    Streaming: one frame in memory at a time (only ``points`` and ``joints``
+    are read); per-frame moments are merged with Chan et al.'s parallel
+    variance update in float64.
+
+    Returns {"root_joint", "mean": [3 floats], "std": float, "num_frames", "num_points"}.
+    """
+    count = 0
+    mean = np.zeros(3)
+    m2 = np.zeros(3)  # per-axis sum of squared deviations from the running mean
+    num_frames = 0
+    for p in frame_paths:
+        arr = read_frame(p, ("points", "joints"))
+        c = arr["points"].astype(np.float64) - arr["joints"][root_joint].astype(np.float64)
+        n_b = c.shape[0]
+        mean_b = c.mean(axis=0)
+        m2_b = ((c - mean_b) ** 2).sum(axis=0)
+        total = count + n_b
+        delta = mean_b - mean
+        mean = mean + delta * (n_b / total)
+        m2 = m2 + m2_b + delta**2 * (count * n_b / total)
+        count = total
+        num_frames += 1
+    if count == 0:
+        raise ValueError("compute_normalisation: no frames given")
+    std = float(np.sqrt(m2.sum() / (3 * count)))
+    if not std > 0:
+        raise ValueError("compute_normalisation: zero spread (all points identical)")
+    return {"root_joint": root_joint, "mean": [float(x) for x in mean], "std": std,
+            "num_frames": num_frames, "num_points": int(count)}  # fmt: skip
+
+
+def refresh_card(root: str | os.PathLike, normalise_on: str = "train") -> dict[str, Any]:
+    """Recount sequences/frames/rejected frames per subject and split from disk and
+    recompute the normalisation on ``normalise_on``; write and return the card.
+
+    Rejected-frame counts come from each ``sequence.json``'s ``rejected_frames`` list.
+    """
+    layout = DatasetLayout(root)
+    card = read_card(root)
+    counts: dict[str, Any] = {}
+    for s in card["subjects"]:
+        counts[s] = {}
+        for split in SPLITS:
+            seqs = layout.sequences(s, split)
+            frames = rejected = 0
+            for seq in seqs:
+                frames += len(layout.frame_indices(s, split, seq))
+                meta_path = layout.sequence_meta_path(s, split, seq)
+                if os.path.isfile(meta_path):
+                    rejected += len(read_sequence_meta(meta_path).get("rejected_frames", []))
+            counts[s][split] = {"sequences": len(seqs), "frames": frames, "rejected_frames": rejected}
+    card["counts"] = counts
+    paths = [p for _, _, p in layout.iter_frames(normalise_on, list(card["subjects"]))]
+    if paths:
+        stats = compute_normalisation(paths)
+        card["normalisation"] = {"root_joint": stats["root_joint"], "mean": stats["mean"],
+                                 "std": stats["std"], "computed_on": normalise_on}  # fmt: skip
+    write_card(root, card)
+    return card
+
+
+# --------------------------------------------------------------------------- export
+def export_frame(frame_path: str | os.PathLike, out_path: str | os.PathLike, fmt: str = "ply") -> None:
+    """Export one frame to a published format.
+
+    fmt="ply": binary PLY with points, normals and (if present) the label per vertex.
+    fmt="npz": POP-style packed npz with scan_pc, scan_n, body_verts, vtransf,
+    scan_name (no posmaps; see ``published.write_pop_npz``). Needs a frame with
+    body_vertices and vtransf (synthetic data). Coordinates are left as stored
+    (world frame, not pelvis-centred).
+    """
+    from .published import write_pop_npz, write_ply  # published imports this module
+
+    frame = read_frame(frame_path)
+    assert isinstance(frame, Frame)
+    if fmt == "ply":
+        write_ply(out_path, frame.points, normals=frame.normals, labels=frame.labels)
+    elif fmt == "npz":
+        if frame.body_vertices is None or frame.vtransf is None:
+            raise ValueError(f"{os.fspath(frame_path)}: frame has no body_vertices/vtransf; POP export needs them")
+        parts = os.path.normpath(os.fspath(frame_path)).split(os.sep)
+        scan_name = "_".join(parts[-5:-2] + [parts[-1][:-4]]) if len(parts) >= 5 else parts[-1][:-4]
+        write_pop_npz(out_path, scan_pc=frame.points, scan_n=frame.normals, body_verts=frame.body_vertices,
+                      vtransf=frame.vtransf, scan_name=scan_name)  # fmt: skip
+    else:
+        raise ValueError(f"export_frame: fmt must be 'ply' or 'npz', got {fmt!r}")

@@ -1,0 +1,418 @@
+"""The synthetic capture pipeline: body + motion + cloth simulation + virtual capture.
+
+``synthesize(config, out)`` writes a dataset in the format of
+``docs/dataset_format.md``. The unit of work is one *sequence* (a subject
+performing one procedural motion):
+
+1. generate the motion (``data.motion``), prepend a blend from the rest pose;
+2. pose the anny body for every frame (``body.AnnyBody``);
+3. simulate the loose garment on it (``data.cloth_sim``, newton VBD) — the
+   result is cached in ``cloth.npz`` so a kill during step 4 does not redo it;
+4. capture every stored frame as a scanner would (``data.capture``) and write
+   one ``frames/NNNNNN.npz`` per frame, atomically; frames whose cloth state was
+   flagged bad (explosion, penetration) are rejected and logged, not stored;
+5. write ``sequence.json`` last: its presence marks the sequence done.
+
+A killed run resumes where it stopped: finished sequences are skipped,
+already-written frames are kept and not rewritten. Sequences run in parallel
+worker processes (``workers``). The dataset card (counts, normalisation,
+loose-region share, penetration, timings) is written when all are done.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS
+from ..config import SubjectSpec, SynthConfig
+from ..utils.atomic import save_npz_atomic, write_json_atomic
+from .format import FORMAT_NAME, FORMAT_VERSION, DatasetLayout, Frame, compute_normalisation, read_frame, write_frame
+
+SPLITS = ("train", "test")
+
+
+@dataclass(frozen=True)
+class SequenceJob:
+    """One unit of work: subject ``subject`` performing motion ``index`` of ``split``."""
+
+    subject: SubjectSpec
+    split: str
+    index: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.split}_{self.index:04d}"
+
+
+def job_seed(config: SynthConfig, job: SequenceJob) -> int:
+    """A stable 31-bit seed per (run seed, subject, split, sequence)."""
+    key = f"{config.seed}/{job.subject.name}/{job.split}/{job.index}".encode()
+    return int.from_bytes(hashlib.sha256(key).digest()[:4], "little") & 0x7FFFFFFF
+
+
+def list_jobs(config: SynthConfig) -> list[SequenceJob]:
+    jobs = []
+    for subject in config.subjects:
+        for split, count in (("train", config.train_sequences), ("test", config.test_sequences)):
+            jobs += [SequenceJob(subject, split, i) for i in range(count)]
+    return jobs
+
+
+def _config_json(config: SynthConfig) -> dict:
+    return json.loads(json.dumps(config.to_dict()))
+
+
+def prepare_output(config: SynthConfig, out: Path) -> None:
+    """Create ``out`` or check it holds a run of the same configuration.
+
+    Raises ValueError when ``out`` is a non-empty folder that is not a dataset
+    or a dataset generated with other settings (naming the differing keys).
+    """
+    layout = DatasetLayout(out)
+    wanted = _config_json(config)
+    if layout.card_path.exists():
+        try:
+            card = json.loads(layout.card_path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"{layout.card_path}: unreadable dataset card ({e})") from None
+        have = card.get("config")
+        if have != wanted:
+            keys = sorted(k for k in set(wanted) | set(have or {}) if (have or {}).get(k) != wanted.get(k))
+            raise ValueError(
+                f"{out}: holds a dataset generated with a different configuration "
+                f"(differs in: {', '.join(keys)}); choose another --out"
+            )
+        return
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out}: folder exists, is not empty and is not a pocoloco dataset")
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(layout.card_path, _base_card(config, status="incomplete"))
+
+
+def _base_card(config: SynthConfig, status: str) -> dict:
+    return {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "status": status,
+        "pocoloco_version": __version__,
+        "config": _config_json(config),
+        "skeleton": {"joint_names": list(JOINT_NAMES), "parents": list(JOINT_PARENTS), "up_axis": "z", "units": "m"},
+        "subjects": {s.name: {"garment": s.garment, "phenotype": s.phenotype} for s in config.subjects},
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# per-process caches (a worker builds each subject's body and garment once)
+_BODIES: dict = {}
+
+
+def _subject_assets(subject: SubjectSpec, config: SynthConfig):
+    """(AnnyBody, Garment | None) for a subject, built once per process."""
+    key = (subject.name, json.dumps(subject.phenotype, sort_keys=True), subject.garment, config.garment_resolution)
+    if key not in _BODIES:
+        from ..body import AnnyBody
+
+        body = AnnyBody(subject.phenotype)
+        garment = None
+        if subject.garment != "tight":
+            from .garments import make_garment
+
+            garment = make_garment(subject.garment, body, resolution=config.garment_resolution)
+        _BODIES[key] = (body, garment)
+    return _BODIES[key]
+
+
+def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
+    """subjects/<name>/subject.npz: body template, faces, UVs, garment rest mesh."""
+    path = DatasetLayout(out).subject_dir(subject.name) / "subject.npz"
+    if path.exists():
+        return
+    body, garment = _subject_assets(subject, config)
+    arrays = dict(
+        template=body.template,
+        template_joints=body.template_joints,
+        faces=body.faces,
+        uv=body.uv,
+        uv_faces=body.uv_faces,
+        vertex_joint=body.vertex_joint,
+        phenotype=np.array(json.dumps(body.phenotype)),
+        garment_kind=np.array(subject.garment),
+    )
+    if garment is not None:
+        arrays.update(garment_rest_vertices=garment.rest_vertices, garment_faces=garment.faces)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_npz_atomic(path, **arrays)
+
+
+def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Callable[[int], None] | None = None) -> dict:
+    """Generate (or finish) one sequence; returns its ``sequence.json`` record."""
+    from .capture import CaptureMesh, CaptureSettings, capture_frame
+    from .motion import generate_motion, rest_to_motion
+
+    layout = DatasetLayout(out)
+    seq_dir = layout.sequence_dir(job.subject.name, job.split, job.name)
+    record_path = seq_dir / "sequence.json"
+    if record_path.exists():
+        record = json.loads(record_path.read_text())
+        if progress:
+            progress(config.frames_per_sequence)
+        return record
+    seq_dir.mkdir(parents=True, exist_ok=True)
+    body, garment = _subject_assets(job.subject, config)
+    seed = job_seed(config, job)
+    timings = {"motion": 0.0, "simulation": 0.0, "capture": 0.0, "write": 0.0}
+
+    # 1-2. motion and posed body for every simulated frame
+    t0 = time.perf_counter()
+    motion = generate_motion(
+        seed, config.frames_per_sequence + config.warmup_frames, split=job.split, fps=config.fps, body=body
+    )
+    full = rest_to_motion(motion, config.blend_frames)
+    start = full.num_frames - config.frames_per_sequence  # first stored frame
+    posed = body.pose(full.joint_rotvecs, full.root_translation)
+    save_npz_atomic(
+        seq_dir / "motion.npz",
+        joint_rotvecs=full.joint_rotvecs[start:],
+        root_translation=full.root_translation[start:],
+        fps=np.float32(config.fps),
+    )
+    timings["motion"] = time.perf_counter() - t0
+
+    # 3. cloth simulation (cached)
+    cloth_vertices, cloth_stats = None, None
+    if garment is not None:
+        cloth_vertices, cloth_stats, timings["simulation"] = _simulate_cached(body, garment, posed, seq_dir, start)
+
+    # 4. capture
+    settings = CaptureSettings(
+        num_points=config.num_points, num_cameras=config.capture_cameras, noise_std=config.scanner_noise
+    )
+    body_part = body.vertex_joint[body.faces[:, 0]]
+    rejected, shares, penetration = [], [], []
+    for i in range(config.frames_per_sequence):
+        t = start + i
+        frame_path = layout.frame_path(job.subject.name, job.split, job.name, i)
+        stats = cloth_stats[i] if cloth_stats is not None else None
+        if stats is not None and not stats["valid"]:
+            rejected.append({"frame": i, "reason": stats["reason"]})
+        elif frame_path.exists() and _readable(frame_path):
+            labels = read_frame(frame_path, keys=["labels"]).labels
+            shares.append(100.0 * float(np.mean(labels == 1)))
+        else:
+            tc = time.perf_counter()
+            meshes = [CaptureMesh(posed.vertices[t], body.faces, label=0, face_part=body_part)]
+            if cloth_vertices is not None:
+                meshes.append(
+                    CaptureMesh(cloth_vertices[i], garment.faces, label=1, face_part=np.full(len(garment.faces), -1))
+                )
+            scan = capture_frame(meshes, dataclasses.replace(settings, seed=seed + t))
+            tw = time.perf_counter()
+            timings["capture"] += tw - tc
+            write_frame(
+                frame_path,
+                Frame(
+                    points=scan.points,
+                    normals=scan.normals,
+                    labels=scan.labels,
+                    parts=scan.parts,
+                    joints=posed.joints[t],
+                    body_vertices=posed.vertices[t],
+                    vtransf=posed.vtransf[t],
+                    garment_vertices=None if cloth_vertices is None else cloth_vertices[i],
+                    frame_index=i,
+                ),
+            )
+            timings["write"] += time.perf_counter() - tw
+            shares.append(100.0 * float(np.mean(scan.labels == 1)))
+        if stats is not None:
+            penetration.append(stats)
+        if progress:
+            progress(1)
+
+    record = {
+        "subject": job.subject.name,
+        "split": job.split,
+        "name": job.name,
+        "seed": seed,
+        "fps": config.fps,
+        "num_frames": config.frames_per_sequence,
+        "num_stored": config.frames_per_sequence - len(rejected),
+        "rejected": rejected,
+        "segments": [list(s) for s in motion.segments],
+        "first_stored_motion_frame": config.warmup_frames,
+        "loose_share_percent": float(np.mean(shares)) if shares else 0.0,
+        "penetration": _summarise_penetration(penetration),
+        "seconds": timings,
+    }
+    write_json_atomic(record_path, record)
+    cache = seq_dir / "cloth.npz"
+    if cache.exists():
+        cache.unlink()
+    return record
+
+
+def _readable(path: Path) -> bool:
+    try:
+        read_frame(path, keys=["labels"])
+        return True
+    except ValueError:
+        return False
+
+
+def _simulate_cached(body, garment, posed, seq_dir: Path, start: int):
+    """Simulate the garment (or load the cached result). Returns stored-frame
+    vertices (T, Vg, 3), per-stored-frame stats dicts and the seconds spent."""
+    from .cloth_sim import simulate_garment
+
+    cache = seq_dir / "cloth.npz"
+    if cache.exists():
+        try:
+            with np.load(cache) as z:
+                return z["vertices"], json.loads(str(z["stats"])), float(z["seconds"])
+        except Exception:  # a corrupt cache is simply recomputed
+            cache.unlink()
+    t0 = time.perf_counter()
+    seq = simulate_garment(body, garment, posed)
+    seconds = time.perf_counter() - t0
+    stats = [dataclasses.asdict(s) for s in seq.stats[start:]]
+    vertices = seq.vertices[start:].astype(np.float32)
+    save_npz_atomic(cache, vertices=vertices, stats=np.array(json.dumps(stats)), seconds=np.float64(seconds))
+    return vertices, stats, seconds
+
+
+def _summarise_penetration(stats: list[dict]) -> dict:
+    if not stats:
+        return {}
+    valid = [s for s in stats if s["valid"]] or stats
+    return {
+        "max_mm": 1000.0 * max(s["penetration_max"] for s in valid),
+        "mean_mm": 1000.0 * float(np.mean([s["penetration_mean"] for s in valid])),
+        "fraction_percent": 100.0 * float(np.mean([s["penetration_fraction"] for s in valid])),
+        "stretch_max": max(s["stretch_max"] for s in valid),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+def _worker(config_dict: dict, out: str, job_index: int, queue) -> dict:
+    config = SynthConfig.from_dict(config_dict)
+    job = list_jobs(config)[job_index]
+    return run_sequence(config, Path(out), job, progress=(lambda n: queue.put(n)) if queue is not None else None)
+
+
+def synthesize(
+    config: SynthConfig,
+    out: str | os.PathLike,
+    workers: int = 1,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Generate (or resume) a dataset. Returns the final dataset card.
+
+    progress(done_frames, total_frames) is called as frames complete.
+    """
+    out = Path(out)
+    prepare_output(config, out)
+    t0 = time.perf_counter()
+    for subject in config.subjects:
+        write_subject(config, out, subject)
+    jobs = list_jobs(config)
+    total = len(jobs) * config.frames_per_sequence
+    done = 0
+
+    def tick(n: int) -> None:
+        nonlocal done
+        done += n
+        if progress:
+            progress(done, total)
+
+    records = []
+    if workers <= 1:
+        for job in jobs:
+            records.append(run_sequence(config, out, job, progress=tick))
+    else:
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        with ctx.Manager() as manager:
+            queue = manager.Queue()
+            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+                futures = [pool.submit(_worker, config.to_dict(), str(out), i, queue) for i in range(len(jobs))]
+                pending = set(futures)
+                while pending:
+                    while not queue.empty():
+                        tick(queue.get())
+                    finished = {f for f in pending if f.done()}
+                    for f in finished:
+                        records.append(f.result())
+                    pending -= finished
+                    time.sleep(0.2)
+                while not queue.empty():
+                    tick(queue.get())
+    card = finalize_card(config, out, records, wall_seconds=time.perf_counter() - t0, workers=workers)
+    return card
+
+
+def finalize_card(config: SynthConfig, out: Path, records: list[dict], wall_seconds: float, workers: int) -> dict:
+    """Counts, normalisation (on train), loose share, penetration and timings -> card.json."""
+    layout = DatasetLayout(out)
+    card = _base_card(config, status="complete")
+    counts: dict = {}
+    for subject in config.subjects:
+        mine = [r for r in records if r["subject"] == subject.name]
+        per_split = {}
+        for split in SPLITS:
+            rs = [r for r in mine if r["split"] == split]
+            per_split[split] = {
+                "sequences": len(rs),
+                "frames": sum(r["num_stored"] for r in rs),
+                "rejected": sum(len(r["rejected"]) for r in rs),
+            }
+        stored = [r for r in mine if r["num_stored"]]
+        pens = [r["penetration"] for r in mine if r["penetration"]]
+        card["subjects"][subject.name].update(
+            counts=per_split,
+            loose_share_percent=float(
+                np.average([r["loose_share_percent"] for r in stored], weights=[r["num_stored"] for r in stored])
+            )
+            if stored
+            else 0.0,
+            penetration=(
+                {
+                    "max_mm": max(p["max_mm"] for p in pens),
+                    "mean_mm": float(np.mean([p["mean_mm"] for p in pens])),
+                    "fraction_percent": float(np.mean([p["fraction_percent"] for p in pens])),
+                }
+                if pens
+                else None
+            ),
+        )
+        counts[subject.name] = per_split
+    card["counts"] = {
+        split: {"frames": sum(c[split]["frames"] for c in counts.values()),
+                "rejected": sum(c[split]["rejected"] for c in counts.values())}
+        for split in SPLITS
+    }  # fmt: skip
+    train_frames = [p for _, _, p in layout.iter_frames("train")]
+    if not train_frames:
+        raise ValueError(f"{out}: no training frame survived generation (all rejected); see sequence.json files")
+    card["normalisation"] = {"root_joint": 0, "computed_on": "train", **compute_normalisation(train_frames)}
+    seconds = {k: sum(r["seconds"][k] for r in records) for k in ("motion", "simulation", "capture", "write")}
+    frames = sum(r["num_frames"] for r in records)
+    card["generation"] = {
+        "workers": workers,
+        "wall_seconds_last_run": wall_seconds,
+        "cpu_seconds_per_frame": {k: v / max(frames, 1) for k, v in seconds.items()},
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    write_json_atomic(layout.card_path, card)
+    return card

@@ -1,0 +1,310 @@
+"""Point-cloud and curve rendering to PNG with matplotlib's Agg backend (no system deps).
+
+Point clouds are drawn as orthographic splats in painter's order (far points
+first), Z up, equal aspect, no axes. Colours come from :func:`colors_for`
+(by label, by normal, or by height); when normals are given, each point's
+brightness is modulated by how much it faces the viewer, which makes the
+surface shape readable.
+
+Views (body convention: Z up, the subject faces -Y, +X is its left):
+``front`` looks from -Y, ``back`` from +Y, ``side`` from +X (the subject's
+left; it faces left in the image), ``top`` from +Z (front at the bottom).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+
+import numpy as np
+
+#: Per-view (right, up, towards-viewer) unit axes in world coordinates.
+VIEWS: dict[str, tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]] = {
+    "front": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+    "back": ((-1, 0, 0), (0, 0, 1), (0, 1, 0)),
+    "side": ((0, 1, 0), (0, 0, 1), (1, 0, 0)),
+    "top": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+}
+
+#: RGB per label: body (skin), garment (blue), anything else (orange).
+LABEL_COLORS = np.array([[0.87, 0.72, 0.62], [0.25, 0.47, 0.82], [0.95, 0.6, 0.2]], dtype=np.float32)
+
+
+def _figure(width: float, height: float, dpi: int):
+    """A matplotlib Figure on the Agg canvas, independent of pyplot's global state."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height), dpi=dpi)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save_atomic(fig, path: str | os.PathLike) -> str:
+    """Write ``fig`` as a PNG to ``path`` through a temporary file + os.replace."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".png", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fig.savefig(fh, format="png", facecolor=fig.get_facecolor())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    return path
+
+
+def _check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {points.shape}")
+    return points
+
+
+def colors_for(
+    points: np.ndarray, normals: np.ndarray | None = None, labels: np.ndarray | None = None,
+    mode: str = "label",
+) -> np.ndarray:
+    """Base colour per point.
+
+    Args:
+        points: (N, 3). normals: (N, 3) unit or None. labels: (N,) int or None.
+        mode: ``label`` (body skin / garment blue; all skin without labels),
+            ``normal`` (RGB = (n + 1) / 2; needs normals), ``height`` (viridis on z).
+    Returns:
+        (N, 3) float32 RGB in [0, 1].
+    """
+    points = _check_points(points)
+    n = len(points)
+    if mode == "label":
+        if labels is None:
+            return np.broadcast_to(LABEL_COLORS[0], (n, 3)).copy()
+        labels = np.asarray(labels).reshape(-1)
+        if labels.shape != (n,):
+            raise ValueError(f"labels must have shape ({n},), got {labels.shape}")
+        return LABEL_COLORS[np.clip(labels.astype(np.int64), 0, len(LABEL_COLORS) - 1)]
+    if mode == "normal":
+        if normals is None:
+            raise ValueError("mode='normal' needs normals")
+        normals = _check_points(normals, "normals")
+        return np.clip((normals + 1.0) / 2.0, 0.0, 1.0).astype(np.float32)
+    if mode == "height":
+        from matplotlib import colormaps
+
+        z = points[:, 2]
+        t = (z - z.min()) / max(float(np.ptp(z)), 1e-9) if n else z
+        return colormaps["viridis"](t)[:, :3].astype(np.float32)
+    raise ValueError(f"mode must be 'label', 'normal' or 'height', got {mode!r}")
+
+
+def _project(points: np.ndarray, view: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 3) -> screen u (N,), v (N,), depth towards the viewer (N,)."""
+    if view not in VIEWS:
+        raise ValueError(f"view must be one of {sorted(VIEWS)}, got {view!r}")
+    right, up, toward = (np.asarray(a, dtype=np.float64) for a in VIEWS[view])
+    return points @ right, points @ up, points @ toward
+
+
+def _auto_point_size(ax, u: np.ndarray, v: np.ndarray, extent, front_share: float = 0.5) -> float:
+    """Marker area (points^2) so splats close the gaps between neighbouring points.
+
+    The silhouette area is estimated on a 64x64 occupancy grid, covered by the
+    front layer of ``front_share * N`` points (about half of an unculled cloud).
+    """
+    n = len(u)
+    if n == 0 or extent is None:
+        return 4.0
+    du, dv = extent[1] - extent[0], extent[3] - extent[2]
+    bbox = ax.get_window_extent()
+    px_per_m = min(bbox.width / max(du, 1e-9), bbox.height / max(dv, 1e-9))
+    cell = max(du, dv) / 64
+    occ = np.unique(np.stack([np.floor(u / cell), np.floor(v / cell)], 1).astype(np.int64), axis=0)
+    spacing_m = np.sqrt(len(occ) * cell * cell / max(front_share * n, 1))
+    diameter_px = np.clip(4.5 * spacing_m * px_per_m, 2.2, 20.0)  # >= 2 px: smaller splats alias to grey
+    return float((diameter_px * 72.0 / ax.figure.dpi) ** 2)
+
+
+def render_points(
+    ax, points: np.ndarray, colors: np.ndarray | None = None, labels: np.ndarray | None = None,
+    normals: np.ndarray | None = None, view: str = "front", point_size: float | None = None,
+    extent: tuple[float, float, float, float] | None = None, shade: bool = True, cull: bool = True,
+) -> None:
+    """Draw a point cloud on a matplotlib Axes, orthographic, painter's order.
+
+    Args:
+        ax: matplotlib Axes (cleared of ticks/spines; equal aspect).
+        points: (N, 3). colors: (N, 3) RGB or None (then from ``labels``).
+        labels: (N,) point labels, used when ``colors`` is None.
+        normals: (N, 3) unit normals or None; with ``shade`` they darken points
+            facing away from the viewer (headlight Lambert + ambient).
+        view: one of ``VIEWS`` (front, side, back, top).
+        point_size: marker area in points^2; None = chosen from N.
+        extent: (u_min, u_max, v_min, v_max) screen window; None = fit the cloud.
+        shade: modulate brightness by the normal's facing (without normals:
+            by depth, farther points darker).
+        cull: drop points whose normal faces away from the viewer (needs
+            normals): they are hidden in a solid surface and would otherwise
+            show through the gaps between splats.
+    """
+    points = _check_points(points)
+    n = len(points)
+    if colors is None:
+        colors = colors_for(points, labels=labels, mode="label")
+    colors = np.asarray(colors, dtype=np.float32)
+    if colors.shape != (n, 3):
+        raise ValueError(f"colors must have shape ({n}, 3), got {colors.shape}")
+    u, v, depth = _project(points, view)
+    if extent is None and n:
+        pad = 0.03 * max(float(np.ptp(u)), float(np.ptp(v)), 1e-6)
+        extent = (u.min() - pad, u.max() + pad, v.min() - pad, v.max() + pad)
+    culled = False
+    if normals is not None and (shade or cull):
+        normals = _check_points(normals, "normals")
+        if normals.shape != points.shape:
+            raise ValueError(f"normals must have shape {points.shape}, got {normals.shape}")
+        facing = normals @ np.asarray(VIEWS[view][2], dtype=np.float64)
+        if shade:
+            light = 0.3 + 0.7 * np.clip(facing, 0.0, 1.0) ** 0.7
+            colors = np.clip(colors * light[:, None], 0.0, 1.0)
+        if cull:
+            keep = facing > -0.15
+            u, v, depth, colors = u[keep], v[keep], depth[keep], colors[keep]
+            culled = True
+    elif shade and n:  # no normals: depth cue, farther points darker
+        near = (depth - depth.min()) / max(float(np.ptp(depth)), 1e-9)
+        colors = np.clip(colors * (0.55 + 0.45 * near)[:, None], 0.0, 1.0)
+    if point_size is None:
+        point_size = _auto_point_size(ax, u, v, extent, front_share=1.0 if culled else 0.5)
+    order = np.argsort(depth, kind="stable")  # far (small depth) first
+    ax.scatter(u[order], v[order], c=colors[order], s=point_size, marker="o", linewidths=0,
+               edgecolors="none", rasterized=True)
+    if extent is not None:
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_axis_off()
+
+
+def render_grid(
+    clouds: Sequence[tuple], path: str | os.PathLike, views: Sequence[str] = ("front", "side"),
+    ncols: int | None = None, mode: str = "label", panel_size: float = 3.0, dpi: int = 100,
+    point_size: float | None = None,
+) -> str:
+    """Render several clouds, each from several views, into one PNG (atomic write).
+
+    Args:
+        clouds: list of ``(points (N, 3), labels (N,) | None, normals (N, 3) | None, title)``.
+        path: output PNG path.
+        views: views per cloud, drawn side by side.
+        ncols: clouds per row (default: all in one row, at most 4).
+        mode: colour mode, see :func:`colors_for` (``normal`` needs normals).
+        panel_size: inches per panel; dpi: pixels per inch.
+    All panels share one scale (metres per pixel) so sizes are comparable.
+    Returns: ``path`` as a string.
+    """
+    if len(clouds) == 0:
+        raise ValueError("clouds is empty: nothing to render")
+    if not views:
+        raise ValueError("views is empty")
+    for v in views:
+        if v not in VIEWS:
+            raise ValueError(f"view must be one of {sorted(VIEWS)}, got {v!r}")
+    items = []
+    for k, c in enumerate(clouds):
+        if len(c) != 4:
+            raise ValueError(f"clouds[{k}] must be (points, labels, normals, title), got {len(c)} items")
+        pts, lab, nrm, title = c
+        items.append((_check_points(pts, f"clouds[{k}] points"), lab, nrm, str(title)))
+    ncols = ncols or min(len(items), 4)
+    nrows = -(-len(items) // ncols)
+    half = 1e-6  # shared half-extent of every panel window
+    for pts, *_ in items:
+        for v in views:
+            if len(pts):
+                u, w, _ = _project(pts, v)
+                half = max(half, float(np.ptp(u)) / 2, float(np.ptp(w)) / 2)
+    half *= 1.04
+    cols = ncols * len(views)
+    fig = _figure(panel_size * cols, panel_size * nrows + 0.35 * nrows, dpi)
+    fig.patch.set_facecolor("white")
+    for k, (pts, lab, nrm, title) in enumerate(items):
+        colors = colors_for(pts, normals=nrm, labels=lab, mode=mode)
+        r, c0 = divmod(k, ncols)
+        for j, v in enumerate(views):
+            ax = fig.add_subplot(nrows, cols, r * cols + c0 * len(views) + j + 1)
+            if len(pts):
+                u, w, _ = _project(pts, v)
+                cu, cw = (u.min() + u.max()) / 2, (w.min() + w.max()) / 2
+            else:
+                cu = cw = 0.0
+            render_points(ax, pts, colors=colors, normals=nrm, view=v, point_size=point_size,
+                          extent=(cu - half, cu + half, cw - half, cw + half))
+            ax.set_title(f"{title} ({v})" if title else v, fontsize=9)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - 0.3 / (panel_size * nrows + 0.35 * nrows),
+                        wspace=0.02, hspace=0.08)
+    return _save_atomic(fig, path)
+
+
+def render_turntable_frames(
+    points: np.ndarray, labels: np.ndarray | None, normals: np.ndarray | None, folder: str | os.PathLike,
+    num_frames: int = 12, size: float = 4.0, dpi: int = 100, mode: str = "label",
+) -> list[str]:
+    """Render ``num_frames`` PNGs of a cloud rotating about the vertical axis (front view).
+
+    The cloud is rotated about its own vertical centre line by 360/num_frames
+    degrees per frame. Returns the written paths ``folder/frame_0000.png`` ...
+    """
+    points = _check_points(points)
+    if num_frames < 1:
+        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
+    colors = colors_for(points, normals=normals, labels=labels, mode=mode)
+    centre = (points.min(0) + points.max(0)) / 2 if len(points) else np.zeros(3)
+    half = 1.04 * max(float(np.linalg.norm((points - centre)[:, :2], axis=1).max()) if len(points) else 1e-6,
+                      float(np.ptp(points[:, 2])) / 2 if len(points) else 1e-6)
+    paths = []
+    for i in range(num_frames):
+        a = 2 * np.pi * i / num_frames
+        rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        p = (points - centre) @ rot.T
+        nrm = None if normals is None else np.asarray(normals, dtype=np.float64) @ rot.T
+        fig = _figure(size, size, dpi)
+        ax = fig.add_axes((0, 0, 1, 1))
+        render_points(ax, p, colors=colors, normals=nrm, view="front", extent=(-half, half, -half, half))
+        paths.append(_save_atomic(fig, os.path.join(os.fspath(folder), f"frame_{i:04d}.png")))
+    return paths
+
+
+def plot_curves(
+    curves: dict[str, tuple[Sequence[float], Sequence[float]]], path: str | os.PathLike,
+    xlabel: str = "step", ylabel: str = "loss", logy: bool = False, title: str | None = None,
+) -> str:
+    """Line plot of named (x, y) curves (loss curves etc.) to a PNG (atomic write).
+
+    Args:
+        curves: name -> (x (K,), y (K,)).
+        logy: log-scale y axis (non-positive values are dropped by matplotlib).
+    Returns: ``path`` as a string.
+    """
+    if not curves:
+        raise ValueError("curves is empty: nothing to plot")
+    fig = _figure(6.0, 4.0, 100)
+    ax = fig.add_subplot(1, 1, 1)
+    for name, (x, y) in curves.items():
+        x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+        if x.shape != y.shape or x.ndim != 1:
+            raise ValueError(f"curve {name!r}: x and y must be 1-D of equal length, got {x.shape} and {y.shape}")
+        ax.plot(x, y, label=name, linewidth=1.5)
+    if logy:
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    ax.grid(True, alpha=0.3, which="both")
+    ax.legend(frameon=False)
+    fig.tight_layout()
+    return _save_atomic(fig, path)

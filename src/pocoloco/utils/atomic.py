@@ -1,0 +1,86 @@
+"""Atomic file writes: a reader never sees a half-written file.
+
+Each writer writes to a temporary file in the destination's folder, flushes and
+fsyncs it, then ``os.replace``s it over the destination (atomic on POSIX and
+Windows when both are on the same filesystem). If writing fails the temporary
+file is removed and the destination is left as it was.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from typing import IO, Any
+
+import numpy as np
+
+__all__ = ["atomic_write", "atomic_open", "save_npz_atomic", "write_json_atomic"]
+
+
+def _fsync_dir(folder: str) -> None:
+    """fsync a directory so the rename itself is durable (best effort, POSIX only)."""
+    if os.name != "posix":
+        return
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
+    """Context manager yielding a file object whose content replaces ``path`` on success.
+
+    ``mode`` is ``"wb"`` (default) or ``"w"`` (text, UTF-8). Parent folders are
+    created. On an exception inside the block the destination is untouched.
+    """
+    if mode not in ("wb", "w"):
+        raise ValueError(f"atomic_open: mode must be 'wb' or 'w', got {mode!r}")
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix="." + os.path.basename(path) + ".", suffix=".tmp")
+    try:
+        kwargs = {"encoding": "utf-8", "newline": "\n"} if mode == "w" else {}
+        with os.fdopen(fd, mode, **kwargs) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(folder)
+
+
+def atomic_write(path: str | os.PathLike, write_fn: Callable[[IO[bytes]], Any]) -> None:
+    """Call ``write_fn(binary_file)`` and atomically move the result to ``path``."""
+    with atomic_open(path, "wb") as f:
+        write_fn(f)
+
+
+def save_npz_atomic(path: str | os.PathLike, compress: bool = False, **arrays: Any) -> None:
+    """``np.savez`` (or ``savez_compressed``) to ``path`` atomically.
+
+    The file name is used as given (numpy's automatic ``.npz`` suffix is not
+    added, since we write to an open file object).
+    """
+    saver = np.savez_compressed if compress else np.savez
+    atomic_write(path, lambda f: saver(f, **arrays))
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> None:
+    """Write ``obj`` as JSON (UTF-8, sorted insertion order kept) to ``path`` atomically."""
+    text = json.dumps(obj, indent=indent, ensure_ascii=False, allow_nan=False) + "\n"
+    with atomic_open(path, "w") as f:
+        f.write(text)
