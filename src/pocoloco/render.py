@@ -14,7 +14,6 @@ left; it faces left in the image), ``top`` from +Z (front at the bottom).
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Sequence
 
 import numpy as np
@@ -42,20 +41,12 @@ def _figure(width: float, height: float, dpi: int):
 
 
 def _save_atomic(fig, path: str | os.PathLike) -> str:
-    """Write ``fig`` as a PNG to ``path`` through a temporary file + os.replace."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png", facecolor=fig.get_facecolor())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-    return path
+    """Write ``fig`` as a PNG to ``path`` atomically (temporary file + os.replace)."""
+    from .utils.atomic import atomic_open
+
+    with atomic_open(path, "wb") as fh:
+        fig.savefig(fh, format="png", facecolor=fig.get_facecolor())
+    return os.fspath(path)
 
 
 def _check_points(points: np.ndarray, name: str = "points") -> np.ndarray:

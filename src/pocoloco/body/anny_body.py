@@ -166,6 +166,17 @@ class AnnyBody:
             vtransf=vtransf.numpy().astype(np.float32),
         )
 
+    def pose_joints(self, joint_rotvecs: np.ndarray | torch.Tensor, chunk: int = 64) -> np.ndarray:
+        """Only the (T, 24, 3) skeleton joints for (T, 24, 3) rotations, zero root
+        translation: ``pose(...).joints`` without the per-vertex skinning
+        transforms (~6x faster). Inputs are validated by the caller."""
+        rot = torch.as_tensor(np.asarray(joint_rotvecs, dtype=np.float32))
+        out = []
+        for i in range(0, rot.shape[0], chunk):
+            bone_poses = self._run_anny(rot[i : i + chunk])["bone_poses"]  # (t, B, 4, 4)
+            out.append(bone_poses[:, self.bone_of_joint, :3, 3].numpy().astype(np.float32))
+        return np.concatenate(out)
+
     def pose(
         self,
         joint_rotvecs: np.ndarray | torch.Tensor,

@@ -23,10 +23,12 @@ Method (visibility by ray casting with open3d's ``RaycastingScene``, CPU):
    towards ``p`` hits nothing before ``p`` (first-hit distance >=
    ``|p - c| - hit_tolerance``) and the surface faces the camera at more than
    a grazing angle (``|cos| > min_cos``). For a two-sided candidate the camera
-   must be on the candidate's side. Cameras are tried one after another, each
-   only for the candidates not yet seen, so most candidates cost one or two
-   rays. This is visibility *per surface point*, i.e. a rig of unlimited image
-   resolution: no pixel grid, hence no density that grows near cameras.
+   must be on the candidate's side. Each candidate tries its cameras from the
+   best-facing one down (an any-hit occlusion query per try) and stops at the
+   first that sees it, so most visible candidates cost one ray; hidden ones
+   cost one per camera facing them. This is visibility *per surface point*,
+   i.e. a rig of unlimited image resolution: no pixel grid, hence no density
+   that grows near cameras.
 4. Uniform density: candidates are i.i.d. uniform over the (doubled-for-cloth)
    surface, so the visible ones are i.i.d. uniform over the visible surface.
    Rounds of candidates are drawn until ``num_points`` are visible; the first
@@ -78,12 +80,14 @@ class CaptureSettings:
     num_points:        points stored per frame (N).
     num_cameras:       camera centres on the dome.
     min_elevation_deg: lowest camera elevation seen from the subject's centre
-                       (negative = below, looking up, e.g. under a skirt).
+                       (negative = below, looking up, e.g. under a skirt). -30
+                       is about a camera at floor level at the default distance.
     max_elevation_deg: highest camera elevation (90 = straight above).
     distance_factor:   camera distance from the centre, in bounding-sphere radii.
     min_cos:           a camera sees a surface point only if the cosine between
                        the surface normal and the direction to the camera
-                       exceeds this (rejects grazing views, as a scanner would).
+                       exceeds this (rejects grazing views beyond ~75 deg, which
+                       multi-view stereo does not reconstruct).
     hit_tolerance:     metres; a ray's first hit this close before the point
                        still counts as hitting the point.
     oversample:        first-round candidates = ``oversample * num_points``.
@@ -94,10 +98,10 @@ class CaptureSettings:
 
     num_points: int = 40000
     num_cameras: int = 32
-    min_elevation_deg: float = -55.0
+    min_elevation_deg: float = -30.0
     max_elevation_deg: float = 90.0
     distance_factor: float = 2.5
-    min_cos: float = 0.05
+    min_cos: float = 0.25
     hit_tolerance: float = 1e-4
     oversample: float = 1.6
     max_rounds: int = 8
@@ -225,6 +229,9 @@ class _Surface:
         return face, p
 
 
+_VIS_CHUNK = 65536  # points per visibility batch
+
+
 def visibility(
     scene, points: np.ndarray, normals: np.ndarray, sides: np.ndarray, cameras: np.ndarray,
     min_cos: float, hit_tolerance: float,
@@ -244,28 +251,41 @@ def visibility(
     import open3d as o3d  # deferred: heavy import, optional dependency
 
     n = len(points)
+    if n > _VIS_CHUNK:  # bound the (N, C, 3) temporaries
+        parts = [visibility(scene, points[i : i + _VIS_CHUNK], normals[i : i + _VIS_CHUNK], sides[i : i + _VIS_CHUNK],
+                            cameras, min_cos, hit_tolerance) for i in range(0, n, _VIS_CHUNK)]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
     seen = np.zeros(n, dtype=bool)
     oriented = normals.copy()
-    for cam in cameras:
-        todo = np.flatnonzero(~seen)
-        if todo.size == 0:
+    if n == 0:
+        return seen, oriented
+    # cosine between each normal and the direction to each camera: (N, C)
+    to_cam = (cameras[None, :, :] - points[:, None, :]).astype(np.float32)
+    dist = np.sqrt(np.einsum("ncj,ncj->nc", to_cam, to_cam))
+    cos = np.einsum("ncj,nj->nc", to_cam, normals.astype(np.float32)) / np.maximum(dist, 1e-12)
+    score = np.where(sides[:, None] == 0, np.abs(cos), cos)
+    score[score <= min_cos] = -np.inf  # cameras that cannot see the point
+    # try each point's cameras best-facing first: most visible points cost one ray
+    order = np.argsort(-score, axis=1)
+    active = np.arange(n)  # points not yet seen that may still be seen
+    for k in range(cameras.shape[0]):
+        cam_k = order[active, k]
+        ok = np.isfinite(score[active, cam_k])
+        active, cam_k = active[ok], cam_k[ok]
+        if active.size == 0:
             break
-        to_cam = cam - points[todo]  # (M, 3)
-        dist = np.linalg.norm(to_cam, axis=1)
-        cos = np.einsum("ij,ij->i", to_cam, normals[todo]) / np.maximum(dist, 1e-12)
-        s = sides[todo]
-        facing = np.where(s == 0, np.abs(cos) > min_cos, cos > min_cos)
-        todo, to_cam, dist, cos = todo[facing], to_cam[facing], dist[facing], cos[facing]
-        if todo.size == 0:
-            continue
-        direction = -to_cam / dist[:, None]  # camera -> point, unit
-        rays = np.concatenate([np.broadcast_to(cam, direction.shape), direction], axis=1).astype(np.float32)
-        t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        hit = t_hit >= dist - hit_tolerance
-        idx = todo[hit]
+        cam = cameras[cam_k]  # (M, 3)
+        d = np.linalg.norm(points[active] - cam, axis=1)
+        # direction scaled so that t = 1 is `hit_tolerance` before the point:
+        # any hit in (0, 1) occludes it.
+        direction = (points[active] - cam) * (np.maximum(d - hit_tolerance, 1e-9) / d)[:, None]
+        rays = np.concatenate([cam, direction], axis=1).astype(np.float32)
+        occluded = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
+        idx = active[~occluded]
         seen[idx] = True
-        flip = np.where(cos[hit] < 0, -1.0, 1.0)
+        flip = np.where(cos[idx, cam_k[~occluded]] < 0, -1.0, 1.0)
         oriented[idx] = normals[idx] * flip[:, None]
+        active = active[occluded]
     return seen, oriented
 
 
@@ -305,7 +325,9 @@ def capture_frame(meshes: Sequence[CaptureMesh], settings: CaptureSettings | Non
         face, p = surface.sample(batch, rng)
         seen, nrm = visibility(scene, p, surface.normal[face], surface.side[face], cameras,
                                settings.min_cos, settings.hit_tolerance)
-        faces.append(face[seen]), points.append(p[seen]), normals.append(nrm[seen])
+        faces.append(face[seen])
+        points.append(p[seen])
+        normals.append(nrm[seen])
         found, drawn = found + int(seen.sum()), drawn + batch
         if found >= want:
             break
