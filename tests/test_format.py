@@ -91,15 +91,20 @@ def test_frame_optional_fields_absent(tmp_path):
     with pytest.raises(ValueError, match="missing key 'labels'"):
         fmt.read_frame(tmp_path / "m.npz", ["points", "labels"])
     sub = fmt.read_frame(tmp_path / "m.npz", ["points", "labels"], allow_missing=True)
-    assert set(sub) == {"points"}
+    assert sub.labels is None and sub.normals is None
+    np.testing.assert_array_equal(sub.points, f.points)
 
 
 def test_read_frame_subset_of_keys(tmp_path):
     frame = random_frame(np.random.default_rng(2))
     fmt.write_frame(tmp_path / "f.npz", frame)
     d = fmt.read_frame(tmp_path / "f.npz", ["points", "joints"])
-    assert set(d) == {"points", "joints"}
-    np.testing.assert_array_equal(d["joints"], frame.joints)
+    assert d.normals is None and d.frame_index is None and d.vtransf is None
+    np.testing.assert_array_equal(d.joints, frame.joints)
+    np.testing.assert_array_equal(d.points, frame.points)
+    assert fmt.read_frame(tmp_path / "f.npz", "labels").labels.dtype == np.uint8
+    with pytest.raises(ValueError, match="unknown frame keys"):
+        fmt.read_frame(tmp_path / "f.npz", ["colour"])
 
 
 def _write_raw(path, **arrays):
@@ -135,6 +140,8 @@ def test_write_frame_validates(tmp_path):
     frame.joints = frame.joints[:10]
     with pytest.raises(ValueError, match="'joints' must have shape"):
         fmt.write_frame(tmp_path / "f.npz", frame)
+    with pytest.raises(ValueError, match=r"f.npz: frame lacks required fields \['normals'\]"):
+        fmt.write_frame(tmp_path / "f.npz", fmt.Frame(points=frame.points, joints=frame.joints[:0], frame_index=0))
     assert not (tmp_path / "f.npz").exists()
 
 
@@ -195,7 +202,7 @@ def test_card_round_trip_and_errors(tmp_path):
 
 def test_layout_paths_and_iteration(tmp_path):
     lay = fmt.DatasetLayout(tmp_path)
-    assert lay.frame_path("s", "train", "q", 123).endswith(os.path.join("s", "train", "q", "frames", "000123.npz"))
+    assert str(lay.frame_path("s", "train", "q", 123)).endswith(os.path.join("s", "train", "q", "frames", "000123.npz"))
     with pytest.raises(ValueError, match="unknown split 'val'"):
         lay.sequence_dir("s", "val", "q")
     rng = np.random.default_rng(7)
@@ -310,3 +317,12 @@ def test_export_frame_ply_and_pop(tmp_path):
         fmt.export_frame(tmp_path / "bare.npz", tmp_path / "o2.npz", "npz")
     with pytest.raises(ValueError, match="fmt must be"):
         fmt.export_frame(fp, tmp_path / "o.obj", "obj")
+
+
+def test_atomic_files_get_normal_permissions(tmp_path):
+    old = os.umask(0o022)
+    try:
+        write_json_atomic(tmp_path / "p.json", {})
+    finally:
+        os.umask(old)
+    assert (tmp_path / "p.json").stat().st_mode & 0o777 == 0o644

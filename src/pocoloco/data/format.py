@@ -32,6 +32,7 @@ import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -75,24 +76,28 @@ _FRAME_NAME = re.compile(r"^(\d+)\.npz$")
 # --------------------------------------------------------------------------- frames
 @dataclass(kw_only=True)
 class Frame:
-    """One captured frame.
+    """One captured frame (or the subset of its fields that was read).
 
     points:           (N, 3) float32, metres, world frame (Z up).
     normals:          (N, 3) float32 unit outward normals.
     joints:           (J=24, 3) float32 skeleton joints (``skeleton.JOINT_NAMES``).
     frame_index:      int, index of the frame in its sequence (``motion.npz`` row).
-    labels:           (N,) uint8 point class, or None (imported data). See the
-                      generator for the classes; ``LABEL_UNKNOWN`` = 255.
+    labels:           (N,) uint8 point class, or None (imported data). Synthetic
+                      data: 0 body, 1 garment (``capture.LABEL_NAMES``); 255 = unknown.
     parts:            (N,) int8 body part (skeleton joint index) per point, -1 = none; or None.
     body_vertices:    (V, 3) float32 posed body, or None (imported data).
     vtransf:          (V, 3, 3) float32 per-vertex skinning transform, or None.
     garment_vertices: (Vg, 3) float32 simulated garment, or None (tight subjects, imported data).
+
+    ``points``, ``normals``, ``joints`` and ``frame_index`` are required on
+    disk; they are None only in a frame read with ``read_frame(path, keys)``
+    that did not ask for them.
     """
 
-    points: np.ndarray
-    normals: np.ndarray
-    joints: np.ndarray
-    frame_index: int
+    points: np.ndarray | None = None
+    normals: np.ndarray | None = None
+    joints: np.ndarray | None = None
+    frame_index: int | None = None
     labels: np.ndarray | None = None
     parts: np.ndarray | None = None
     body_vertices: np.ndarray | None = None
@@ -101,6 +106,8 @@ class Frame:
 
     @property
     def num_points(self) -> int:
+        if self.points is None:
+            raise ValueError("frame was read without 'points'")
         return int(self.points.shape[0])
 
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -173,6 +180,9 @@ def _validate_frame_arrays(src: str, raw: Mapping[str, Any]) -> dict[str, np.nda
 
 def write_frame(path: str | os.PathLike, frame: Frame, compress: bool = False) -> None:
     """Validate ``frame`` and write it atomically as an npz (uncompressed by default)."""
+    missing = [k for k in REQUIRED_FRAME_KEYS if getattr(frame, k) is None]
+    if missing:
+        raise ValueError(f"{os.fspath(path)}: frame lacks required fields {missing}")
     arrays = _validate_frame_arrays(os.fspath(path), frame.to_arrays())
     save_npz_atomic(path, compress=compress, **arrays)
 
@@ -193,21 +203,22 @@ def _load_npz(path: str, keys: Iterable[str] | None) -> tuple[set[str], dict[str
         raise ValueError(f"{path}: corrupt or truncated npz ({type(e).__name__}: {msg})") from None
 
 
-def read_frame(
-    path: str | os.PathLike, keys: Sequence[str] | None = None, *, allow_missing: bool = False
-) -> Frame | dict[str, np.ndarray]:
+def read_frame(path: str | os.PathLike, keys: Sequence[str] | None = None, *, allow_missing: bool = False) -> Frame:
     """Read and validate one frame npz.
 
-    keys=None: read every key and return a :class:`Frame` (required keys must
-    exist, optional ones become None). With ``keys``: read only those members
-    (fast: npz members are loaded lazily) and return a dict; a requested key
-    that is absent raises, unless ``allow_missing`` and the key is optional.
+    keys=None: read every key (required keys must exist, absent optional ones
+    are None). With ``keys``: read only those members (fast: npz members are
+    loaded lazily); the other fields of the returned :class:`Frame` are None.
+    A requested key that is absent raises, unless ``allow_missing`` and the
+    key is optional (then it is None).
 
     Raises ``ValueError("<path>: <problem>")`` for a truncated/corrupt archive,
     a missing key, a wrong shape, or NaN/inf values.
     """
     src = os.fspath(path)
     if keys is not None:
+        if isinstance(keys, str):
+            keys = [keys]
         unknown = [k for k in keys if k not in FRAME_KEYS]
         if unknown:
             raise ValueError(f"read_frame: unknown frame keys {unknown}; known: {list(FRAME_KEYS)}")
@@ -219,11 +230,9 @@ def read_frame(
         if k not in names:
             raise ValueError(f"{src}: missing key '{k}'")
     raw = {k: v for k, v in raw.items() if k in FRAME_KEYS}  # ignore foreign extras
-    arrays = _validate_frame_arrays(src, raw)
-    if keys is not None:
-        return arrays
-    kwargs: dict[str, Any] = dict(arrays)
-    kwargs["frame_index"] = int(kwargs["frame_index"])
+    kwargs: dict[str, Any] = _validate_frame_arrays(src, raw)
+    if "frame_index" in kwargs:
+        kwargs["frame_index"] = int(kwargs["frame_index"])
     return Frame(**kwargs)
 
 
@@ -360,64 +369,60 @@ def read_sequence_meta(path: str | os.PathLike) -> dict[str, Any]:
 
 # --------------------------------------------------------------------------- layout and card
 class DatasetLayout:
-    """Paths inside a dataset folder. Pure path arithmetic plus directory listing."""
+    """Paths (``pathlib.Path``) inside a dataset folder. Pure path arithmetic plus directory listing."""
 
     def __init__(self, root: str | os.PathLike):
-        self.root = os.fspath(root)
+        self.root = Path(root)
 
     @property
-    def card_path(self) -> str:
-        return os.path.join(self.root, "card.json")
+    def card_path(self) -> Path:
+        return self.root / "card.json"
 
-    def subject_dir(self, subject: str) -> str:
-        return os.path.join(self.root, "subjects", subject)
+    def subject_dir(self, subject: str) -> Path:
+        return self.root / "subjects" / subject
 
-    def subject_path(self, subject: str) -> str:
-        return os.path.join(self.subject_dir(subject), "subject.npz")
+    def subject_path(self, subject: str) -> Path:
+        return self.subject_dir(subject) / "subject.npz"
 
-    def split_dir(self, subject: str, split: str) -> str:
+    def split_dir(self, subject: str, split: str) -> Path:
         _check_split(split)
-        return os.path.join(self.subject_dir(subject), split)
+        return self.subject_dir(subject) / split
 
-    def sequence_dir(self, subject: str, split: str, sequence: str) -> str:
-        return os.path.join(self.split_dir(subject, split), sequence)
+    def sequence_dir(self, subject: str, split: str, sequence: str) -> Path:
+        return self.split_dir(subject, split) / sequence
 
-    def sequence_meta_path(self, subject: str, split: str, sequence: str) -> str:
-        return os.path.join(self.sequence_dir(subject, split, sequence), "sequence.json")
+    def sequence_meta_path(self, subject: str, split: str, sequence: str) -> Path:
+        return self.sequence_dir(subject, split, sequence) / "sequence.json"
 
-    def motion_path(self, subject: str, split: str, sequence: str) -> str:
-        return os.path.join(self.sequence_dir(subject, split, sequence), "motion.npz")
+    def motion_path(self, subject: str, split: str, sequence: str) -> Path:
+        return self.sequence_dir(subject, split, sequence) / "motion.npz"
 
-    def frames_dir(self, subject: str, split: str, sequence: str) -> str:
-        return os.path.join(self.sequence_dir(subject, split, sequence), "frames")
+    def frames_dir(self, subject: str, split: str, sequence: str) -> Path:
+        return self.sequence_dir(subject, split, sequence) / "frames"
 
-    def frame_path(self, subject: str, split: str, sequence: str, index: int) -> str:
+    def frame_path(self, subject: str, split: str, sequence: str, index: int) -> Path:
         if index < 0:
             raise ValueError(f"frame index must be >= 0, got {index}")
-        return os.path.join(self.frames_dir(subject, split, sequence), f"{index:06d}.npz")
+        return self.frames_dir(subject, split, sequence) / f"{index:06d}.npz"
 
     def subjects(self) -> list[str]:
         """Subject folders present on disk, sorted."""
-        d = os.path.join(self.root, "subjects")
-        if not os.path.isdir(d):
-            return []
-        return sorted(s for s in os.listdir(d) if os.path.isdir(os.path.join(d, s)))
+        d = self.root / "subjects"
+        return sorted(p.name for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
 
     def sequences(self, subject: str, split: str) -> list[str]:
         """Sequence folders of a subject's split present on disk, sorted."""
         d = self.split_dir(subject, split)
-        if not os.path.isdir(d):
-            return []
-        return sorted(s for s in os.listdir(d) if os.path.isdir(os.path.join(d, s)))
+        return sorted(p.name for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
 
     def frame_indices(self, subject: str, split: str, sequence: str) -> list[int]:
         """Indices of the frame files present, sorted (temporary files are ignored)."""
         d = self.frames_dir(subject, split, sequence)
-        if not os.path.isdir(d):
+        if not d.is_dir():
             return []
         return sorted(int(m.group(1)) for n in os.listdir(d) if (m := _FRAME_NAME.match(n)))
 
-    def iter_frames(self, split: str, subjects: Sequence[str] | None = None) -> list[tuple[str, str, str]]:
+    def iter_frames(self, split: str, subjects: Sequence[str] | None = None) -> list[tuple[str, str, Path]]:
         """All frames of a split as (subject, sequence, frame_path), sorted by subject, sequence, index."""
         _check_split(split)
         out = []
@@ -446,6 +451,7 @@ def make_card(
     counts: Mapping[str, Any] | None = None,
     normalisation: Mapping[str, Any] | None = None,
     loose_share: Mapping[str, float] | None = None,
+    label_names: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """A new card dict with the format header, skeleton, creation time and version filled in.
 
@@ -453,6 +459,7 @@ def make_card(
     counts:   {subject: {split: {"sequences": int, "frames": int, "rejected_frames": int}}}.
     normalisation: {"root_joint": 0, "mean": [3], "std": float, "computed_on": "train"}.
     loose_share: {subject: fraction of points labelled loose garment}.
+    label_names: name of each point label value (index = value), e.g. ["body", "tight", "loose"].
     """
     return {
         "format": FORMAT_NAME,
@@ -465,6 +472,7 @@ def make_card(
         "counts": {k: dict(v) for k, v in (counts or {}).items()},
         "normalisation": dict(normalisation) if normalisation is not None else None,
         "loose_share": dict(loose_share or {}),
+        "label_names": list(label_names or []),
     }
 
 
@@ -472,9 +480,11 @@ def _validate_card(src: str, card: Any) -> None:
     if not isinstance(card, dict):
         raise ValueError(f"{src}: card must be a JSON object")
     if card.get("format") != FORMAT_NAME:
-        raise ValueError(f"{src}: not a pocoloco dataset card (format is {card.get('format')!r}, expected {FORMAT_NAME!r})")
+        found = card.get("format")
+        raise ValueError(f"{src}: not a pocoloco dataset card (format is {found!r}, expected {FORMAT_NAME!r})")
     if card.get("version") != FORMAT_VERSION:
-        raise ValueError(f"{src}: unsupported dataset format version {card.get('version')!r} (this code reads {FORMAT_VERSION})")
+        found = card.get("version")
+        raise ValueError(f"{src}: unsupported dataset format version {found!r} (this code reads {FORMAT_VERSION})")
     if not isinstance(card.get("subjects"), dict):
         raise ValueError(f"{src}: card has no 'subjects' object")
     norm = card.get("normalisation")
@@ -485,7 +495,8 @@ def _validate_card(src: str, card: Any) -> None:
             and isinstance(norm.get("std"), (int, float)) and norm["std"] > 0
         )  # fmt: skip
         if not ok:
-            raise ValueError(f"{src}: 'normalisation' must be {{'mean': [3 floats], 'std': float > 0, ...}}, got {norm!r}")
+            want = "{'mean': [3 floats], 'std': float > 0, ...}"
+            raise ValueError(f"{src}: 'normalisation' must be {want}, got {norm!r}")
 
 
 def read_card(root: str | os.PathLike) -> dict[str, Any]:
@@ -532,8 +543,8 @@ def compute_normalisation(frame_paths: Iterable[str | os.PathLike], root_joint: 
     m2 = np.zeros(3)  # per-axis sum of squared deviations from the running mean
     num_frames = 0
     for p in frame_paths:
-        arr = read_frame(p, ("points", "joints"))
-        c = arr["points"].astype(np.float64) - arr["joints"][root_joint].astype(np.float64)
+        fr = read_frame(p, ("points", "joints"))
+        c = fr.points.astype(np.float64) - fr.joints[root_joint].astype(np.float64)
         n_b = c.shape[0]
         mean_b = c.mean(axis=0)
         m2_b = ((c - mean_b) ** 2).sum(axis=0)
@@ -595,7 +606,6 @@ def export_frame(frame_path: str | os.PathLike, out_path: str | os.PathLike, fmt
     from .published import write_pop_npz, write_ply  # published imports this module
 
     frame = read_frame(frame_path)
-    assert isinstance(frame, Frame)
     if fmt == "ply":
         write_ply(out_path, frame.points, normals=frame.normals, labels=frame.labels)
     elif fmt == "npz":

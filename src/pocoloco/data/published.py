@@ -21,6 +21,7 @@ import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -183,8 +184,8 @@ def _read_ascii_element(path: str, lines: list[bytes], start: int, el: _Element)
             raise ValueError(f"{path}: non-numeric value in element '{el.name}'") from None
         if flat.size != ncol * el.count:
             for i, r in enumerate(rows):
-                if len(r.split()) != ncol:
-                    raise ValueError(f"{path}: element '{el.name}' row {i}: expected {ncol} values, got {len(r.split())}")
+                if (got := len(r.split())) != ncol:
+                    raise ValueError(f"{path}: element '{el.name}' row {i}: expected {ncol} values, got {got}")
         table = flat.reshape(el.count, ncol)
         return {n: table[:, j].astype(t) for j, (n, t, _) in enumerate(el.props)}, start + el.count
     out: dict[str, list] = {n: [] for n, _, _ in el.props}
@@ -349,11 +350,9 @@ def write_ply(
                 ft["v"] = tris
                 f.write(ft.tobytes())
         else:
-            fmts = ["%.9g" if t == "f4" else "%d" for _, _, t in cols]
-            table = np.empty((n, len(cols)), dtype=object)
-            for j, (_, values, _) in enumerate(cols):
-                table[:, j] = values.astype(np.float64) if fmts[j] == "%.9g" else values.astype(np.int64)
-            lines = [" ".join(fm % v for fm, v in zip(fmts, row)) for row in table]
+            row = " ".join("%.9g" if t == "f4" else "%d" for _, _, t in cols)
+            table = np.stack([values.astype(np.float64) for _, values, _ in cols], axis=1)  # ints exact in f64
+            lines = [row % tuple(r) for r in table.tolist()]
             if tris is not None:
                 lines += ["3 %d %d %d" % tuple(t) for t in tris.tolist()]
             f.write(("\n".join(lines) + ("\n" if lines else "")).encode("ascii"))
@@ -496,7 +495,8 @@ class LooseStyleSequence:
             import trimesh
 
             mesh = trimesh.Trimesh(ply.points, ply.faces, process=False)
-            pts, face_idx = trimesh.sample.sample_surface(mesh, self.mesh_samples, seed=self.seed + int(self.frame_ids[i]))
+            seed = self.seed + int(self.frame_ids[i])
+            pts, face_idx = trimesh.sample.sample_surface(mesh, self.mesh_samples, seed=seed)
             points = np.asarray(pts, np.float32)
             normals = np.asarray(mesh.face_normals[face_idx], np.float32)
         else:
@@ -514,7 +514,7 @@ def import_loose_style(
     fps: float | None = None,
     update_card: bool = True,
     **sequence_kwargs: Any,
-) -> str:
+) -> Path:
     """Convert a LOOSE-style sequence into the pocoloco format; returns the sequence folder.
 
     Writes frames with points, normals, joints and frame_index (0..T-1 in
@@ -582,7 +582,8 @@ def _check_pop(src: str, out: dict[str, Any]) -> None:
     if "scan_pc" in out and "scan_n" in out and out["scan_pc"].shape != out["scan_n"].shape:
         raise ValueError(f"{src}: 'scan_pc' {out['scan_pc'].shape} and 'scan_n' {out['scan_n'].shape} disagree")
     if "body_verts" in out and "vtransf" in out and out["body_verts"].shape[0] != out["vtransf"].shape[0]:
-        raise ValueError(f"{src}: 'body_verts' has {out['body_verts'].shape[0]} vertices, 'vtransf' {out['vtransf'].shape[0]}")
+        nv, nt = out["body_verts"].shape[0], out["vtransf"].shape[0]
+        raise ValueError(f"{src}: 'body_verts' has {nv} vertices but 'vtransf' has {nt}")
 
 
 def read_pop_npz(

@@ -1,0 +1,42 @@
+"""Gaussian diffusion for point clouds: beta schedules, the training loss and samplers.
+
+- :mod:`~pocoloco.diffusion.schedules`: ``make_betas`` ("linear", PocoLoco's quartic "four",
+  "cosine") and ``NoiseSchedule`` (forward process, posterior, eps/x0/v conversions).
+- :mod:`~pocoloco.diffusion.loss`: ``diffusion_loss`` (L_simple, optional min-SNR-gamma).
+- :mod:`~pocoloco.diffusion.samplers`: pure-function samplers ``sample_ddpm`` (the paper's
+  1000-step ancestral sampler), ``sample_ddim``, ``sample_dpmpp`` (DPM-Solver++ 2M) and the
+  ``sample`` dispatcher; per-sample seeded noise (``PerSampleRNG``, ``make_noise``).
+"""
+
+from pocoloco.diffusion.loss import diffusion_loss, min_snr_weight
+from pocoloco.diffusion.samplers import (
+    ALPHA_BAR_MIN,
+    Denoiser,
+    PerSampleRNG,
+    StepInfo,
+    make_noise,
+    make_timesteps,
+    sample,
+    sample_ddim,
+    sample_ddpm,
+    sample_dpmpp,
+)
+from pocoloco.diffusion.schedules import PREDICTION_TYPES, NoiseSchedule, make_betas
+
+__all__ = [
+    "ALPHA_BAR_MIN",
+    "PREDICTION_TYPES",
+    "Denoiser",
+    "NoiseSchedule",
+    "PerSampleRNG",
+    "StepInfo",
+    "diffusion_loss",
+    "make_betas",
+    "make_noise",
+    "make_timesteps",
+    "min_snr_weight",
+    "sample",
+    "sample_ddim",
+    "sample_ddpm",
+    "sample_dpmpp",
+]

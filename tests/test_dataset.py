@@ -1,0 +1,156 @@
+"""Tests for PointCloudDataset and the PocoLoco normalisation (pocoloco.data.dataset)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from pocoloco.data import format as fmt
+from pocoloco.data.dataset import Normalisation, PointCloudDataset
+
+SUBJECTS = ("anna", "bob")
+
+
+def make_dataset(root, rng, n=300, frames=(("train", 4), ("test", 2)), with_norm=True, labels=True):
+    """A tiny synthetic dataset: random clouds around a moving root, 2 subjects, 2 sequences each."""
+    card = fmt.make_card(subjects={s: {"garment_kind": "skirt", "phenotype": {}} for s in SUBJECTS})
+    fmt.write_card(root, card)
+    lay = fmt.DatasetLayout(root)
+    for s in SUBJECTS:
+        for split, count in frames:
+            for seq in ("q0", "q1"):
+                for i in range(count):
+                    joints = (rng.normal(scale=0.3, size=(24, 3)) + rng.normal(size=3)).astype(np.float32)
+                    pts = joints[0] + np.array([0.1, -0.2, 0.3]) + rng.normal(scale=[0.3, 0.2, 0.8], size=(n, 3))
+                    nrm = rng.normal(size=(n, 3))
+                    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+                    lab = rng.integers(0, 3, n).astype(np.uint8) if labels else None
+                    frame = fmt.Frame(points=pts.astype(np.float32), normals=nrm.astype(np.float32), joints=joints,
+                                      frame_index=i, labels=lab)  # fmt: skip
+                    fmt.write_frame(lay.frame_path(s, split, seq, i), frame)
+    if with_norm:
+        fmt.refresh_card(root)
+    return lay
+
+
+@pytest.fixture(scope="module")
+def dataset_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ds")
+    make_dataset(root, np.random.default_rng(0))
+    return root
+
+
+def test_items_shapes_and_types(dataset_root):
+    ds = PointCloudDataset(dataset_root, "train", num_points=100, with_normals=True)
+    assert len(ds) == 2 * 2 * 4 and ds.subject_names == list(SUBJECTS)
+    item = ds[5]
+    assert item["points"].shape == (100, 3) and item["points"].dtype == torch.float32
+    assert item["joints"].shape == (24, 3) and item["normals"].shape == (100, 3)
+    assert item["labels"].shape == (100,) and item["labels"].dtype == torch.int64
+    assert item["root"].shape == (3,)
+    assert item["subject"] == 0 and item["frame_key"] == "anna/train/q1/000001"
+    assert "normals" not in PointCloudDataset(dataset_root, "train", num_points=100)[0]
+    batch = next(iter(DataLoader(ds, batch_size=3)))
+    assert batch["points"].shape == (3, 100, 3) and len(batch["frame_key"]) == 3
+
+
+def test_normalised_train_has_zero_mean_unit_std(dataset_root):
+    ds = PointCloudDataset(dataset_root, "train", num_points=None)
+    pts = torch.cat([ds[i]["points"] for i in range(len(ds))]).double()
+    assert pts.mean(0).abs().max() < 1e-5
+    assert abs(pts.std(unbiased=False).item() - 1.0) < 1e-5
+    # on the test split the same (train) statistics are used, so only approximately
+    test = PointCloudDataset(dataset_root, "test", num_points=None)
+    tp = torch.cat([test[i]["points"] for i in range(len(test))]).double()
+    assert tp.mean(0).abs().max() < 0.2 and abs(tp.std().item() - 1.0) < 0.2
+
+
+def test_denormalise_inverts_exactly(dataset_root):
+    ds = PointCloudDataset(dataset_root, "train", num_points=None, with_normals=True)
+    item = ds[3]
+    frame = fmt.read_frame(ds.frames[3][2])
+    back = ds.normalisation.denormalise(item["points"].double(), item["root"].double())
+    np.testing.assert_allclose(back.numpy(), frame.points, atol=1e-5)
+    jb = ds.normalisation.denormalise(item["joints"].double(), item["root"].double())
+    np.testing.assert_allclose(jb.numpy(), frame.joints, atol=1e-5)
+    np.testing.assert_array_equal(item["normals"].numpy(), frame.normals)  # unchanged by translation + scale
+    # numpy float64 round trip is exact to rounding
+    norm = Normalisation(mean=(0.1, -2.0, 3.0), std=0.37, root_joint=0)
+    rng = np.random.default_rng(1)
+    p, j = rng.normal(size=(2, 50, 3)), rng.normal(size=(2, 24, 3))
+    pn, jn = norm.normalise(p, j)
+    np.testing.assert_allclose(norm.denormalise(pn, j[:, 0]), p, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(norm.denormalise(jn, j[:, 0]), j, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(jn[:, 0], np.broadcast_to((-np.array(norm.mean)) / norm.std, (2, 3)), atol=1e-13)
+
+
+def test_normalisation_from_card_and_identity(dataset_root):
+    card = fmt.read_card(dataset_root)
+    norm = Normalisation.from_card(card)
+    assert norm.mean == tuple(card["normalisation"]["mean"]) and norm.std == card["normalisation"]["std"]
+    ds = PointCloudDataset(dataset_root, "train", num_points=None, normalise=False)
+    frame = fmt.read_frame(ds.frames[0][2])
+    np.testing.assert_allclose(ds[0]["points"].numpy(), frame.points - frame.joints[0], atol=1e-6)
+    with pytest.raises(ValueError, match="no 'normalisation'"):
+        Normalisation.from_card({**card, "normalisation": None})
+    with pytest.raises(ValueError, match="std must be finite and > 0"):
+        Normalisation(mean=(0, 0, 0), std=0.0)
+
+
+def test_subsampling_random_vs_deterministic(dataset_root):
+    det = PointCloudDataset(dataset_root, "train", num_points=50, random_subsample=False, seed=3)
+    a, b = det[2]["points"], det[2]["points"]
+    assert torch.equal(a, b)
+    other_seed = PointCloudDataset(dataset_root, "train", num_points=50, random_subsample=False, seed=4)
+    assert not torch.equal(a, other_seed[2]["points"])
+    full = PointCloudDataset(dataset_root, "train", num_points=None)[2]["points"]
+    # every subsampled point is one of the frame's points, without repeats
+    same = (a[:, None, :] == full[None, :, :]).all(-1)  # (50, 300) exact matches
+    assert torch.all(same.sum(1) == 1) and len(set(same.int().argmax(1).tolist())) == 50
+    rnd = PointCloudDataset(dataset_root, "train", num_points=50, random_subsample=True)
+    torch.manual_seed(0)
+    r1 = rnd[2]["points"]
+    r2 = rnd[2]["points"]
+    torch.manual_seed(0)
+    r3 = rnd[2]["points"]
+    assert not torch.equal(r1, r2) and torch.equal(r1, r3)
+    too_many = PointCloudDataset(dataset_root, "train", num_points=301)
+    with pytest.raises(ValueError, match="000000.npz: frame has 300 points, fewer than num_points=301"):
+        too_many[0]
+
+
+def test_subject_filter(dataset_root):
+    ds = PointCloudDataset(dataset_root, "test", num_points=10, subjects=["bob"])
+    assert len(ds) == 4 and all(ds[i]["subject"] == 1 for i in range(len(ds)))
+    assert ds[0]["frame_key"].startswith("bob/test/")
+
+
+def test_validation_errors(dataset_root, tmp_path):
+    with pytest.raises(ValueError, match="not a pocoloco dataset"):
+        PointCloudDataset(tmp_path)
+    with pytest.raises(ValueError, match="unknown split 'val'"):
+        PointCloudDataset(dataset_root, "val")
+    with pytest.raises(ValueError, match=r"unknown subjects \['carol'\]"):
+        PointCloudDataset(dataset_root, subjects=["carol"])
+    empty = tmp_path / "empty"
+    make_dataset(empty, np.random.default_rng(2), frames=(("train", 1),))
+    with pytest.raises(ValueError, match="no frames in split 'test'"):
+        PointCloudDataset(empty, "test")
+    nonorm = tmp_path / "nonorm"
+    make_dataset(nonorm, np.random.default_rng(3), frames=(("train", 1),), with_norm=False)
+    with pytest.raises(ValueError, match="no 'normalisation'"):
+        PointCloudDataset(nonorm)
+    assert len(PointCloudDataset(nonorm, normalise=False, num_points=10)) == 4
+    with pytest.raises(IndexError):
+        PointCloudDataset(dataset_root, num_points=10)[10_000]
+
+
+def test_unlabelled_frames_get_unknown_label(tmp_path):
+    make_dataset(tmp_path, np.random.default_rng(4), frames=(("train", 1),), labels=False)
+    item = PointCloudDataset(tmp_path, num_points=20)[0]
+    assert torch.all(item["labels"] == fmt.LABEL_UNKNOWN)
+    assert json.loads((tmp_path / "card.json").read_text())["normalisation"]["std"] > 0
