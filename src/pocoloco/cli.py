@@ -76,23 +76,24 @@ def _print_card(card: dict, path: Path) -> None:
     from rich.table import Table
 
     console = _console()
-    table = Table(title=f"dataset {path}  ({card.get('status', '?')})")
-    for col in ("subject", "garment", "train frames", "test frames", "rejected", "loose share %", "penetration max/mean mm"):
+    table = Table(title=f"dataset {path} ({card.get('status', 'complete')}): frames per split")
+    for col in ("subject", "garment", "train", "test", "rejected", "loose %", "pen. max/mean mm"):
         table.add_column(col, justify="right" if col != "subject" else "left")
     for name, s in card.get("subjects", {}).items():
-        c = s.get("counts", {})
+        c = card.get("counts", {}).get(name, {})
         pen = s.get("penetration")
+        share = card.get("loose_share", {}).get(name)
         table.add_row(
             name,
-            s.get("garment", "?"),
+            s.get("garment_kind", "?"),
             str(c.get("train", {}).get("frames", "-")),
             str(c.get("test", {}).get("frames", "-")),
-            str(sum(v.get("rejected", 0) for v in c.values())) if c else "-",
-            f"{s['loose_share_percent']:.1f}" if "loose_share_percent" in s else "-",
+            str(sum(v.get("rejected_frames", 0) for v in c.values())) if c else "-",
+            f"{100 * share:.1f}" if share is not None else "-",
             f"{pen['max_mm']:.1f} / {pen['mean_mm']:.2f}" if pen else "-",
         )
     console.print(table)
-    cfg = card.get("config", {})
+    cfg = card.get("generation_config", {})
     keys = ("train_sequences", "test_sequences", "frames_per_sequence", "fps", "num_points", "capture_cameras", "seed")
     console.print("config: " + ", ".join(f"{k}={cfg.get(k)}" for k in keys))
     norm = card.get("normalisation")
@@ -106,7 +107,7 @@ def _print_card(card: dict, path: Path) -> None:
             + ", ".join(f"{k} {v:.3f} s/frame" for k, v in per.items())
             + f"; wall {gen['wall_seconds_last_run']:.0f} s with {gen['workers']} worker(s)"
         )
-    if card.get("status") != "complete":
+    if card.get("status", "complete") != "complete":
         console.print("[yellow]incomplete: rerun the same `pocoloco data synth` command to resume[/]")
 
 

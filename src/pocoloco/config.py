@@ -73,10 +73,9 @@ SYNTH_PRESETS: dict[str, SynthConfig] = {
         train_sequences=1,
         test_sequences=1,
         frames_per_sequence=4,
-        blend_frames=6,
-        warmup_frames=2,
+        blend_frames=10,
+        warmup_frames=4,
         num_points=4_000,
-        garment_resolution=0.5,
         capture_cameras=12,
     ),
     # minutes: the default demo dataset and the one shipped models train on

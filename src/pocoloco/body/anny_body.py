@@ -43,9 +43,24 @@ def load_anny_model():
     """
     os.environ.setdefault("ANNY_CACHE_DIR", default_cache_dir())
     os.makedirs(os.environ["ANNY_CACHE_DIR"], exist_ok=True)
+    quiet_warp()
     import anny  # deferred: importing anny initialises warp
 
     return anny.Anny().to(dtype=torch.float32)
+
+
+def quiet_warp() -> None:
+    """Silence warp's start-up banner and per-kernel load messages (anny and
+    newton both use warp); ``POCOLOCO_VERBOSE_WARP=1`` keeps them."""
+    if os.environ.get("POCOLOCO_VERBOSE_WARP"):
+        return
+    try:
+        import warp
+    except ImportError:
+        return
+    import logging
+
+    warp.config.log_level = logging.WARNING
 
 
 def _rotvec_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:

@@ -140,13 +140,14 @@ def _push_outside(
 ) -> np.ndarray:
     """Move vertices closer than ``clearance`` to the full body mesh (or inside
     it) outwards along their horizontal ray from ``center``."""
-    from .cloth_sim import signed_distance  # lazy: open3d
+    from .cloth_sim import signed_distance_fn  # lazy: open3d
 
+    sdf = signed_distance_fn(body.template, body.faces)
     verts = verts.copy()
     radial = verts[:, :2] - center
     radial /= np.linalg.norm(radial, axis=1, keepdims=True).clip(1e-9)
     for _ in range(iters):
-        sd = signed_distance(verts, body.template, body.faces)
+        sd = sdf(verts)
         bad = sd < clearance
         if not bad.any():
             break
@@ -155,9 +156,15 @@ def _push_outside(
     return verts
 
 
+def anchor_vertices(body: AnnyBody) -> np.ndarray:
+    """Indices of the body vertices a garment may follow: torso and legs, not
+    arms or head (an A-pose hand next to a skirt must not drag it along)."""
+    return np.flatnonzero(~np.isin(body.vertex_joint, _ARM_AND_HEAD))
+
+
 def _attach(garment_xyz: np.ndarray, pinned: np.ndarray, body: AnnyBody) -> tuple[np.ndarray, np.ndarray]:
     """Nearest torso/leg body vertex and rest offset for each pinned vertex."""
-    allowed = np.flatnonzero(~np.isin(body.vertex_joint, _ARM_AND_HEAD))
+    allowed = anchor_vertices(body)
     tree = cKDTree(body.template[allowed])
     attach = np.full(len(garment_xyz), -1, dtype=np.int64)
     offset = np.zeros_like(garment_xyz, dtype=np.float32)
@@ -198,10 +205,8 @@ def _make_skirt(
     radius = np.maximum(prof[:1] + waist_clearance + flare * drop, prof + clearance)
     radius = np.maximum(_smooth_circular(radius, 5), prof + clearance)
     radius[0] = prof[0] + waist_clearance
-    verts = np.stack(
-        [center[0] + radius * np.cos(theta), center[1] + radius * np.sin(theta), np.broadcast_to(z[:, None], radius.shape)],
-        -1,
-    ).reshape(-1, 3)
+    zz = np.broadcast_to(z[:, None], radius.shape)
+    verts = np.stack([center[0] + radius * np.cos(theta), center[1] + radius * np.sin(theta), zz], -1).reshape(-1, 3)
     verts = _push_outside(verts, center, body, clearance=0.004)
     pinned = np.zeros(rows * cols, dtype=bool)
     pinned[:cols] = True  # waistband ring
@@ -232,10 +237,10 @@ def _make_long_shirt(
     center = np.array([0.0, j[joint_index("spine3"), 1] * 0.5])
     shape = body.template[~np.isin(body.vertex_joint, _ARM_AND_HEAD)]
     z_levels = np.linspace(z_sh, z_hem, 2 * rows)
-    prof_levels = _body_profile(shape, center, theta, z_levels, slab=0.015)
-    prof_levels = np.maximum.accumulate(prof_levels[::-1], axis=0)[::-1]  # widest below: hangs straight
-    prof_top = np.maximum.accumulate(_body_profile(shape, center, theta, z_levels, slab=0.015), axis=0)
-    prof_levels = np.minimum(prof_levels, prof_top + 0.05)  # no huge ledge under the chest
+    section = _body_profile(shape, center, theta, z_levels, slab=0.015)  # (L, C), top to bottom
+    below = np.maximum.accumulate(section[::-1], axis=0)[::-1]  # widest part below: hangs straight
+    above = np.maximum.accumulate(section, axis=0)  # widest part above: drapes from the chest
+    prof_levels = np.minimum(below, above + 0.05)  # but no huge ledge under the chest
     # interpolate the level profile at each vertex height
     prof = np.empty_like(z)
     for c in range(cols):

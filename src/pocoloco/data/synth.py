@@ -33,11 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
 from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS
 from ..config import SubjectSpec, SynthConfig
-from ..utils.atomic import save_npz_atomic, write_json_atomic
-from .format import FORMAT_NAME, FORMAT_VERSION, DatasetLayout, Frame, compute_normalisation, read_frame, write_frame
+from ..utils.atomic import save_npz_atomic
+from .capture import LABEL_GARMENT, LABEL_NAMES
+from .format import DatasetLayout, Frame, SubjectAsset, make_card, read_frame, refresh_card, write_card, write_frame
+from .format import Motion as StoredMotion
+from .format import write_motion, write_sequence_meta
+from .format import write_subject as format_write_subject
 
 SPLITS = ("train", "test")
 
@@ -86,7 +89,7 @@ def prepare_output(config: SynthConfig, out: Path) -> None:
             card = json.loads(layout.card_path.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"{layout.card_path}: unreadable dataset card ({e})") from None
-        have = card.get("config")
+        have = card.get("generation_config")
         if have != wanted:
             keys = sorted(k for k in set(wanted) | set(have or {}) if (have or {}).get(k) != wanted.get(k))
             raise ValueError(
@@ -97,19 +100,18 @@ def prepare_output(config: SynthConfig, out: Path) -> None:
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out}: folder exists, is not empty and is not a pocoloco dataset")
     out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(layout.card_path, _base_card(config, status="incomplete"))
+    write_card(out, _base_card(config, status="incomplete"))
 
 
 def _base_card(config: SynthConfig, status: str) -> dict:
-    return {
-        "format": FORMAT_NAME,
-        "version": FORMAT_VERSION,
-        "status": status,
-        "pocoloco_version": __version__,
-        "config": _config_json(config),
-        "skeleton": {"joint_names": list(JOINT_NAMES), "parents": list(JOINT_PARENTS), "up_axis": "z", "units": "m"},
-        "subjects": {s.name: {"garment": s.garment, "phenotype": s.phenotype} for s in config.subjects},
-    }
+    card = make_card(
+        subjects={s.name: {"garment_kind": s.garment, "phenotype": s.phenotype} for s in config.subjects},
+        generation_config=_config_json(config),
+        label_names=list(LABEL_NAMES),
+    )
+    card["status"] = status
+    card["skeleton"].update(up_axis="z", units="m", forward="-y")
+    return card
 
 
 # ---------------------------------------------------------------------------------------------
@@ -135,34 +137,34 @@ def _subject_assets(subject: SubjectSpec, config: SynthConfig):
 
 def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
     """subjects/<name>/subject.npz: body template, faces, UVs, garment rest mesh."""
-    path = DatasetLayout(out).subject_dir(subject.name) / "subject.npz"
+    path = DatasetLayout(out).subject_path(subject.name)
     if path.exists():
         return
     body, garment = _subject_assets(subject, config)
-    arrays = dict(
-        template=body.template,
-        template_joints=body.template_joints,
-        faces=body.faces,
-        uv=body.uv,
-        uv_faces=body.uv_faces,
-        vertex_joint=body.vertex_joint,
-        phenotype=np.array(json.dumps(body.phenotype)),
-        garment_kind=np.array(subject.garment),
-    )
-    if garment is not None:
-        arrays.update(garment_rest_vertices=garment.rest_vertices, garment_faces=garment.faces)
     path.parent.mkdir(parents=True, exist_ok=True)
-    save_npz_atomic(path, **arrays)
+    format_write_subject(
+        path,
+        SubjectAsset(
+            template=body.template,
+            faces=body.faces,
+            uv=body.uv,
+            uv_faces=body.uv_faces,
+            vertex_joint=body.vertex_joint,
+            phenotype=body.phenotype,
+            garment_rest_vertices=None if garment is None else garment.rest_vertices,
+            garment_faces=None if garment is None else garment.faces,
+        ),
+    )
 
 
 def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Callable[[int], None] | None = None) -> dict:
     """Generate (or finish) one sequence; returns its ``sequence.json`` record."""
-    from .capture import CaptureMesh, CaptureSettings, capture_frame
+    from .capture import LABEL_BODY, CaptureMesh, CaptureSettings, capture_frame
     from .motion import generate_motion, rest_to_motion
 
     layout = DatasetLayout(out)
     seq_dir = layout.sequence_dir(job.subject.name, job.split, job.name)
-    record_path = seq_dir / "sequence.json"
+    record_path = layout.sequence_meta_path(job.subject.name, job.split, job.name)
     if record_path.exists():
         record = json.loads(record_path.read_text())
         if progress:
@@ -178,14 +180,12 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
     motion = generate_motion(
         seed, config.frames_per_sequence + config.warmup_frames, split=job.split, fps=config.fps, body=body
     )
-    full = rest_to_motion(motion, config.blend_frames)
+    full = rest_to_motion(motion, config.blend_frames, body=body)
     start = full.num_frames - config.frames_per_sequence  # first stored frame
     posed = body.pose(full.joint_rotvecs, full.root_translation)
-    save_npz_atomic(
-        seq_dir / "motion.npz",
-        joint_rotvecs=full.joint_rotvecs[start:],
-        root_translation=full.root_translation[start:],
-        fps=np.float32(config.fps),
+    write_motion(
+        layout.motion_path(job.subject.name, job.split, job.name),
+        StoredMotion(full.joint_rotvecs[start:], full.root_translation[start:]),
     )
     timings["motion"] = time.perf_counter() - t0
 
@@ -208,13 +208,13 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
             rejected.append({"frame": i, "reason": stats["reason"]})
         elif frame_path.exists() and _readable(frame_path):
             labels = read_frame(frame_path, keys=["labels"]).labels
-            shares.append(100.0 * float(np.mean(labels == 1)))
+            shares.append(100.0 * float(np.mean(labels == LABEL_GARMENT)))
         else:
             tc = time.perf_counter()
-            meshes = [CaptureMesh(posed.vertices[t], body.faces, label=0, face_part=body_part)]
+            meshes = [CaptureMesh(posed.vertices[t], body.faces, label=LABEL_BODY, face_part=body_part)]
             if cloth_vertices is not None:
                 meshes.append(
-                    CaptureMesh(cloth_vertices[i], garment.faces, label=1, face_part=np.full(len(garment.faces), -1))
+                    CaptureMesh(cloth_vertices[i], garment.faces, label=LABEL_GARMENT, face_part=np.full(len(garment.faces), -1))
                 )
             scan = capture_frame(meshes, dataclasses.replace(settings, seed=seed + t))
             tw = time.perf_counter()
@@ -234,7 +234,7 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
                 ),
             )
             timings["write"] += time.perf_counter() - tw
-            shares.append(100.0 * float(np.mean(scan.labels == 1)))
+            shares.append(100.0 * float(np.mean(scan.labels == LABEL_GARMENT)))
         if stats is not None:
             penetration.append(stats)
         if progress:
@@ -248,14 +248,14 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
         "fps": config.fps,
         "num_frames": config.frames_per_sequence,
         "num_stored": config.frames_per_sequence - len(rejected),
-        "rejected": rejected,
+        "rejected_frames": rejected,
         "segments": [list(s) for s in motion.segments],
         "first_stored_motion_frame": config.warmup_frames,
         "loose_share_percent": float(np.mean(shares)) if shares else 0.0,
         "penetration": _summarise_penetration(penetration),
         "seconds": timings,
     }
-    write_json_atomic(record_path, record)
+    write_sequence_meta(record_path, record)
     cache = seq_dir / "cloth.npz"
     if cache.exists():
         cache.unlink()
@@ -363,56 +363,42 @@ def synthesize(
 
 
 def finalize_card(config: SynthConfig, out: Path, records: list[dict], wall_seconds: float, workers: int) -> dict:
-    """Counts, normalisation (on train), loose share, penetration and timings -> card.json."""
-    layout = DatasetLayout(out)
+    """Loose share, penetration and timings from the sequence records, then
+    counts and normalisation (on train) recounted from disk -> card.json."""
     card = _base_card(config, status="complete")
-    counts: dict = {}
     for subject in config.subjects:
         mine = [r for r in records if r["subject"] == subject.name]
-        per_split = {}
-        for split in SPLITS:
-            rs = [r for r in mine if r["split"] == split]
-            per_split[split] = {
-                "sequences": len(rs),
-                "frames": sum(r["num_stored"] for r in rs),
-                "rejected": sum(len(r["rejected"]) for r in rs),
-            }
         stored = [r for r in mine if r["num_stored"]]
+        share = (
+            float(np.average([r["loose_share_percent"] for r in stored], weights=[r["num_stored"] for r in stored]))
+            if stored
+            else 0.0
+        )
+        card["loose_share"][subject.name] = share / 100.0
         pens = [r["penetration"] for r in mine if r["penetration"]]
         card["subjects"][subject.name].update(
-            counts=per_split,
-            loose_share_percent=float(
-                np.average([r["loose_share_percent"] for r in stored], weights=[r["num_stored"] for r in stored])
-            )
-            if stored
-            else 0.0,
+            loose_share_percent=share,
             penetration=(
                 {
                     "max_mm": max(p["max_mm"] for p in pens),
                     "mean_mm": float(np.mean([p["mean_mm"] for p in pens])),
                     "fraction_percent": float(np.mean([p["fraction_percent"] for p in pens])),
+                    "stretch_max": max(p["stretch_max"] for p in pens),
                 }
                 if pens
                 else None
             ),
+            rejected_reasons=sorted({f["reason"] for r in mine for f in r["rejected_frames"]}),
         )
-        counts[subject.name] = per_split
-    card["counts"] = {
-        split: {"frames": sum(c[split]["frames"] for c in counts.values()),
-                "rejected": sum(c[split]["rejected"] for c in counts.values())}
-        for split in SPLITS
-    }  # fmt: skip
-    train_frames = [p for _, _, p in layout.iter_frames("train")]
-    if not train_frames:
-        raise ValueError(f"{out}: no training frame survived generation (all rejected); see sequence.json files")
-    card["normalisation"] = {"root_joint": 0, "computed_on": "train", **compute_normalisation(train_frames)}
     seconds = {k: sum(r["seconds"][k] for r in records) for k in ("motion", "simulation", "capture", "write")}
     frames = sum(r["num_frames"] for r in records)
     card["generation"] = {
         "workers": workers,
         "wall_seconds_last_run": wall_seconds,
         "cpu_seconds_per_frame": {k: v / max(frames, 1) for k, v in seconds.items()},
-        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    write_json_atomic(layout.card_path, card)
+    write_card(out, card)
+    card = refresh_card(out, normalise_on="train")
+    if card.get("normalisation") is None:
+        raise ValueError(f"{out}: no training frame survived generation (all rejected); see the sequence.json files")
     return card

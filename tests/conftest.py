@@ -1,0 +1,32 @@
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+# keep BLAS and torch to the machine's 2 cores and make runs reproducible
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    """A dataset generated once per test session with the ``tiny`` preset."""
+    from pocoloco.config import synth_preset
+    from pocoloco.data.synth import synthesize
+
+    out = tmp_path_factory.mktemp("tiny") / "data"
+    synthesize(synth_preset("tiny"), out)
+    return out
+
+
+def run_cli(*args: str, env: dict | None = None):
+    """Run ``python -m pocoloco.cli ARGS`` in a subprocess; returns CompletedProcess."""
+    import subprocess
+
+    return subprocess.run(
+        [sys.executable, "-m", "pocoloco.cli", *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **(env or {})},
+        timeout=600,
+    )

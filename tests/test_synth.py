@@ -1,0 +1,136 @@
+"""End-to-end tests of the synthetic capture pipeline and its CLI (tiny preset)."""
+
+import dataclasses
+import hashlib
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+from pocoloco.config import SYNTH_PRESETS, synth_preset
+from pocoloco.data.format import DatasetLayout, read_card, read_frame
+from pocoloco.data.synth import list_jobs, prepare_output
+
+
+def test_tiny_dataset_card_and_frames(tiny_dataset):
+    card = read_card(tiny_dataset)
+    config = synth_preset("tiny")
+    assert card["status"] == "complete"
+    assert set(card["subjects"]) == {s.name for s in config.subjects}
+    layout = DatasetLayout(tiny_dataset)
+    for split in ("train", "test"):
+        frames = layout.iter_frames(split)
+        expected = sum(card["counts"][s][split]["frames"] for s in card["subjects"])
+        assert len(frames) == expected > 0
+    assert card["loose_share"]["skirt"] > 0.10  # the skirt is seen by the cameras
+    assert card["loose_share"]["tight"] == 0.0
+    skirt = card["subjects"]["skirt"]
+    assert skirt["penetration"] is not None and skirt["penetration"]["mean_mm"] < 5.0
+    norm = card["normalisation"]
+    assert len(norm["mean"]) == 3 and 0.05 < norm["std"] < 1.0
+    f = read_frame(layout.iter_frames("train", subjects=["skirt"])[0][2])
+    assert f.points.shape == (config.num_points, 3) and f.normals.shape == (config.num_points, 3)
+    assert np.allclose(np.linalg.norm(f.normals, axis=1), 1.0, atol=1e-4)
+    assert f.joints.shape == (24, 3) and f.garment_vertices is not None
+    # points lie on the outer surface, near the body or the garment
+    from scipy.spatial import cKDTree
+
+    surf = np.concatenate([f.body_vertices, f.garment_vertices])
+    d, _ = cKDTree(surf).query(f.points)
+    assert np.median(d) < 0.01
+
+
+def test_train_and_test_motions_differ(tiny_dataset):
+    layout = DatasetLayout(tiny_dataset)
+    a = np.load(layout.sequence_dir("skirt", "train", "train_0000") / "motion.npz")["joint_rotvecs"]
+    b = np.load(layout.sequence_dir("skirt", "test", "test_0000") / "motion.npz")["joint_rotvecs"]
+    assert not np.allclose(a, b)
+
+
+def test_cli_info_and_preview(tiny_dataset, tmp_path):
+    r = run_cli("data", "info", str(tiny_dataset))
+    assert r.returncode == 0, r.stderr
+    assert "skirt" in r.stdout and "loose %" in r.stdout and "normalisation" in r.stdout
+    png = tmp_path / "p.png"
+    r = run_cli("data", "preview", str(tiny_dataset), "--out", str(png), "--num", "2")
+    assert r.returncode == 0, r.stderr
+    from PIL import Image
+
+    img = np.asarray(Image.open(png).convert("RGB")).astype(float)
+    assert img.std() > 10  # not blank
+
+
+def test_cli_export_ply(tiny_dataset, tmp_path):
+    r = run_cli("data", "export", str(tiny_dataset), "--out", str(tmp_path / "ply"), "--limit", "2")
+    assert r.returncode == 0, r.stderr
+    from pocoloco.data.published import read_ply
+
+    plys = sorted((tmp_path / "ply").glob("*.ply"))
+    assert len(plys) == 2
+    cloud = read_ply(plys[0], require_normals=True)
+    assert cloud.points.shape[1] == 3 and cloud.normals is not None
+
+
+def test_cli_bad_input_gives_one_line_errors(tmp_path):
+    r = run_cli("data", "synth", "--preset", "huge", "--out", str(tmp_path / "x"))
+    assert r.returncode == 2 and "unknown preset 'huge'" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    r = run_cli("data", "info", str(tmp_path))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "file.txt").write_text("x")
+    r = run_cli("data", "synth", "--preset", "tiny", "--out", str(tmp_path / "junk"))
+    assert r.returncode == 2 and "not a pocoloco dataset" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_existing_output_of_another_configuration_is_refused(tmp_path):
+    config = synth_preset("tiny")
+    prepare_output(config, tmp_path / "d")
+    prepare_output(config, tmp_path / "d")  # same configuration: fine (resume)
+    other = dataclasses.replace(config, seed=7, num_points=3000)
+    with pytest.raises(ValueError, match="different configuration.*num_points, seed"):
+        prepare_output(other, tmp_path / "d")
+
+
+def _digest(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_without_rewriting_frames(tmp_path):
+    """Kill a generation after its first frames, resume, and check that the
+    frames written before the kill are untouched and the dataset completes."""
+    out = tmp_path / "d"
+    cmd = [sys.executable, "-m", "pocoloco.cli", "data", "synth", "--preset", "tiny", "--out", str(out),
+           "--frames", "6", "--test-sequences", "1"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    layout = DatasetLayout(out)
+    deadline = time.time() + 400
+    first = []
+    while time.time() < deadline and proc.poll() is None:
+        first = sorted(out.glob("subjects/*/*/*/frames/*.npz"))
+        if len(first) >= 2:
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert len(first) >= 2, "generation produced no frame before the deadline"
+    before = {p: _digest(p) for p in sorted(out.glob("subjects/*/*/*/frames/*.npz"))}
+    assert read_card(out)["status"] == "incomplete"
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    card = read_card(out)
+    assert card["status"] == "complete"
+    for p, digest in before.items():
+        assert _digest(p) == digest, f"{p} was rewritten"
+    total = sum(c[split]["frames"] for c in card["counts"].values() for split in ("train", "test"))
+    rejected = sum(c[split]["rejected_frames"] for c in card["counts"].values() for split in ("train", "test"))
+    assert total + rejected == len(list_jobs(dataclasses.replace(SYNTH_PRESETS["tiny"], test_sequences=1))) * 6
+    assert len(layout.iter_frames("train")) + len(layout.iter_frames("test")) == total
+    json.dumps(card)
