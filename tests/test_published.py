@@ -290,3 +290,20 @@ def test_pop_errors(tmp_path):
     (tmp_path / "ok.npz").write_bytes(data[: len(data) // 2])
     with pytest.raises(ValueError, match="ok.npz: corrupt or truncated npz"):
         read_pop_npz(tmp_path / "ok.npz")
+
+
+def test_cli_imports_a_loose_style_folder_and_reports_bad_joints(tmp_path):
+    from conftest import run_cli
+
+    rng = np.random.default_rng(9)
+    _, _, jtxt = _make_loose_sequence(tmp_path / "raw" / "walk", rng)
+    out = tmp_path / "ds"
+    r = run_cli("data", "import", str(tmp_path / "raw" / "walk"), "--joints", str(jtxt), "--out", str(out),
+                "--subject", "s1")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert fmt.read_card(out)["counts"]["s1"]["train"]["frames"] == 3
+    bad = tmp_path / "bad.txt"
+    bad.write_text("10 " + " ".join(["0.1"] * 69) + "\n")  # 23 joints instead of 24
+    r = run_cli("data", "import", str(tmp_path / "raw" / "walk"), "--joints", str(bad), "--out", str(out),
+                "--subject", "s2")  # fmt: skip
+    assert r.returncode == 2 and "bad.txt" in r.stderr and len(r.stderr.strip().splitlines()) == 1

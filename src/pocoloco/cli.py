@@ -136,6 +136,15 @@ def cmd_data_export(args: argparse.Namespace) -> None:
     print(f"wrote {min(len(frames), args.limit or len(frames))} {args.format} files to {out}")
 
 
+def cmd_data_import(args: argparse.Namespace) -> None:
+    from .data.published import import_loose_style
+
+    seq = import_loose_style(
+        args.ply_dir, args.joints, args.out, subject=args.subject, split=args.split, sequence=args.sequence
+    )
+    print(f"imported into {seq}")
+
+
 # --------------------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     from .config import SYNTH_PRESETS
@@ -177,6 +186,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--subject")
     s.add_argument("--limit", type=int, default=0, help="at most this many frames (0 = all)")
     s.set_defaults(func=cmd_data_export)
+
+    s = data.add_parser(
+        "import", help="convert a LOOSE/DynaCap-style sequence (one .ply per frame + a joints text file)"
+    )
+    s.add_argument("ply_dir", help="folder with one .ply per frame (frame id = last integer in the file name)")
+    s.add_argument("--joints", required=True, help="text file: per line a frame id then 3 x 24 floats")
+    s.add_argument("--out", required=True, help="dataset folder (created or extended)")
+    s.add_argument("--subject", required=True)
+    s.add_argument("--split", default="train", choices=["train", "test"])
+    s.add_argument("--sequence", help="sequence name (default: the ply folder's name)")
+    s.set_defaults(func=cmd_data_import)
     return p
 
 
