@@ -204,18 +204,17 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
         t = start + i
         frame_path = layout.frame_path(job.subject.name, job.split, job.name, i)
         stats = cloth_stats[i] if cloth_stats is not None else None
+        written = _written_labels(frame_path)
         if stats is not None and not stats["valid"]:
             rejected.append({"frame": i, "reason": stats["reason"]})
-        elif frame_path.exists() and _readable(frame_path):
-            labels = read_frame(frame_path, keys=["labels"]).labels
-            shares.append(100.0 * float(np.mean(labels == LABEL_GARMENT)))
+        elif written is not None:  # kept from an interrupted run (files are written atomically)
+            shares.append(100.0 * float(np.mean(written == LABEL_GARMENT)))
         else:
             tc = time.perf_counter()
             meshes = [CaptureMesh(posed.vertices[t], body.faces, label=LABEL_BODY, face_part=body_part)]
             if cloth_vertices is not None:
-                meshes.append(
-                    CaptureMesh(cloth_vertices[i], garment.faces, label=LABEL_GARMENT, face_part=np.full(len(garment.faces), -1))
-                )
+                no_part = np.full(len(garment.faces), -1)
+                meshes.append(CaptureMesh(cloth_vertices[i], garment.faces, label=LABEL_GARMENT, face_part=no_part))
             scan = capture_frame(meshes, dataclasses.replace(settings, seed=seed + t))
             tw = time.perf_counter()
             timings["capture"] += tw - tc
@@ -262,12 +261,14 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
     return record
 
 
-def _readable(path: Path) -> bool:
+def _written_labels(path: Path) -> np.ndarray | None:
+    """Labels (N,) of an already-written, readable frame file, else None."""
+    if not path.exists():
+        return None
     try:
-        read_frame(path, keys=["labels"])
-        return True
+        return read_frame(path, keys=["labels"]).labels
     except ValueError:
-        return False
+        return None
 
 
 def _simulate_cached(body, garment, posed, seq_dir: Path, start: int):
