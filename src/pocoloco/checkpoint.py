@@ -1,0 +1,394 @@
+"""Training checkpoints: one folder per checkpoint, written atomically.
+
+Layout of a run folder (see :mod:`pocoloco.train`)::
+
+    RUN_DIR/checkpoints/
+        latest                  text file naming the newest complete checkpoint folder
+                                (atomically replaced after that folder exists)
+        step_000100/
+            meta.json           format + version, model kind, preset, step, train config,
+                                denoiser config, normalisation stats, world size, versions
+            model.safetensors   the raw (non-EMA) weights
+            ema.safetensors     the EMA weights (what sampling uses)
+            training_state.pt   optimiser state, RNG states (python, numpy, torch, cuda), step
+                                (``torch.save``; loaded with ``weights_only=True``)
+
+A checkpoint folder is written under a hidden temporary name, every file fsynced, and then
+renamed to ``step_XXXXXX`` (an atomic ``rename`` on POSIX), so a reader never sees a partial
+checkpoint; ``latest`` is updated last, atomically (:func:`pocoloco.utils.atomic.atomic_open`).
+
+Public API: :func:`save_checkpoint`, :func:`load_checkpoint` -> :class:`Checkpoint`,
+:func:`load_denoiser` -> :class:`LoadedDenoiser` (model, normalisation, config),
+:func:`resolve_checkpoint`, :func:`capture_rng_state`, :func:`restore_rng_state`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import random
+import re
+import shutil
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+
+from pocoloco.data.dataset import Normalisation
+from pocoloco.utils.atomic import atomic_open
+
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "CHECKPOINT_VERSION",
+    "Checkpoint",
+    "LoadedDenoiser",
+    "capture_rng_state",
+    "latest_checkpoint",
+    "load_checkpoint",
+    "load_denoiser",
+    "resolve_checkpoint",
+    "restore_rng_state",
+    "save_checkpoint",
+]
+
+CHECKPOINT_FORMAT = "pocoloco-checkpoint"
+CHECKPOINT_VERSION = 1
+META_FILE = "meta.json"
+MODEL_FILE = "model.safetensors"
+EMA_FILE = "ema.safetensors"
+STATE_FILE = "training_state.pt"
+LATEST_FILE = "latest"
+_STEP_DIR = re.compile(r"^step_(\d+)$")
+
+
+def checkpoint_dir_name(step: int) -> str:
+    """Folder name of the checkpoint at ``step`` (``step_000100``)."""
+    return f"step_{int(step):06d}"
+
+
+# --------------------------------------------------------------------------------------- RNG
+def capture_rng_state() -> dict[str, Any]:
+    """RNG states of python, numpy (legacy global), torch CPU and every CUDA device.
+
+    Stored as plain python/torch objects so ``torch.load(weights_only=True)`` accepts them.
+    """
+    np_state = np.random.get_state(legacy=False)
+    state: dict[str, Any] = {
+        "python": random.getstate(),
+        "numpy": {
+            "bit_generator": np_state["bit_generator"],
+            "key": torch.from_numpy(np.asarray(np_state["state"]["key"], dtype=np.int64)),
+            "pos": int(np_state["state"]["pos"]),
+            "has_gauss": int(np_state["has_gauss"]),
+            "gauss": float(np_state["gauss"]),
+        },
+        "torch": torch.get_rng_state(),
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def restore_rng_state(state: dict[str, Any]) -> None:
+    """Inverse of :func:`capture_rng_state` (CUDA states are restored when CUDA is available)."""
+    py = state["python"]
+    random.setstate((py[0], tuple(py[1]), py[2]))
+    n = state["numpy"]
+    np.random.set_state({
+        "bit_generator": n["bit_generator"],
+        "state": {"key": n["key"].numpy().astype(np.uint32), "pos": int(n["pos"])},
+        "has_gauss": int(n["has_gauss"]),
+        "gauss": float(n["gauss"]),
+    })  # fmt: skip
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+# ------------------------------------------------------------------------------------- saving
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as f:
+        os.fsync(f.fileno())
+
+
+def _cpu_state(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.detach().to("cpu").contiguous().clone() for k, v in state.items()}
+
+
+def save_checkpoint(
+    root: str | os.PathLike,
+    step: int,
+    *,
+    model_kind: str,
+    preset: str,
+    config: dict[str, Any],
+    normalisation: Normalisation,
+    model_state: dict[str, torch.Tensor],
+    ema_state: dict[str, torch.Tensor] | None = None,
+    optimizer_state: dict[str, Any] | None = None,
+    rng_state: dict[str, Any] | None = None,
+    extra: dict[str, Any] | None = None,
+    keep: int | None = None,
+) -> Path:
+    """Write the checkpoint of ``step`` atomically into ``root/step_XXXXXX`` and point ``latest`` at it.
+
+    Args:
+        root: the checkpoints folder (``RUN_DIR/checkpoints``); created if missing.
+        step: number of optimiser steps done.
+        model_kind / preset: e.g. ``"pocoloco"`` / ``"small"`` (checked by :func:`load_checkpoint`).
+        config: JSON-serialisable training config (``TrainConfig.to_dict()``); it must hold the
+            denoiser config under ``"denoiser"`` for :func:`load_denoiser`.
+        normalisation: the dataset's normalisation stats (needed to map samples to metres).
+        model_state / ema_state: weights (tensors; saved as safetensors).
+        optimizer_state: ``optimizer.state_dict()``; rng_state: :func:`capture_rng_state`.
+        extra: more JSON-serialisable metadata for ``meta.json``.
+        keep: keep only the ``keep`` newest ``step_*`` folders (None: keep all).
+    Returns:
+        the checkpoint folder.
+    """
+    from safetensors.torch import save_file
+
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    name = checkpoint_dir_name(step)
+    final = root / name
+    tmp = root / f".tmp-{name}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        meta = {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "model_kind": model_kind,
+            "preset": preset,
+            "step": int(step),
+            "config": config,
+            "normalisation": {"mean": list(normalisation.mean), "std": normalisation.std,
+                              "root_joint": normalisation.root_joint},  # fmt: skip
+            "has_ema": ema_state is not None,
+            "has_training_state": optimizer_state is not None,
+            "torch_version": torch.__version__,
+            **(extra or {}),
+        }
+        save_file(_cpu_state(model_state), str(tmp / MODEL_FILE), metadata={"step": str(step)})
+        _fsync_file(tmp / MODEL_FILE)
+        if ema_state is not None:
+            save_file(_cpu_state(ema_state), str(tmp / EMA_FILE), metadata={"step": str(step)})
+            _fsync_file(tmp / EMA_FILE)
+        if optimizer_state is not None or rng_state is not None:
+            with open(tmp / STATE_FILE, "wb") as f:
+                torch.save({"step": int(step), "optimizer": optimizer_state, "rng": rng_state}, f)
+                f.flush()
+                os.fsync(f.fileno())
+        with open(tmp / META_FILE, "w", encoding="utf-8") as f:
+            f.write(json.dumps(meta, indent=2, allow_nan=False) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        if final.exists():  # re-saving a step (e.g. after a resume): move the old one aside first
+            trash = root / f".old-{name}-{uuid.uuid4().hex[:8]}"
+            os.replace(final, trash)
+            shutil.rmtree(trash, ignore_errors=True)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    with atomic_open(root / LATEST_FILE, "w") as f:
+        f.write(name + "\n")
+    if keep is not None and keep > 0:
+        for old in _step_dirs(root)[:-keep]:
+            if old.name != name:
+                shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def _step_dirs(root: Path) -> list[Path]:
+    """``step_*`` folders of ``root``, oldest first."""
+    found = [(int(m.group(1)), p) for p in root.iterdir() if p.is_dir() and (m := _STEP_DIR.match(p.name))]
+    return [p for _, p in sorted(found)]
+
+
+def latest_checkpoint(root: str | os.PathLike) -> Path | None:
+    """The newest complete checkpoint in a checkpoints folder (``latest``, else the highest step), or None."""
+    root = Path(root)
+    if not root.is_dir():
+        return None
+    latest = root / LATEST_FILE
+    if latest.is_file():
+        cand = root / latest.read_text(encoding="utf-8").strip()
+        if (cand / META_FILE).is_file():
+            return cand
+    dirs = [d for d in _step_dirs(root) if (d / META_FILE).is_file()]
+    return dirs[-1] if dirs else None
+
+
+def resolve_checkpoint(path: str | os.PathLike) -> Path:
+    """Accept a checkpoint folder, a checkpoints folder or a run folder; return the checkpoint folder."""
+    p = Path(path)
+    if (p / META_FILE).is_file():
+        return p
+    for root in (p, p / "checkpoints"):
+        found = latest_checkpoint(root)
+        if found is not None:
+            return found
+    if not p.exists():
+        raise ValueError(f"{p}: no such checkpoint or run folder")
+    raise ValueError(f"{p}: no checkpoint found (expected {META_FILE}, a 'latest' file or step_* folders)")
+
+
+# ------------------------------------------------------------------------------------ loading
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint (tensors on the CPU unless ``map_location`` said otherwise).
+
+    Attributes:
+        path: the checkpoint folder.
+        step: optimiser steps done.
+        model_kind / preset: what was trained (e.g. "pocoloco" / "small").
+        config: the training config as a dict (``TrainConfig.from_dict`` rebuilds it).
+        normalisation: the dataset normalisation the model was trained with.
+        model_state: raw weights. ema_state: EMA weights or None.
+        optimizer_state / rng_state: training state, or None if not saved / not loaded.
+        meta: the whole ``meta.json``.
+    """
+
+    path: Path
+    step: int
+    model_kind: str
+    preset: str
+    config: dict[str, Any]
+    normalisation: Normalisation
+    model_state: dict[str, torch.Tensor]
+    ema_state: dict[str, torch.Tensor] | None
+    optimizer_state: dict[str, Any] | None = None
+    rng_state: dict[str, Any] | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def _read_meta(path: Path) -> dict[str, Any]:
+    f = path / META_FILE
+    try:
+        meta = json.loads(f.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ValueError(f"{f}: missing (not a pocoloco checkpoint)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{f}: corrupt checkpoint metadata ({type(e).__name__}: {e})") from None
+    if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
+        kind = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise ValueError(f"{f}: not a pocoloco checkpoint (format is {kind!r})")
+    if meta.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{f}: unsupported checkpoint version {meta.get('version')!r} (expected {CHECKPOINT_VERSION})")
+    for key in ("model_kind", "preset", "step", "config", "normalisation"):
+        if key not in meta:
+            raise ValueError(f"{f}: corrupt checkpoint metadata (no {key!r})")
+    return meta
+
+
+def _one_line(e: BaseException) -> str:
+    """``Type: first line of the message`` of an exception."""
+    lines = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {lines[0]}" if lines else type(e).__name__
+
+
+def _load_safetensors(f: Path, device: str | torch.device) -> dict[str, torch.Tensor]:
+    from safetensors.torch import load_file
+
+    if not f.is_file():
+        raise ValueError(f"{f}: missing from the checkpoint")
+    try:
+        return load_file(str(f), device=str(device))
+    except Exception as e:  # safetensors raises its own error types for truncated / garbage files
+        raise ValueError(f"{f}: corrupt weights file ({_one_line(e)})") from None
+
+
+def load_checkpoint(
+    path: str | os.PathLike,
+    expect_model: str | None = "pocoloco",
+    expect_preset: str | None = None,
+    map_location: str | torch.device = "cpu",
+    training_state: bool = True,
+) -> Checkpoint:
+    """Load a checkpoint written by :func:`save_checkpoint`.
+
+    Args:
+        path: a checkpoint folder, a checkpoints folder or a run folder (newest checkpoint).
+        expect_model / expect_preset: raise if the checkpoint is of another model / preset
+            (None: accept any).
+        map_location: device for the tensors.
+        training_state: also load the optimiser and RNG states (needed to resume).
+    Raises:
+        ValueError (one line, naming the file): missing or corrupt files, wrong model or preset.
+    """
+    ckpt = resolve_checkpoint(path)
+    meta = _read_meta(ckpt)
+    if expect_model is not None and meta["model_kind"] != expect_model:
+        raise ValueError(
+            f"{ckpt / META_FILE}: checkpoint is of model {meta['model_kind']!r}, expected {expect_model!r}"
+        )
+    if expect_preset is not None and meta["preset"] != expect_preset:
+        raise ValueError(f"{ckpt / META_FILE}: checkpoint is of preset {meta['preset']!r}, expected {expect_preset!r}")
+    try:
+        norm = meta["normalisation"]
+        normalisation = Normalisation(mean=tuple(float(x) for x in norm["mean"]), std=float(norm["std"]),
+                                      root_joint=int(norm.get("root_joint", 0)))  # fmt: skip
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{ckpt / META_FILE}: corrupt normalisation stats ({e})") from None
+    model_state = _load_safetensors(ckpt / MODEL_FILE, map_location)
+    ema_state = _load_safetensors(ckpt / EMA_FILE, map_location) if meta.get("has_ema", False) else None
+    optimizer_state = rng_state = None
+    if training_state and meta.get("has_training_state", False):
+        f = ckpt / STATE_FILE
+        if not f.is_file():
+            raise ValueError(f"{f}: missing from the checkpoint")
+        try:
+            state = torch.load(f, map_location=map_location, weights_only=True)
+        except Exception as e:
+            raise ValueError(f"{f}: corrupt training state ({_one_line(e)})") from None
+        if not isinstance(state, dict) or int(state.get("step", -1)) != int(meta["step"]):
+            got = state.get("step") if isinstance(state, dict) else None
+            raise ValueError(f"{f}: training state does not match {META_FILE} (step {got} vs {meta['step']})")
+        optimizer_state, rng_state = state.get("optimizer"), state.get("rng")
+    return Checkpoint(
+        path=ckpt, step=int(meta["step"]), model_kind=meta["model_kind"], preset=meta["preset"],
+        config=meta["config"], normalisation=normalisation, model_state=model_state, ema_state=ema_state,
+        optimizer_state=optimizer_state, rng_state=rng_state, meta=meta,
+    )  # fmt: skip
+
+
+class LoadedDenoiser(NamedTuple):
+    """What :func:`load_denoiser` returns; unpacks as ``model, normalisation, config``.
+
+    model: the ``PocoLocoDenoiser`` in eval mode. normalisation: to map samples to metres.
+    config: the ``TrainConfig`` (``config.denoiser`` the architecture, ``config.schedule`` and
+    ``config.prediction_type`` what the sampler needs).
+    """
+
+    model: torch.nn.Module
+    normalisation: Normalisation
+    config: Any
+
+
+def load_denoiser(
+    path: str | os.PathLike, use_ema: bool = True, device: str | torch.device = "cpu", expect_preset: str | None = None
+) -> LoadedDenoiser:
+    """Build the trained PocoLoco denoiser from a checkpoint (EMA weights by default) for sampling."""
+    from pocoloco.models.pocoloco import PocoLocoDenoiser
+    from pocoloco.train import TrainConfig
+
+    ck = load_checkpoint(path, expect_model="pocoloco", expect_preset=expect_preset, map_location="cpu",
+                         training_state=False)  # fmt: skip
+    try:
+        config = TrainConfig.from_dict(ck.config)
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{ck.path / META_FILE}: corrupt train config ({e})") from None
+    model = PocoLocoDenoiser(config.denoiser)
+    state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        raise ValueError(f"{ck.path}: weights do not match the stored config ({_one_line(e)})") from None
+    with contextlib.suppress(AttributeError):
+        model.prediction_type = config.prediction_type
+    return LoadedDenoiser(model.to(device).eval(), ck.normalisation, config)
