@@ -79,10 +79,10 @@ class ClothSimSettings:
     edge_ke: float = 1.0e-3
     edge_kd: float = 0.0
     particle_radius: float = 0.004
-    contact_margin: float = 0.02
-    contact_ke: float = 1.0e4
+    contact_margin: float = 0.04
+    contact_ke: float = 3.0e4
     contact_kd: float = 1.0e-2
-    contact_mu: float = 0.2
+    contact_mu: float = 0.05
     settle_frames: int = 10
     capsule_percentile: float = 90.0
     max_stretch: float = 3.0
@@ -326,22 +326,28 @@ def _quat_z_to(d: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- simulation
 
 
-def skin_garment(garment: Garment, body: AnnyBody, vertices: np.ndarray, vtransf: np.ndarray) -> np.ndarray:
-    """Carry the whole garment rigidly-per-vertex onto one posed body.
+def skin_garment(
+    garment: Garment, body: AnnyBody, vertices: np.ndarray, vtransf: np.ndarray, k: int = 16
+) -> np.ndarray:
+    """Carry the whole garment onto one posed body by smooth skinning.
 
-    Each garment vertex follows its nearest torso/leg template vertex like a
-    pin does (``v + vtransf @ offset``). Used to place the cloth on the first frame, so
-    the start is penetration-free even if that frame is not exactly the
-    template (anny's posed zero pose differs from ``AnnyBody.template`` by up
-    to ~1.5 cm). Returns (Vg, 3) float32.
+    Each garment vertex x follows its ``k`` nearest torso/leg template vertices
+    u like a pin does (``v_u + vtransf_u @ (x - u)``), blended with inverse
+    square distance weights so neighbouring garment vertices move alike (a hem
+    between the legs does not tear). Used to place the cloth on the first
+    frame, which differs from the bind pose ``AnnyBody.template`` (anny's zero
+    pose tilts the upper spine and shoulders). Returns (Vg, 3) float32.
     """
     from scipy.spatial import cKDTree
 
     allowed = anchor_vertices(body)
-    _, nn = cKDTree(body.template[allowed]).query(garment.rest_vertices)
+    dist, nn = cKDTree(body.template[allowed]).query(garment.rest_vertices, k=k)  # (Vg, k)
     nn = allowed[nn]
-    off = garment.rest_vertices - body.template[nn]
-    return (vertices[nn] + np.einsum("nij,nj->ni", vtransf[nn], off)).astype(np.float32)
+    w = 1.0 / (dist + 1e-3) ** 2
+    w /= w.sum(1, keepdims=True)
+    off = garment.rest_vertices[:, None] - body.template[nn]  # (Vg, k, 3)
+    moved = vertices[nn] + np.einsum("nkij,nkj->nki", vtransf[nn], off)  # (Vg, k, 3)
+    return (w[..., None] * moved).sum(1).astype(np.float32)
 
 
 def simulate_garment(
@@ -434,6 +440,9 @@ def simulate_garment(
     frame_dt = 1.0 / s.fps
     dt = frame_dt / s.substeps
     edges = mesh_edges(garment.faces)
+    # stretch is judged on cloth edges only: an edge between two pins has the
+    # length the body gives it (e.g. the shirt's neckline when the arms rise)
+    edges = edges[~(garment.pinned[edges[:, 0]] & garment.pinned[edges[:, 1]])]
     rest_len = np.linalg.norm(garment.rest_vertices[edges[:, 0]] - garment.rest_vertices[edges[:, 1]], axis=1)
 
     def lerp(x: np.ndarray, t: int, alpha: float) -> np.ndarray:
