@@ -197,6 +197,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--split", default="train", choices=["train", "test"])
     s.add_argument("--sequence", help="sequence name (default: the ply folder's name)")
     s.set_defaults(func=cmd_data_import)
+
+    from .train import add_train_arguments, cmd_train
+
+    s = sub.add_parser("train", help="train a model on a dataset (PocoLoco diffusion)")
+    add_train_arguments(s)
+    s.set_defaults(func=cmd_train)
     return p
 
 
