@@ -49,7 +49,7 @@ def main() -> None:
                 card = synthesize(config, Path(tmp) / "d", workers=workers)
                 walls.append(time.perf_counter() - t0)
                 cards.append(card)
-        frames = sum(c["train"]["frames"] + c["test"]["frames"] for c in [cards[0]["counts"]])
+        frames = sum(c[split]["frames"] for c in cards[0]["counts"].values() for split in ("train", "test"))
         simulated = len(config.subjects) * (config.train_sequences + config.test_sequences) * config.frames_per_sequence
         per_stage = cards[0]["generation"]["cpu_seconds_per_frame"]
         rows.append(
@@ -59,7 +59,7 @@ def main() -> None:
                 "frames": frames,
                 "wall_seconds_per_frame": statistics.median(walls) / simulated,
                 "cpu_seconds_per_frame": per_stage,
-                "penetration": {s: v["penetration"] for s, v in cards[0]["subjects"].items()},
+                "penetration": {s: v.get("penetration") for s, v in cards[0]["subjects"].items()},
             }
         )
     base = rows[0]["wall_seconds_per_frame"]
