@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -98,22 +99,47 @@ def test_existing_output_of_another_configuration_is_refused(tmp_path):
         prepare_output(other, tmp_path / "d")
 
 
+def _descendants(pid: int) -> set[int]:
+    """PIDs of all live descendants of ``pid`` (Linux /proc)."""
+    out, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                kids = {int(c) for c in (task / "children").read_text().split()}
+            except OSError:
+                continue
+            todo += list(kids - out)
+            out |= kids
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
 def _digest(path):
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 @pytest.mark.slow
 def test_killed_run_resumes_without_rewriting_frames(tmp_path):
-    """Kill a generation after its first frames, resume, and check that the
-    frames written before the kill are untouched and the dataset completes."""
+    """SIGKILL a 2-worker generation after its first frames, resume, and check
+    that no orphan worker survives, the frames written before the kill are
+    untouched and the dataset completes."""
     out = tmp_path / "d"
     cmd = [sys.executable, "-m", "pocoloco.cli", "data", "synth", "--preset", "tiny", "--out", str(out),
-           "--frames", "6", "--test-sequences", "1"]  # fmt: skip
+           "--frames", "6", "--test-sequences", "1", "--workers", "2"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     layout = DatasetLayout(out)
     deadline = time.time() + 400
     first = []
+    workers: set[int] = set()
     while time.time() < deadline and proc.poll() is None:
+        workers |= _descendants(proc.pid)
         first = sorted(out.glob("subjects/*/*/*/frames/*.npz"))
         if len(first) >= 2:
             break
@@ -121,6 +147,10 @@ def test_killed_run_resumes_without_rewriting_frames(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert len(first) >= 2, "generation produced no frame before the deadline"
+    assert workers, "no worker process was seen"
+    time.sleep(3)  # workers notice the main process is gone within 0.5 s
+    orphans = [p for p in workers if _alive(p)]
+    assert not orphans, f"processes of the killed run still alive: {orphans}"
     before = {p: _digest(p) for p in sorted(out.glob("subjects/*/*/*/frames/*.npz"))}
     assert read_card(out)["status"] == "incomplete"
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)

@@ -27,7 +27,7 @@ import json
 import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -305,10 +305,30 @@ def _summarise_penetration(stats: list[dict]) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------
-def _worker(config_dict: dict, out: str, job_index: int, queue) -> dict:
+_PROGRESS_QUEUE = None  # set in each worker process by _init_worker
+
+
+def _init_worker(parent_pid: int, queue) -> None:
+    """Worker initializer: keep the progress queue, and end this worker as soon
+    as the main process is gone (killed with SIGKILL, say) instead of
+    simulating on as an orphan that would race a resumed run for its files."""
+    import threading
+
+    global _PROGRESS_QUEUE
+    _PROGRESS_QUEUE = queue
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def _worker(config_dict: dict, out: str, job_index: int) -> dict:
     config = SynthConfig.from_dict(config_dict)
     job = list_jobs(config)[job_index]
-    return run_sequence(config, Path(out), job, progress=(lambda n: queue.put(n)) if queue is not None else None)
+    return run_sequence(config, Path(out), job, progress=_PROGRESS_QUEUE.put)
 
 
 def synthesize(
@@ -344,21 +364,22 @@ def synthesize(
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")
-        with ctx.Manager() as manager:
-            queue = manager.Queue()
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-                futures = [pool.submit(_worker, config.to_dict(), str(out), i, queue) for i in range(len(jobs))]
-                pending = set(futures)
-                while pending:
-                    while not queue.empty():
-                        tick(queue.get())
-                    finished = {f for f in pending if f.done()}
-                    for f in finished:
-                        records.append(f.result())
-                    pending -= finished
-                    time.sleep(0.2)
+        queue = ctx.Queue()  # frames done, from the workers (no Manager process to outlive us)
+        with ProcessPoolExecutor(
+            max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(), queue)
+        ) as pool:
+            futures = [pool.submit(_worker, config.to_dict(), str(out), i) for i in range(len(jobs))]
+            pending = set(futures)
+            while pending:
                 while not queue.empty():
                     tick(queue.get())
+                finished = {f for f in pending if f.done()}
+                for f in finished:
+                    records.append(f.result())
+                pending -= finished
+                time.sleep(0.2)
+        while not queue.empty():
+            tick(queue.get())
     card = finalize_card(config, out, records, wall_seconds=time.perf_counter() - t0, workers=workers)
     return card
 
