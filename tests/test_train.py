@@ -26,13 +26,8 @@ from pocoloco.train import (
 )
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Tiny models run fastest on one thread (and bit-exact comparisons need a fixed thread count)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+# tiny models run fastest on one thread, and bit-exact comparisons need a fixed thread count
+pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
 
 def tiny(**overrides) -> TrainConfig:
