@@ -203,6 +203,12 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("train", help="train a model on a dataset (PocoLoco diffusion)")
     add_train_arguments(s)
     s.set_defaults(func=cmd_train)
+
+    from .sample import add_sample_arguments, cmd_sample
+
+    s = sub.add_parser("sample", help="sample clouds for a pose from a trained checkpoint (PLY + PNG)")
+    add_sample_arguments(s)
+    s.set_defaults(func=cmd_sample)
     return p
 
 

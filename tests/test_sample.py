@@ -1,0 +1,203 @@
+"""Sampling a trained checkpoint: shapes, frame, per-sample seeds, joints input, CLI and bad input."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from pocoloco.checkpoint import load_denoiser
+from pocoloco.data.format import DatasetLayout, read_frame
+from pocoloco.data.published import read_ply, write_joints_txt
+from pocoloco.models.pocoloco import PocoLocoDenoiser
+from pocoloco.sample import load_joints, main, sample_clouds
+from pocoloco.train import train, train_preset
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    """Tiny models run fastest on one thread (and bit-exact comparisons need a fixed thread count)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def run(tiny_dataset, tmp_path_factory):
+    """A tiny model trained for 2 steps (its run folder)."""
+    out = tmp_path_factory.mktemp("sample") / "run"
+    cfg = train_preset("tiny", steps=2, batch_size=2, num_points=128, ckpt_every=0, sample_every=0, log_every=1)
+    train(cfg, tiny_dataset, out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def frame(tiny_dataset):
+    """(key, path) of the first train frame of the tiny dataset."""
+    subject, sequence, path = DatasetLayout(tiny_dataset).iter_frames("train")[0]
+    return f"{subject}/train/{sequence}/{int(path.stem)}", path
+
+
+def _joints(frame) -> np.ndarray:
+    return read_frame(frame[1], ["joints"]).joints  # (24, 3)
+
+
+# ----------------------------------------------------------------------------------- library
+def test_sample_clouds_shapes_and_input_frame(run, frame):
+    model, norm, cfg = load_denoiser(run)
+    joints = _joints(frame)
+    pts, nrm = sample_clouds(model, norm, cfg, joints, 3, 64, sampler="dpm++", steps=3, seeds=[0, 1, 2])
+    assert pts.shape == (3, 64, 3) and pts.dtype == np.float32 and nrm is None and np.isfinite(pts).all()
+    # root-centred conditioning: moving the pose moves the samples by exactly the same offset
+    offset = np.array([5.0, -3.0, 2.0], np.float32)
+    moved, _ = sample_clouds(model, norm, cfg, joints + offset, 3, 64, sampler="dpm++", steps=3, seeds=[0, 1, 2])
+    np.testing.assert_allclose(moved - offset, pts, atol=1e-4)
+    # an untrained model gives (amplified) i.i.d. noise around root + mean: each cloud's centre is
+    # within 5 standard errors of it (the 5 m offset makes a forgotten root fail this)
+    centre = joints[norm.root_joint] + offset + np.asarray(norm.mean)  # (3,)
+    z = (moved.mean(axis=1) - centre) / (moved.std(axis=1) / np.sqrt(64))  # (K, 3)
+    assert np.abs(z).max() < 5, z
+
+
+def test_per_sample_seeds_do_not_depend_on_batch(run, frame):
+    model, norm, cfg = load_denoiser(run)
+    joints = _joints(frame)
+    for sampler in ("dpm++", "ddpm"):
+        kw = dict(sampler=sampler, steps=3)
+        all3 = sample_clouds(model, norm, cfg, joints, 3, 64, seeds=[7, 8, 9], batch_size=3, **kw).points
+        one_by_one = sample_clouds(model, norm, cfg, joints, 3, 64, seeds=[7, 8, 9], batch_size=1, **kw).points
+        alone = sample_clouds(model, norm, cfg, joints, 1, 64, seeds=[8], **kw).points
+        np.testing.assert_allclose(all3, one_by_one, atol=1e-5)
+        np.testing.assert_allclose(all3[1], alone[0], atol=1e-5)
+        assert np.abs(all3[0] - all3[1]).max() > 1e-2  # different seeds, different clouds
+
+
+def test_other_samplers_any_resolution_and_normals(run, frame):
+    model, norm, cfg = load_denoiser(run)
+    joints = _joints(frame)
+    pts, _ = sample_clouds(model, norm, cfg, joints, 2, 37, sampler="ddim", steps=2)
+    assert pts.shape == (2, 37, 3) and np.isfinite(pts).all()
+    cfg6 = cfg.replace(denoiser=cfg.denoiser.replace(point_channels=6))
+    torch.manual_seed(0)
+    pts, nrm = sample_clouds(PocoLocoDenoiser(cfg6.denoiser), norm, cfg6, joints, 2, 16, steps=2)
+    assert pts.shape == nrm.shape == (2, 16, 3)
+    np.testing.assert_allclose(np.linalg.norm(nrm, axis=-1), 1.0, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [(dict(sampler="euler"), "unknown sampler 'euler'"), (dict(num_points=0), "num_points must be >= 1"),
+     (dict(steps=5000), "steps must be in [1, 1000]"), (dict(seeds=[1]), "seeds must have num=2")],
+)  # fmt: skip
+def test_sample_clouds_validation(run, frame, kwargs, message):
+    model, norm, cfg = load_denoiser(run)
+    args = {"num": 2, "num_points": 8, **kwargs}
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        sample_clouds(model, norm, cfg, _joints(frame), **args)
+
+
+# ------------------------------------------------------------------------------------ joints
+def test_load_joints_all_inputs(tiny_dataset, frame, tmp_path):
+    joints = _joints(frame)
+    np.save(tmp_path / "j.npy", joints)
+    np.savez(tmp_path / "j.npz", joints=joints, other=np.zeros(2))
+    np.savez(tmp_path / "single.npz", joints * 2)
+    write_joints_txt(tmp_path / "j.txt", np.array([4, 9]), np.stack([joints, joints + 1]))
+    np.testing.assert_array_equal(load_joints(tmp_path / "j.npy"), joints)
+    np.testing.assert_array_equal(load_joints(tmp_path / "j.npz"), joints)
+    np.testing.assert_array_equal(load_joints(tmp_path / "single.npz"), joints * 2)
+    np.testing.assert_array_equal(load_joints(tmp_path / "j.txt"), joints)
+    np.testing.assert_array_equal(load_joints(tmp_path / "j.txt", frame_id=9), joints + 1)
+    np.testing.assert_array_equal(load_joints(frame[1]), joints)  # a dataset frame file
+    np.testing.assert_array_equal(load_joints(f"{tiny_dataset}:{frame[0]}"), joints)
+
+
+def test_load_joints_errors_name_the_file(tiny_dataset, frame, tmp_path):
+    joints = _joints(frame)
+    bad = joints.copy()
+    bad[3, 1] = np.nan
+    np.save(tmp_path / "short.npy", joints[:20])
+    np.save(tmp_path / "nan.npy", bad)
+    (tmp_path / "short.txt").write_text("0 " + " ".join(["0.1"] * 60) + "\n")
+    write_joints_txt(tmp_path / "j.txt", np.array([4]), joints[None])
+    cases = [
+        (tmp_path / "short.npy", None, "short.npy: expected joints of shape (24, 3), got (20, 3)"),
+        (tmp_path / "nan.npy", None, "nan.npy: joints contain NaN"),
+        (tmp_path / "short.txt", None, "short.txt: line 1: expected 1 + 3*24 = 73 values, got 61"),
+        (tmp_path / "j.txt", 5, "j.txt: no line with frame id 5"),
+        (tmp_path / "missing.npy", None, "missing.npy: no such joints file"),
+        (f"{tmp_path}:s/train/q/0", None, "not a pocoloco dataset"),
+        (f"{tiny_dataset}:{frame[0]}9", None, "no such frame"),
+    ]
+    for spec, fid, message in cases:
+        with pytest.raises(ValueError) as err:
+            load_joints(spec, frame_id=fid)
+        assert message in str(err.value) and len(str(err.value).splitlines()) == 1, str(err.value)
+
+
+# --------------------------------------------------------------------------------------- CLI
+def test_cli_writes_plys_png_and_json(run, frame, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["--ckpt", str(run), "--joints", str(frame[1]), "--num", "3", "--sampler", "dpm++", "--steps", "3",
+            "--points", "64", "--seed", "5", "--out", str(out), "--device", "cpu"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["hypotheses.png", "sample.json"] + [
+        f"sample_{k:03d}.ply" for k in range(3)
+    ]
+    meta = json.loads((out / "sample.json").read_text())
+    assert meta["seeds"] == [5, 6, 7] and meta["steps"] == 3 and meta["points"] == 64 and meta["step"] == 2
+    assert meta["seconds_per_sample"] > 0
+    model, norm, cfg = load_denoiser(run)
+    ref = sample_clouds(model, norm, cfg, _joints(frame), 3, 64, steps=3, seeds=[5, 6, 7]).points
+    np.testing.assert_allclose(read_ply(out / "sample_002.ply").points, ref[2], atol=1e-5)
+    # rerun into the same folder with fewer samples: stale clouds are removed
+    assert main([*argv[:5], "2", *argv[6:], "--no-render"]) == 0
+    assert sorted(p.name for p in out.glob("sample_*.ply")) == ["sample_000.ply", "sample_001.ply"]
+
+
+def _other_model_ckpt(run, tmp_path):
+    other = tmp_path / "other"
+    shutil.copytree(run / "checkpoints" / "step_000002", other)
+    meta = json.loads((other / "meta.json").read_text())
+    (other / "meta.json").write_text(json.dumps({**meta, "model_kind": "pop"}))
+    return other
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"--points": "0"}, "--points must be >= 1"),
+        ({"--sampler": "euler"}, "unknown sampler 'euler'"),
+        ({"--steps": "5000"}, "steps must be in [1, 1000]"),
+        ({"--ckpt": "OTHER"}, "checkpoint is of model 'pop', expected 'pocoloco'"),
+        ({"--ckpt": "EMPTY"}, "no checkpoint found"),
+        ({"--joints": "NOTDATA:s/train/q/0"}, "not a pocoloco dataset"),
+        ({"--joints": "SHORT"}, "expected joints of shape (24, 3), got (23, 3)"),
+    ],
+)
+def test_cli_bad_input_one_line_and_nothing_written(run, frame, tmp_path, capsys, change, message):
+    np.save(tmp_path / "short.npy", _joints(frame)[:23])
+    (tmp_path / "empty").mkdir()
+    subst = {"OTHER": str(_other_model_ckpt(run, tmp_path)), "EMPTY": str(tmp_path / "empty"),
+             "NOTDATA": str(tmp_path), "SHORT": str(tmp_path / "short.npy")}  # fmt: skip
+    opts = {"--ckpt": str(run), "--joints": str(frame[1]), "--num": "2", "--steps": "2", "--points": "16",
+            "--out": str(tmp_path / "out"), "--device": "cpu"}  # fmt: skip
+    for k, v in change.items():
+        opts[k] = v.replace(v.split(":")[0], subst[v.split(":")[0]]) if v.split(":")[0] in subst else v
+    code = main([x for kv in opts.items() for x in kv])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and message in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "out").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
+
+
+def test_pocoloco_cli_has_sample_and_reports_a_missing_checkpoint(tmp_path):
+    from conftest import run_cli
+
+    joints = tmp_path / "j.npy"
+    np.save(joints, np.zeros((24, 3), np.float32))
+    r = run_cli("sample", "--ckpt", str(tmp_path / "no_run"), "--joints", str(joints), "--out", str(tmp_path / "o"))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (tmp_path / "o").exists()
