@@ -15,13 +15,8 @@ from pocoloco.sample import load_joints, main, sample_clouds
 from pocoloco.train import train, train_preset
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Tiny models run fastest on one thread (and bit-exact comparisons need a fixed thread count)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+# tiny models run fastest on one thread, and bit-exact comparisons need a fixed thread count
+pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
 
 @pytest.fixture(scope="module")

@@ -212,23 +212,33 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Exceptions that mean the user gave something wrong (a path, a file, a value).
+USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)
+
+
+def run_command(func, args: argparse.Namespace, prog: str = "pocoloco") -> int:
+    """Run one command; a user error becomes one line ``PROG: error: ...`` and
+    exit code 2 (``POCOLOCO_DEBUG=1`` shows the traceback instead)."""
+    try:
+        func(args)
+    except USER_ERRORS as e:
+        if os.environ.get("POCOLOCO_DEBUG"):
+            raise
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        print(f"{prog}: error: {msg}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "workers", 1) is not None and getattr(args, "workers", 1) < 1:
         parser.error("--workers must be >= 1")
-    try:
-        args.func(args)
-    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError) as e:
-        if os.environ.get("POCOLOCO_DEBUG"):
-            raise
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        print(f"pocoloco: error: {msg}", file=sys.stderr)
-        return EXIT_USER_ERROR
-    except KeyboardInterrupt:
-        print("pocoloco: interrupted; rerun the same command to resume", file=sys.stderr)
-        return 130
-    return 0
+    return run_command(args.func, args)
 
 
 if __name__ == "__main__":

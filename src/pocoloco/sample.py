@@ -375,15 +375,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pocoloco.sample", description=__doc__.splitlines()[0])
     add_sample_arguments(parser)
     args = parser.parse_args(argv)
-    try:
-        cmd_sample(args)
-    except (ValueError, FileNotFoundError) as e:
-        if os.environ.get("POCOLOCO_DEBUG"):
-            raise
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        print(f"pocoloco sample: error: {msg}", file=sys.stderr)
-        return 2
-    return 0
+    from .cli import run_command
+
+    return run_command(cmd_sample, args, prog="pocoloco sample")
 
 
 if __name__ == "__main__":

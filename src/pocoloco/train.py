@@ -761,14 +761,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pocoloco.train", description=__doc__.splitlines()[0])
     add_train_arguments(parser)
     args = parser.parse_args(argv)
-    try:
-        cmd_train(args)
-    except (ValueError, FileNotFoundError) as e:
-        if os.environ.get("POCOLOCO_DEBUG"):
-            raise
-        print(f"pocoloco train: error: {e}", file=sys.stderr)
-        return 2
-    return 0
+    from .cli import run_command
+
+    return run_command(cmd_train, args, prog="pocoloco train")
 
 
 if __name__ == "__main__":
