@@ -39,7 +39,7 @@ from ..utils.atomic import save_npz_atomic
 from .capture import LABEL_GARMENT, LABEL_NAMES
 from .format import DatasetLayout, Frame, SubjectAsset, make_card, read_frame, refresh_card, write_card, write_frame
 from .format import Motion as StoredMotion
-from .format import write_motion, write_sequence_meta
+from .format import read_sequence_meta, write_motion, write_sequence_meta
 from .format import write_subject as format_write_subject
 
 SPLITS = ("train", "test")
@@ -166,7 +166,7 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
     seq_dir = layout.sequence_dir(job.subject.name, job.split, job.name)
     record_path = layout.sequence_meta_path(job.subject.name, job.split, job.name)
     if record_path.exists():
-        record = json.loads(record_path.read_text())
+        record = read_sequence_meta(record_path)
         if progress:
             progress(config.frames_per_sequence)
         return record
