@@ -8,7 +8,7 @@ Measures, on the current device (CPU):
 2. training step time (forward + backward + AdamW step on the epsilon MSE loss), same sizes;
 3. peak memory of one no-grad forward at ``--mem-batch`` x ``--mem-points`` (default 4 x 10,000),
    SDPA and (unless ``--no-dense-memory``) dense. Each memory figure comes from a fresh
-   subprocess: peak resident set size (``ru_maxrss``) of that process, which includes the
+   subprocess: peak resident set size (``VmHWM``) of that process, which includes the
    Python/torch runtime and the weights; the RSS just before the forward is reported too;
 4. one SDPA forward of ``--big-points`` (default 50,000) points at batch 1: time and peak RSS
    (subprocess).
@@ -91,16 +91,29 @@ def time_train_step(model, inputs, repeats: int) -> list[float]:
     return times
 
 
+def _vm_hwm_gib() -> float:
+    """Peak resident set size of this process's address space (``VmHWM``), GiB.
+
+    Not ``getrusage().ru_maxrss``: Linux carries that over ``execve`` from the parent that forked
+    us, so a child of a benchmark that had run big dense steps reported the parent's peak.
+    """
+    with open("/proc/self/status", encoding="ascii") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024**2  # kB -> GiB
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2  # not Linux: best effort
+
+
 def _child_memory(args) -> None:
     """Run in a fresh process: one no-grad forward, print a JSON line with time and peak RSS."""
     model = build(args.preset, args.impl).eval()
     inputs = make_inputs(args.batch, args.points, model.config)
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2  # KiB -> GiB
+    rss_before = _vm_hwm_gib()
     with torch.no_grad():
         t0 = time.perf_counter()
         model(*inputs)
         dt = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    peak = _vm_hwm_gib()
     print(json.dumps({"seconds": dt, "peak_rss_gib": peak, "rss_before_forward_gib": rss_before}))
 
 

@@ -131,6 +131,34 @@ def test_conditioning_and_batch_independence():
     torch.testing.assert_close(model(x, torch.tensor(5), joints), model(x, torch.full((3,), 5), joints))
 
 
+def test_joint_offset_features_match_a_loop():
+    from pocoloco.models.pocoloco import joint_offset_features
+
+    x, _, joints = inputs(B=2, N=7, J=5)
+    f = joint_offset_features(x, joints)
+    assert f.shape == (2, 7, 20)
+    for b in range(2):
+        for i in range(7):
+            for j in range(5):
+                d = x[b, i] - joints[b, j]
+                torch.testing.assert_close(f[b, i, 3 * j : 3 * j + 3], d)
+                torch.testing.assert_close(f[b, i, 15 + j], d.norm())
+
+
+def test_joint_offsets_model_equivariant_and_pose_dependent():
+    model = tiny_model(joint_offsets=True)
+    x, t, joints = inputs(N=64)
+    y = model(x, t, joints)
+    perm = torch.randperm(64, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(model(x[:, perm], t, joints), y[:, perm], atol=1e-5, rtol=1e-5)
+    # the offset branch is live: zeroing it changes the output
+    with torch.no_grad():
+        model.offset_in[-1].weight.zero_()
+        model.offset_in[-1].bias.zero_()
+    assert (model(x, t, joints) - y).abs().max() > 1e-4
+    assert model.num_parameters() > PocoLocoDenoiser(denoiser_preset("tiny")).num_parameters()
+
+
 @pytest.mark.parametrize("posenc", ["nerf", "transformer"])
 def test_posenc_variants_and_normals(posenc):
     model = tiny_model(posenc=posenc, point_channels=6, posenc_include_input=True)

@@ -392,3 +392,33 @@ def load_denoiser(
     with contextlib.suppress(AttributeError):
         model.prediction_type = config.prediction_type
     return LoadedDenoiser(model.to(device).eval(), ck.normalisation, config)
+
+
+def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema: bool = True) -> Path:
+    """Write a small sampling-only copy of a checkpoint: ``meta.json`` + one ``model.safetensors``.
+
+    The weights are the EMA weights (``use_ema``, if the checkpoint has them) or the raw ones; no
+    optimiser or RNG state, so it cannot be resumed. Written atomically (temporary folder, rename).
+    This is how the model shipped in ``pocoloco/assets`` was made. Returns ``out``.
+    """
+    from safetensors.torch import save_file
+
+    ck = load_checkpoint(path, expect_model=None, training_state=False)
+    state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
+    meta = dict(ck.meta)
+    meta.update(has_ema=False, has_training_state=False, exported_from=str(ck.path),
+                weights="ema" if (use_ema and ck.ema_state is not None) else "raw")  # fmt: skip
+    out = Path(out)
+    if out.exists():
+        raise ValueError(f"{out}: already exists")
+    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir(parents=True)
+    try:
+        save_file({k: v.contiguous() for k, v in state.items()}, str(tmp / MODEL_FILE))
+        with atomic_open(tmp / META_FILE, "w") as f:
+            json.dump(meta, f, indent=2)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out

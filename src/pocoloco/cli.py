@@ -209,6 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("sample", help="sample clouds for a pose from a trained checkpoint (PLY + PNG)")
     add_sample_arguments(s)
     s.set_defaults(func=cmd_sample)
+
+    from .evaluate import add_eval_arguments, cmd_eval
+
+    s = sub.add_parser("eval", help="score a checkpoint and the baselines on a dataset split (JSON + markdown + plots)")
+    add_eval_arguments(s)
+    s.set_defaults(func=cmd_eval)
     return p
 
 

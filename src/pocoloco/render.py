@@ -272,12 +272,13 @@ def render_turntable_frames(
 def plot_curves(
     curves: dict[str, tuple[Sequence[float], Sequence[float]]], path: str | os.PathLike,
     xlabel: str = "step", ylabel: str = "loss", logy: bool = False, title: str | None = None,
+    logx: bool = False,
 ) -> str:
     """Line plot of named (x, y) curves (loss curves etc.) to a PNG (atomic write).
 
     Args:
         curves: name -> (x (K,), y (K,)).
-        logy: log-scale y axis (non-positive values are dropped by matplotlib).
+        logy / logx: log-scale axes (non-positive values are dropped by matplotlib).
     Returns: ``path`` as a string.
     """
     if not curves:
@@ -288,9 +289,11 @@ def plot_curves(
         x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
         if x.shape != y.shape or x.ndim != 1:
             raise ValueError(f"curve {name!r}: x and y must be 1-D of equal length, got {x.shape} and {y.shape}")
-        ax.plot(x, y, label=name, linewidth=1.5)
+        ax.plot(x, y, label=name, linewidth=1.5, marker="o" if len(x) <= 12 else None, markersize=3)
     if logy:
         ax.set_yscale("log")
+    if logx:
+        ax.set_xscale("log")
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if title:

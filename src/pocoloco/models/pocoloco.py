@@ -59,6 +59,11 @@ class PocoLocoDenoiserConfig:
     diffusion code, the network itself does not depend on it.
     attention: ``"sdpa"`` (fused, memory linear in N) or ``"dense"`` (materialised
     N x N softmax as in the original code; the slow reference).
+    joint_offsets: also feed every point its offsets to all J joints and their lengths
+    (x_i - k_j, |x_i - k_j|; 4J channels through a 2-layer MLP, added to the point token).
+    Not in the paper: still template-free (only the conditioning skeleton is used), but the
+    network sees where a point is relative to each bone from the first layer instead of having
+    to discover it through cross-attention; it makes training converge much faster on CPU.
     """
 
     width: int = 512
@@ -74,6 +79,7 @@ class PocoLocoDenoiserConfig:
     prediction_type: str = "epsilon"
     dropout: float = 0.0
     attention: str = "sdpa"
+    joint_offsets: bool = False
 
     def __post_init__(self):
         if self.posenc not in POSENC_KINDS:
@@ -114,6 +120,15 @@ DENOISER_PRESETS: dict[str, PocoLocoDenoiserConfig] = {
 }
 
 
+def joint_offset_features(xyz: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+    """Offsets of every point to every joint and their lengths.
+
+    xyz: (B, N, 3), joints: (B, J, 3) -> (B, N, 4J) = [x_i - k_j (J x 3, joint-major), |x_i - k_j| (J)].
+    """
+    d = xyz[:, :, None, :] - joints[:, None, :, :].to(xyz.dtype)  # (B, N, J, 3)
+    return torch.cat([d.flatten(2), d.norm(dim=-1)], dim=-1)
+
+
 def denoiser_preset(name: str, **overrides) -> PocoLocoDenoiserConfig:
     """A named preset with field overrides; a one-line error naming the known presets otherwise."""
     if name not in DENOISER_PRESETS:
@@ -132,6 +147,9 @@ class PocoLocoDenoiser(nn.Module):
         enc_dim = positional_encoding_dim(3, cfg.num_freqs, cfg.posenc_include_input)
         self.point_in = nn.Linear(enc_dim + cfg.point_channels - 3, D)
         self.joint_in = nn.Linear(enc_dim, D)
+        self.offset_in = (
+            nn.Sequential(nn.Linear(4 * cfg.num_joints, D), nn.GELU(), nn.Linear(D, D)) if cfg.joint_offsets else None
+        )
         self.joint_embed = nn.Parameter(torch.randn(cfg.num_joints, D) * 0.02)  # (J, D)
         self.time_embed = TimestepEmbedder(D)
         self.ln_in = nn.LayerNorm(D)
@@ -200,6 +218,8 @@ class PocoLocoDenoiser(nn.Module):
         if x.shape[-1] > 3:
             feats = torch.cat([feats, x[..., 3:]], dim=-1)
         points = self.point_in(feats)  # (B, N, D)
+        if self.offset_in is not None:
+            points = points + self.offset_in(joint_offset_features(x[..., :3], joints))
         time = self.time_embed(t)[:, None].to(points.dtype)  # (B, 1, D)
         h = self.ln_in(torch.cat([time, points], dim=1))  # (B, 1+N, D)
         ctx = self.ln_joints(self.joint_in(self._encode(joints)) + self.joint_embed)  # (B, J, D)

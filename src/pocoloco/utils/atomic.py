@@ -86,3 +86,9 @@ def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2)
     text = json.dumps(obj, indent=indent, ensure_ascii=False, allow_nan=False) + "\n"
     with atomic_open(path, "w") as f:
         f.write(text)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write a UTF-8 text file atomically."""
+    with atomic_open(path, "w") as f:
+        f.write(text)

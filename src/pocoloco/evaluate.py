@@ -1,0 +1,464 @@
+"""``pocoloco eval``: a trained model and two baselines scored on the test frames of a dataset.
+
+For every evaluated test frame (joints K, ground-truth scan G with normals and labels):
+
+* **model**: S clouds of N points sampled for K (one per seed, ``pocoloco.sample.sample_clouds``);
+  each is scored against G (:func:`pocoloco.metrics.evaluate_frame`) and the S scores are
+  averaged, as the PocoLoco paper averages its metrics over several samples. Diversity is the
+  mean pairwise Chamfer (cm) among the S clouds, over the whole cloud and separately over the
+  points in the garment / body region (each point takes the label of its nearest GT point).
+* **nearest-frame** baseline: the training frame whose root-aligned joints are nearest to K
+  (sum of squared joint distances, all subjects), its scan translated by the root offset.
+* **posed-body** baseline: N points sampled uniformly on the frame's posed minimally-clothed
+  body (the body the garment was simulated on), with face normals.
+* **GT resample** (reference row, the metric's own noise floor): another N-point subset of
+  the same scan.
+
+G is an N-point subset of the scan (fixed seed), so every row compares N points with N points.
+Metric definitions and units: :mod:`pocoloco.metrics` (Chamfer = S2M + M2S in cm, unsquared;
+POP CD = squared, point-to-plane M2S, in 1e-4 m^2).
+
+Output folder: ``eval.json`` (settings, per-frame rows, means per method and per subject),
+``eval.md`` (the same tables in markdown), ``chamfer_per_frame.png`` (per-frame Chamfer of
+every method), ``examples.png`` (GT, baselines and samples for a few frames, coloured by label).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pocoloco.metrics import diversity_cm, evaluate_frame, summarise
+
+__all__ = ["EvalSettings", "METHODS", "add_eval_arguments", "cmd_eval", "evaluate", "markdown_tables",
+           "select_frames", "NearestFrameBaseline"]  # fmt: skip
+
+#: methods in the order of the tables; "model" is the checkpoint being evaluated
+METHODS = ("model", "nearest_frame", "posed_body", "gt_resample")
+METHOD_TITLES = {
+    "model": "PocoLoco (this checkpoint)",
+    "nearest_frame": "nearest training frame (pose)",
+    "posed_body": "posed body (no clothes)",
+    "gt_resample": "GT resample (noise floor)",
+}
+#: columns of the markdown table: (key, header, format)
+TABLE_COLUMNS = (
+    ("chamfer_cm", "Chamfer cm", "{:.2f}"),
+    ("s2m_cm", "S2M cm", "{:.2f}"),
+    ("m2s_cm", "M2S cm", "{:.2f}"),
+    ("pop_chamfer_e-4m2", "CD 1e-4 m^2", "{:.2f}"),
+    ("normal_l1_e-1", "normal 1e-1", "{:.2f}"),
+    ("fscore_pct", "F@1cm %", "{:.1f}"),
+    ("loose_pred_pct", "loose %", "{:.1f}"),
+    ("loose_gt_pct", "loose GT %", "{:.1f}"),
+    ("diversity_cm", "div. cm", "{:.2f}"),
+    ("diversity_garment_cm", "div. garment", "{:.2f}"),
+    ("diversity_body_cm", "div. body", "{:.2f}"),
+    ("seconds_per_sample", "s/sample", "{:.2f}"),
+)
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """What ``pocoloco eval`` evaluates.
+
+    split: dataset split. num_frames: frames evaluated, evenly spaced over the split's frames in
+    order (0 or >= the split size: all). num_points: N points per cloud (model, baselines and
+    the GT subset). seeds: one model sample per seed and frame. sampler / steps: see
+    ``pocoloco sample``. baselines: which of ``nearest_frame``, ``posed_body``, ``gt_resample``.
+    subjects: restrict to these subjects (None: all). batch_size: clouds sampled together.
+    """
+
+    split: str = "test"
+    num_frames: int = 24
+    num_points: int = 10_000
+    seeds: tuple[int, ...] = (0, 1, 2)
+    sampler: str = "dpm++"
+    steps: int | None = None
+    baselines: tuple[str, ...] = ("nearest_frame", "posed_body", "gt_resample")
+    subjects: tuple[str, ...] | None = None
+    batch_size: int = 4
+    use_ema: bool = True
+
+    def __post_init__(self):
+        if self.num_frames < 0:
+            raise ValueError(f"num_frames must be >= 0, got {self.num_frames}")
+        if self.num_points < 1:
+            raise ValueError(f"num_points must be >= 1, got {self.num_points}")
+        if len(self.seeds) < 1:
+            raise ValueError("at least one seed is needed")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"seeds must be distinct, got {list(self.seeds)}")
+        unknown = [b for b in self.baselines if b not in METHODS[1:]]
+        if unknown:
+            raise ValueError(f"unknown baselines {unknown}; choose from {', '.join(METHODS[1:])}")
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+
+
+# ------------------------------------------------------------------------------------- frames
+def select_frames(frames: Sequence[Any], num: int) -> list[int]:
+    """Indices of ``num`` frames evenly spaced over ``frames`` (all of them if num is 0 or too large)."""
+    n = len(frames)
+    if num <= 0 or num >= n:
+        return list(range(n))
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, num)})
+
+
+def _subset(n: int, k: int, seed: Sequence[int]) -> np.ndarray:
+    """Sorted indices of min(k, n) of n items drawn without replacement from ``default_rng(seed)``."""
+    return np.sort(np.random.default_rng(list(seed)).choice(n, size=min(k, n), replace=False))
+
+
+class NearestFrameBaseline:
+    """The training frame nearest in pose: argmin_f sum_j |(k_j - k_root) - (k'_fj - k'_f,root)|^2.
+
+    Reads only the joints of every training frame at construction (fast); the chosen frame's
+    points are read on demand and translated by the root offset so they sit on the query pose.
+    """
+
+    def __init__(self, root: str | os.PathLike, subjects: Sequence[str] | None = None, root_joint: int = 0):
+        from pocoloco.data import format as fmt
+
+        layout = fmt.DatasetLayout(root)
+        chosen = sorted(subjects) if subjects else layout.subjects()
+        self.frames = layout.iter_frames("train", chosen)
+        if not self.frames:
+            raise ValueError(f"{root}: no training frames for the nearest-frame baseline")
+        self.root_joint = root_joint
+        joints = np.stack([fmt.read_frame(p, ["joints"]).joints for _, _, p in self.frames]).astype(np.float64)
+        self.joints = joints  # (F, J, 3)
+        self.aligned = joints - joints[:, root_joint : root_joint + 1]  # (F, J, 3)
+
+    def nearest(self, joints: np.ndarray) -> tuple[int, float]:
+        """(index into ``frames``, RMS joint distance in metres) of the nearest training pose."""
+        q = np.asarray(joints, np.float64)
+        q = q - q[self.root_joint]
+        d2 = ((self.aligned - q[None]) ** 2).sum(-1).mean(-1)  # (F,)
+        i = int(np.argmin(d2))
+        return i, float(math.sqrt(d2[i]))
+
+    def predict(self, joints: np.ndarray, num_points: int, seed: Sequence[int]) -> dict[str, Any]:
+        """N points (+ normals) of the nearest training frame, moved onto the query root."""
+        from pocoloco.data import format as fmt
+
+        i, rms = self.nearest(joints)
+        fr = fmt.read_frame(self.frames[i][2], ["points", "normals", "joints"])
+        sel = _subset(fr.points.shape[0], num_points, seed)
+        shift = np.asarray(joints, np.float64)[self.root_joint] - fr.joints[self.root_joint]
+        return {"points": fr.points[sel] + shift, "normals": fr.normals[sel], "source": str(self.frames[i][2]),
+                "pose_rms_m": rms}  # fmt: skip
+
+
+def _posed_body(frame, faces: np.ndarray, num_points: int, seed: int) -> dict[str, Any]:
+    from pocoloco.ops.sampling import sample_surface
+
+    s = sample_surface(frame.body_vertices.astype(np.float64), faces, num_points, seed=seed)
+    return {"points": s.points, "normals": s.normals}
+
+
+# ---------------------------------------------------------------------------------- evaluation
+@dataclass
+class EvalResult:
+    """settings: the EvalSettings as a dict plus checkpoint facts. frames: one dict per frame with
+    ``key``, ``subject`` and a metrics dict per method. means: method -> mean metrics;
+    per_subject: subject -> method -> mean metrics."""
+
+    settings: dict[str, Any]
+    frames: list[dict[str, Any]] = field(default_factory=list)
+    means: dict[str, dict[str, float]] = field(default_factory=dict)
+    per_subject: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"settings": self.settings, "means": self.means, "per_subject": self.per_subject,
+                "frames": self.frames}  # fmt: skip
+
+
+def evaluate(
+    ckpt: str | os.PathLike | None,
+    data: str | os.PathLike,
+    settings: EvalSettings = EvalSettings(),
+    *,
+    device: str = "cpu",
+    progress: Callable[[int, int], None] | None = None,
+    keep_examples: int = 3,
+) -> tuple[EvalResult, list[dict[str, Any]]]:
+    """Score ``ckpt`` (None: baselines only) on ``settings.split`` of the dataset at ``data``.
+
+    Returns the :class:`EvalResult` and, for up to ``keep_examples`` frames, the clouds (GT,
+    baselines, model samples) to render.
+    """
+    from pocoloco.data import format as fmt
+
+    card = fmt.read_card(data)
+    layout = fmt.DatasetLayout(data)
+    subjects = list(settings.subjects) if settings.subjects else None
+    if subjects:
+        unknown = [s for s in subjects if s not in card["subjects"]]
+        if unknown:
+            raise ValueError(f"{data}: unknown subjects {unknown}; the card lists {sorted(card['subjects'])}")
+    all_frames = layout.iter_frames(settings.split, subjects or layout.subjects())
+    if not all_frames:
+        raise ValueError(f"{data}: no frames in split {settings.split!r}")
+    chosen = [all_frames[i] for i in select_frames(all_frames, settings.num_frames)]
+
+    info: dict[str, Any] = {"data": os.fspath(data), **_settings_dict(settings)}
+    model = None
+    if ckpt is not None:
+        from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
+
+        path = resolve_checkpoint(ckpt)
+        model, normalisation, config = load_denoiser(path, use_ema=settings.use_ema, device=device)
+        from pocoloco.sample import _check_sampler
+
+        _check_sampler(settings.sampler, settings.steps, config.num_timesteps)
+        meta = json.loads((path / "meta.json").read_text(encoding="utf-8"))
+        info.update(checkpoint=str(path), step=int(meta["step"]), preset=config.preset,
+                    num_parameters=int(sum(p.numel() for p in model.parameters())))  # fmt: skip
+        _check_normalisation(normalisation, card, path, data)
+    nearest = NearestFrameBaseline(data, subjects) if "nearest_frame" in settings.baselines else None
+    faces: dict[str, np.ndarray] = {}
+
+    result = EvalResult(info)
+    examples: list[dict[str, Any]] = []
+    example_ids = set(select_frames(chosen, keep_examples)) if keep_examples > 0 else set()
+    for n_done, (subject, sequence, path) in enumerate(chosen):
+        fr = fmt.read_frame(path, ["points", "normals", "labels", "joints", "frame_index", "body_vertices"],
+                            allow_missing=True)  # fmt: skip
+        key = f"{subject}/{settings.split}/{sequence}/{fr.frame_index:06d}"
+        gsel = _subset(fr.num_points, settings.num_points, (0, n_done))
+        gt, gt_n = fr.points[gsel].astype(np.float64), fr.normals[gsel].astype(np.float64)
+        gt_lab = None if fr.labels is None else fr.labels[gsel]
+        row: dict[str, Any] = {"key": key, "subject": subject}
+        clouds: dict[str, Any] = {"gt": (gt, gt_lab)}
+
+        def score(points, normals):
+            return evaluate_frame(points, normals, gt, gt_n, gt_lab)
+
+        if model is not None:
+            from pocoloco.sample import sample_clouds
+
+            t0 = time.perf_counter()
+            sampled = sample_clouds(model, normalisation, config, fr.joints, len(settings.seeds), settings.num_points,
+                                    sampler=settings.sampler, steps=settings.steps, seeds=list(settings.seeds),
+                                    batch_size=settings.batch_size)  # fmt: skip
+            per_sample = (time.perf_counter() - t0) / len(settings.seeds)
+            scores = [score(sampled.points[k], None if sampled.normals is None else sampled.normals[k])
+                      for k in range(len(settings.seeds))]  # fmt: skip
+            m = summarise(scores)
+            m.pop("num_frames", None)
+            m["seconds_per_sample"] = per_sample
+            if len(settings.seeds) >= 2:
+                m["diversity_cm"] = diversity_cm(sampled.points)
+                if gt_lab is not None:
+                    m["diversity_garment_cm"] = diversity_cm(sampled.points, gt, gt_lab, region="garment")
+                    m["diversity_body_cm"] = diversity_cm(sampled.points, gt, gt_lab, region="body")
+            row["model"] = m
+            clouds["model"] = sampled.points
+        if nearest is not None:
+            pred = nearest.predict(fr.joints, settings.num_points, (1, n_done))
+            row["nearest_frame"] = {**score(pred["points"], pred["normals"]), "pose_rms_cm": 100 * pred["pose_rms_m"]}
+            row["nearest_frame_source"] = pred["source"]
+            clouds["nearest_frame"] = pred["points"]
+        if "posed_body" in settings.baselines:
+            if fr.body_vertices is None:
+                raise ValueError(f"{path}: no body_vertices (imported data?): drop the posed_body baseline")
+            if subject not in faces:
+                faces[subject] = fmt.read_subject(layout.subject_path(subject)).faces
+            pred = _posed_body(fr, faces[subject], settings.num_points, seed=n_done)
+            row["posed_body"] = score(pred["points"], pred["normals"])
+            clouds["posed_body"] = pred["points"]
+        if "gt_resample" in settings.baselines:
+            other = _subset(fr.num_points, settings.num_points, (2, n_done))
+            row["gt_resample"] = score(fr.points[other], fr.normals[other])
+        result.frames.append(row)
+        if n_done in example_ids:
+            examples.append({"key": key, **clouds})
+        if progress is not None:
+            progress(n_done + 1, len(chosen))
+
+    methods = [m for m in METHODS if any(m in r for r in result.frames)]
+    result.means = {m: _mean(result.frames, m) for m in methods}
+    for subject in sorted({r["subject"] for r in result.frames}):
+        rows = [r for r in result.frames if r["subject"] == subject]
+        result.per_subject[subject] = {m: _mean(rows, m) for m in methods}
+    return result, examples
+
+
+def _mean(rows: list[dict[str, Any]], method: str) -> dict[str, float]:
+    out = summarise([r[method] for r in rows if method in r])
+    return out
+
+
+def _settings_dict(s: EvalSettings) -> dict[str, Any]:
+    return {"split": s.split, "num_frames": s.num_frames, "num_points": s.num_points, "seeds": list(s.seeds),
+            "sampler": s.sampler, "steps": s.steps, "baselines": list(s.baselines),
+            "subjects": None if s.subjects is None else list(s.subjects), "weights": "ema" if s.use_ema else "raw"}  # fmt: skip
+
+
+def _check_normalisation(normalisation, card: dict[str, Any], ckpt: Path, data) -> None:
+    """Warn-free check that the model was trained in the same units as this dataset (metres, similar scale)."""
+    from pocoloco.data.dataset import Normalisation
+
+    here = Normalisation.from_card(card)
+    ratio = float(np.max(np.atleast_1d(normalisation.std))) / float(np.max(np.atleast_1d(here.std)))
+    if not 0.2 < ratio < 5.0:
+        raise ValueError(f"{ckpt}: trained on data with scale {normalisation.std} but {data} has {here.std} "
+                         "(another unit?)")  # fmt: skip
+
+
+# -------------------------------------------------------------------------------------- output
+def _fmt(value: Any, pattern: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return pattern.format(value)
+
+
+def markdown_table(means: dict[str, dict[str, float]]) -> str:
+    """One markdown table: a row per method, the ``TABLE_COLUMNS`` present in any row."""
+    cols = [c for c in TABLE_COLUMNS if any(c[0] in m for m in means.values())]
+    lines = ["| method | " + " | ".join(h for _, h, _ in cols) + " |", "|---|" + "---|" * len(cols)]
+    for method, m in means.items():
+        cells = [_fmt(m.get(k), f) for k, _, f in cols]
+        lines.append(f"| {METHOD_TITLES.get(method, method)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def markdown_tables(result: EvalResult) -> str:
+    """The whole ``eval.md``: settings, the mean table, one table per subject."""
+    s = result.settings
+    head = [f"# pocoloco eval — {s.get('checkpoint', 'baselines only')}", ""]
+    if "step" in s:
+        head.append(f"Checkpoint step {s['step']}, preset `{s['preset']}`, {s['num_parameters']:,} parameters, "
+                    f"{s['weights']} weights.")  # fmt: skip
+    n = len(result.frames)
+    head.append(f"Data `{s['data']}`, split `{s['split']}`: {n} frames, {s['num_points']} points per cloud "
+                f"(GT subsampled to the same N), model samples: {len(s['seeds'])} seeds {s['seeds']} with "
+                f"{s['sampler']} ({s['steps'] or 'default'} steps), metrics averaged over seeds and frames.")  # fmt: skip
+    head += ["", "Chamfer = S2M + M2S (unsquared, cm; PocoLoco Table 2). CD 1e-4 m^2 = POP convention (squared, "
+             "point-to-plane M2S). normal = L1 of unit normals x10. loose % = share of points whose nearest GT point is "
+             "garment. div. = mean pairwise Chamfer among the seeds' samples (whole / garment region / body region).",
+             "", "## All frames", "", markdown_table(result.means)]  # fmt: skip
+    for subject, means in result.per_subject.items():
+        head += ["", f"## {subject}", "", markdown_table(means)]
+    return "\n".join(head) + "\n"
+
+
+def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dict[str, Any]]) -> Path:
+    """eval.json, eval.md, chamfer_per_frame.png, examples.png in ``out`` (each written atomically)."""
+    from pocoloco.render import plot_curves, render_grid
+    from pocoloco.utils.atomic import write_json_atomic, write_text_atomic
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "eval.json", _jsonable(result.to_dict()))
+    write_text_atomic(out / "eval.md", markdown_tables(result))
+    curves = {}
+    for method in result.means:
+        ys = [r[method]["chamfer_cm"] for r in result.frames if method in r]
+        curves[METHOD_TITLES.get(method, method)] = (list(range(len(ys))), ys)
+    plot_curves(curves, out / "chamfer_per_frame.png", logy=False, title="Chamfer (cm) per test frame",
+                xlabel="evaluated frame", ylabel="Chamfer cm")  # fmt: skip
+    panels = []
+    for ex in examples:
+        gt, lab = ex["gt"]
+        panels.append((gt, lab, None, f"GT {ex['key'].split('/')[0]}"))
+        for method in ("nearest_frame", "posed_body"):
+            if method in ex:
+                panels.append((ex[method], None, None, method.replace("_", " ")))
+        if "model" in ex:
+            for k, pts in enumerate(ex["model"][:3]):
+                panels.append((pts, None, None, f"sample {k}"))
+    if panels:
+        per_row = len(panels) // max(len(examples), 1)
+        render_grid(panels, out / "examples.png", views=("front",), ncols=max(per_row, 1))
+    return out
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, float) and math.isnan(x):
+        return None
+    if isinstance(x, (np.floating, np.integer)):
+        return _jsonable(x.item())
+    return x
+
+
+# -------------------------------------------------------------------------------------- the CLI
+def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``pocoloco eval`` options (handler: :func:`cmd_eval`)."""
+    parser.add_argument("--ckpt", help="checkpoint / run folder; 'default' = the model shipped with pocoloco; "
+                                       "omit with --baselines-only")  # fmt: skip
+    parser.add_argument("--data", required=True, help="pocoloco dataset folder")
+    parser.add_argument("--split", default="test", help="split to evaluate (default test)")
+    parser.add_argument("--frames", type=int, default=24, help="frames evenly spaced over the split (0 = all; default 24)")
+    parser.add_argument("--points", type=int, default=10_000, help="points per cloud (default 10000, as the paper)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="one sample per seed (default 0 1 2)")
+    parser.add_argument("--sampler", default="dpm++", help="dpm++, ddim or ddpm (default dpm++)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++ 20, ddim 50, ddpm all)")
+    parser.add_argument("--subjects", nargs="+", help="only these subjects")
+    parser.add_argument("--no-baselines", action="store_true", help="skip the nearest-frame / posed-body / GT rows")
+    parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
+    parser.add_argument("--batch-size", type=int, default=4, help="clouds sampled together (default 4)")
+    parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
+    parser.add_argument("--out", required=True, help="output folder (eval.json, eval.md, plots)")
+
+
+def cmd_eval(args: argparse.Namespace) -> None:
+    """``pocoloco eval``: everything is validated (one-line errors) before the first sample."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from pocoloco.data import format as fmt
+
+    if args.ckpt is None and not args.baselines_only:
+        raise ValueError("--ckpt is required (or --baselines-only)")
+    if args.ckpt is not None and args.baselines_only:
+        raise ValueError("--ckpt and --baselines-only exclude each other")
+    if args.no_baselines and args.baselines_only:
+        raise ValueError("--no-baselines and --baselines-only exclude each other")
+    if args.steps is not None and args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    settings = EvalSettings(split=args.split, num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
+                            sampler=args.sampler, steps=args.steps,
+                            baselines=() if args.no_baselines else EvalSettings.baselines,
+                            subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
+                            use_ema=not args.raw_weights)  # fmt: skip
+    from pocoloco.sample import SAMPLERS
+
+    if settings.sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {settings.sampler!r}; choose one of: {', '.join(SAMPLERS)}")
+    if settings.split not in fmt.SPLITS:
+        raise ValueError(f"unknown split {settings.split!r}; expected one of {fmt.SPLITS}")
+    fmt.read_card(args.data)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: exists and is not a folder")
+    ckpt = args.ckpt
+    if ckpt == "default":
+        from pocoloco.pretrained import default_checkpoint
+
+        ckpt = default_checkpoint()
+
+    with Progress(TextColumn("eval"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  transient=True) as bar:  # fmt: skip
+        task = bar.add_task("frames", total=None)
+        result, examples = evaluate(ckpt, args.data, settings, device=args.device,
+                                    progress=lambda d, n: bar.update(task, completed=d, total=n))  # fmt: skip
+    write_outputs(out, result, examples)
+    print(markdown_table(result.means))
+    print(f"wrote {out / 'eval.json'}, {out / 'eval.md'}, {out / 'chamfer_per_frame.png'}, {out / 'examples.png'}")

@@ -1,0 +1,124 @@
+"""pocoloco eval: frame selection, the two baselines, per-frame scores vs. metrics, CLI output and bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+from pocoloco.data.format import DatasetLayout, read_frame
+from pocoloco.evaluate import EvalSettings, NearestFrameBaseline, evaluate, markdown_tables, select_frames
+from pocoloco.metrics import evaluate_frame
+from pocoloco.train import train, train_preset
+
+pytestmark = pytest.mark.usefixtures("torch_single_thread")
+
+
+@pytest.fixture(scope="module")
+def run(tiny_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval") / "run"
+    cfg = train_preset("tiny", steps=2, batch_size=2, num_points=128, ckpt_every=0, sample_every=0, log_every=1)
+    train(cfg, tiny_dataset, out, progress=False)
+    return out
+
+
+def test_select_frames_even_and_all():
+    assert select_frames(list(range(10)), 0) == list(range(10))
+    assert select_frames(list(range(10)), 20) == list(range(10))
+    assert select_frames(list(range(10)), 3) == [0, 4, 9]  # round(4.5) = 4 (banker's rounding)
+    assert select_frames(list(range(10)), 1) == [0]
+
+
+def test_nearest_frame_finds_itself_and_follows_the_root(tiny_dataset):
+    base = NearestFrameBaseline(tiny_dataset)
+    frames = DatasetLayout(tiny_dataset).iter_frames("train")
+    k = len(frames) // 2
+    fr = read_frame(frames[k][2], ["joints", "points"])
+    i, rms = base.nearest(fr.joints)
+    assert rms == 0.0 and base.joints[i].tolist() == base.joints[k].tolist()
+    # a translated pose finds the same frame; its points move with the root (exactly)
+    shift = np.array([1.5, -0.25, 0.1])
+    i2, rms2 = base.nearest(fr.joints + shift)
+    assert i2 == i and rms2 < 1e-6
+    a = base.predict(fr.joints, 50, (1, 0))
+    b = base.predict(fr.joints + shift, 50, (1, 0))
+    np.testing.assert_allclose(b["points"] - a["points"], np.broadcast_to(shift, (50, 3)), atol=1e-5)
+    # brute force over every training frame agrees with the vectorised search
+    q = fr.joints + np.random.default_rng(0).normal(scale=0.05, size=fr.joints.shape)
+    q = q - q[0]
+    brute = [((read_frame(p, ["joints"]).joints - read_frame(p, ["joints"]).joints[0] - q) ** 2).sum() for _, _, p in frames]
+    assert base.nearest(q)[0] == int(np.argmin(brute))
+
+
+def test_evaluate_rows_match_the_metrics(run, tiny_dataset):
+    settings = EvalSettings(split="test", num_frames=2, num_points=96, seeds=(0, 1), sampler="ddim", steps=3)
+    result, examples = evaluate(run, tiny_dataset, settings, keep_examples=1)
+    assert len(result.frames) == 2 and len(examples) == 1
+    assert set(result.means) == {"model", "nearest_frame", "posed_body", "gt_resample"}
+    row = result.frames[0]
+    # the GT resample row recomputed by hand: same subsets, same metric function
+    subject, split, sequence, idx = row["key"].split("/")
+    fr = read_frame(DatasetLayout(tiny_dataset).frame_path(subject, split, sequence, int(idx)))
+    rng_gt = np.sort(np.random.default_rng([0, 0]).choice(fr.num_points, 96, replace=False))
+    rng_other = np.sort(np.random.default_rng([2, 0]).choice(fr.num_points, 96, replace=False))
+    ref = evaluate_frame(fr.points[rng_other], fr.normals[rng_other], fr.points[rng_gt], fr.normals[rng_gt],
+                         fr.labels[rng_gt])  # fmt: skip
+    for k, v in ref.items():
+        assert row["gt_resample"][k] == pytest.approx(v, rel=1e-9, abs=1e-12), k
+    # an (almost) untrained model is far worse than the scan's own resampling noise and than the body
+    m = result.means
+    assert m["model"]["chamfer_cm"] > 3 * m["gt_resample"]["chamfer_cm"]
+    assert m["model"]["chamfer_cm"] > m["posed_body"]["chamfer_cm"]
+    assert m["model"]["diversity_cm"] > 0 and "diversity_garment_cm" in m["model"]
+    assert m["model"]["seconds_per_sample"] > 0
+    assert m["nearest_frame"]["pose_rms_cm"] > 0  # test poses are not in the training set
+    text = markdown_tables(result)
+    assert "| PocoLoco (this checkpoint) |" in text and "nearest training frame" in text
+
+
+def test_nearest_frame_on_the_train_split_is_the_frame_itself(tiny_dataset):
+    settings = EvalSettings(split="train", num_frames=2, num_points=200, baselines=("nearest_frame", "gt_resample"))
+    result, _ = evaluate(None, tiny_dataset, settings, keep_examples=0)
+    m = result.means
+    assert "model" not in m and m["nearest_frame"]["pose_rms_cm"] == 0.0
+    # the same scan subsampled twice: within 30 % of the GT-resample noise floor
+    assert m["nearest_frame"]["chamfer_cm"] == pytest.approx(m["gt_resample"]["chamfer_cm"], rel=0.3)
+
+
+def test_cli_writes_everything(run, tiny_dataset, tmp_path):
+    out = tmp_path / "ev"
+    r = run_cli("eval", "--ckpt", str(run), "--data", str(tiny_dataset), "--frames", "1", "--points", "64",
+                "--seeds", "0", "1", "--sampler", "ddim", "--steps", "2", "--out", str(out))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    for name in ("eval.json", "eval.md", "chamfer_per_frame.png", "examples.png"):
+        assert (out / name).is_file(), name
+    doc = json.loads((out / "eval.json").read_text())
+    assert doc["settings"]["num_points"] == 64 and len(doc["frames"]) == 1 and "model" in doc["means"]
+    assert "Chamfer cm" in r.stdout
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--points", "0"], "num_points must be >= 1"),
+        (["--sampler", "euler"], "unknown sampler"),
+        (["--seeds", "1", "1"], "seeds must be distinct"),
+        (["--split", "val"], "unknown split"),
+        (["--subjects", "nobody"], "unknown subjects"),
+    ],
+)
+def test_cli_bad_input_is_one_line_and_writes_nothing(run, tiny_dataset, tmp_path, args, message):
+    out = tmp_path / "ev"
+    r = run_cli("eval", "--ckpt", str(run), "--data", str(tiny_dataset), "--frames", "1", "--points", "32",
+                "--out", str(out), *args)  # fmt: skip
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+def test_cli_not_a_dataset_and_wrong_checkpoint(run, tmp_path):
+    (tmp_path / "nodata").mkdir()
+    r = run_cli("eval", "--ckpt", str(run), "--data", str(tmp_path / "nodata"), "--out", str(tmp_path / "o"))
+    assert r.returncode == 2 and "card.json" in r.stderr and not (tmp_path / "o").exists()
+    r = run_cli("eval", "--ckpt", str(tmp_path / "nodata"), "--data", str(tmp_path / "nodata"), "--out", str(tmp_path / "o"))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
