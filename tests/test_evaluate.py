@@ -48,6 +48,14 @@ def test_nearest_frame_finds_itself_and_follows_the_root(tiny_dataset):
     q = q - q[0]
     brute = [((read_frame(p, ["joints"]).joints - read_frame(p, ["joints"]).joints[0] - q) ** 2).sum() for _, _, p in frames]
     assert base.nearest(q)[0] == int(np.argmin(brute))
+    # restricted to one subject: the nearest among that subject's frames only
+    other = next(s for s, _, _ in frames if s != frames[k][0])
+    j = base.nearest(fr.joints, subject=other)[0]
+    assert frames[j][0] == other
+    own = [b for b, (s, _, _) in zip(brute, frames) if s == other]
+    assert brute[j] == min(own)
+    with pytest.raises(ValueError, match="no training frames of subject"):
+        base.nearest(fr.joints, subject="nobody")
 
 
 def test_evaluate_rows_match_the_metrics(run, tiny_dataset):

@@ -196,3 +196,47 @@ def test_pocoloco_cli_has_sample_and_reports_a_missing_checkpoint(tmp_path):
     r = run_cli("sample", "--ckpt", str(tmp_path / "no_run"), "--joints", str(joints), "--out", str(tmp_path / "o"))
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------------ shipped model + poses
+def test_demo_poses_load_and_unknown_names_fail():
+    from pocoloco.pretrained import demo_pose_names
+
+    assert demo_pose_names() == ["shirt", "skirt", "tight"]
+    for name in demo_pose_names():
+        j = load_joints(f"demo:{name}")
+        assert j.shape == (24, 3) and np.isfinite(j).all()
+        assert 0.5 < j[:, 2].max() - j[:, 2].min() < 2.5  # a standing human's height span, metres
+    with pytest.raises(ValueError, match="no such demo pose; choose one of: shirt, skirt, tight"):
+        load_joints("demo:dancer")
+
+
+def test_export_for_sampling_keeps_the_ema_weights_and_cannot_resume(run, frame, tmp_path):
+    from pocoloco.checkpoint import export_for_sampling, load_checkpoint
+
+    out = export_for_sampling(run, tmp_path / "shipped")
+    files = sorted(p.name for p in out.iterdir())
+    assert files == ["meta.json", "model.safetensors"]
+    full = load_denoiser(run)
+    small = load_denoiser(out)
+    for (k, a), (k2, b) in zip(full.model.state_dict().items(), small.model.state_dict().items(), strict=True):
+        assert k == k2 and torch.equal(a, b), k
+    meta = load_checkpoint(out, training_state=True)
+    assert meta.optimizer_state is None and meta.ema_state is None and meta.meta["weights"] == "ema"
+    with pytest.raises(ValueError, match="already exists"):
+        export_for_sampling(run, out)
+
+
+def test_default_checkpoint_samples_a_demo_pose(tmp_path, capsys):
+    """The shipped model (if this copy has it) samples the README's demo pose."""
+    from pocoloco.pretrained import DEFAULT_MODEL_DIR
+
+    if not (DEFAULT_MODEL_DIR / "meta.json").is_file():
+        r = main(["--joints", "demo:skirt", "--out", str(tmp_path / "o")])
+        assert r == 2 and "default model is not installed" in capsys.readouterr().err
+        return
+    model, norm, cfg = load_denoiser(DEFAULT_MODEL_DIR)
+    assert cfg.preset == "small"
+    out = tmp_path / "o"
+    assert main(["--joints", "demo:shirt", "--num", "2", "--points", "256", "--steps", "4", "--out", str(out)]) == 0
+    assert (out / "hypotheses.png").is_file() and len(list(out.glob("sample_*.ply"))) == 2

@@ -7,8 +7,8 @@ For every evaluated test frame (joints K, ground-truth scan G with normals and l
   averaged, as the PocoLoco paper averages its metrics over several samples. Diversity is the
   mean pairwise Chamfer (cm) among the S clouds, over the whole cloud and separately over the
   points in the garment / body region (each point takes the label of its nearest GT point).
-* **nearest-frame** baseline: the training frame whose root-aligned joints are nearest to K
-  (sum of squared joint distances, all subjects), its scan translated by the root offset.
+* **nearest-frame** baseline: the training frame of the same subject whose root-aligned joints
+  are nearest to K (sum of squared joint distances), its scan translated by the root offset.
 * **posed-body** baseline: N points sampled uniformly on the frame's posed minimally-clothed
   body (the body the garment was simulated on), with face normals.
 * **GT resample** (reference row, the metric's own noise floor): another N-point subset of
@@ -20,7 +20,8 @@ POP CD = squared, point-to-plane M2S, in 1e-4 m^2).
 
 Output folder: ``eval.json`` (settings, per-frame rows, means per method and per subject),
 ``eval.md`` (the same tables in markdown), ``chamfer_per_frame.png`` (per-frame Chamfer of
-every method), ``examples.png`` (GT, baselines and samples for a few frames, coloured by label).
+every method), ``examples.png`` (GT, baselines and samples for a few frames, coloured by label;
+a generated point takes the label of its nearest GT point).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from pocoloco.metrics import diversity_cm, evaluate_frame, summarise
+from pocoloco.metrics import diversity_cm, evaluate_frame, nearest, summarise
 
 __all__ = ["EvalSettings", "METHODS", "add_eval_arguments", "cmd_eval", "evaluate", "markdown_tables",
            "select_frames", "NearestFrameBaseline"]  # fmt: skip
@@ -120,7 +121,8 @@ def _subset(n: int, k: int, seed: Sequence[int]) -> np.ndarray:
 
 
 class NearestFrameBaseline:
-    """The training frame nearest in pose: argmin_f sum_j |(k_j - k_root) - (k'_fj - k'_f,root)|^2.
+    """The training frame nearest in pose: argmin_f sum_j |(k_j - k_root) - (k'_fj - k'_f,root)|^2,
+    over the frames of one subject (``subject=``) or of all.
 
     Reads only the joints of every training frame at construction (fast); the chosen frame's
     points are read on demand and translated by the root offset so they sit on the query pose.
@@ -138,25 +140,32 @@ class NearestFrameBaseline:
         joints = np.stack([fmt.read_frame(p, ["joints"]).joints for _, _, p in self.frames]).astype(np.float64)
         self.joints = joints  # (F, J, 3)
         self.aligned = joints - joints[:, root_joint : root_joint + 1]  # (F, J, 3)
+        self.subject_of = np.array([s for s, _, _ in self.frames])  # (F,)
 
-    def nearest(self, joints: np.ndarray) -> tuple[int, float]:
-        """(index into ``frames``, RMS joint distance in metres) of the nearest training pose."""
+    def nearest(self, joints: np.ndarray, subject: str | None = None) -> tuple[int, float]:
+        """(index into ``frames``, RMS joint distance in metres) of the nearest training pose
+        (among ``subject``'s frames if given)."""
         q = np.asarray(joints, np.float64)
         q = q - q[self.root_joint]
         d2 = ((self.aligned - q[None]) ** 2).sum(-1).mean(-1)  # (F,)
+        if subject is not None:
+            if not (self.subject_of == subject).any():
+                raise ValueError(f"no training frames of subject {subject!r} for the nearest-frame baseline")
+            d2 = np.where(self.subject_of == subject, d2, np.inf)
         i = int(np.argmin(d2))
         return i, float(math.sqrt(d2[i]))
 
-    def predict(self, joints: np.ndarray, num_points: int, seed: Sequence[int]) -> dict[str, Any]:
-        """N points (+ normals) of the nearest training frame, moved onto the query root."""
+    def predict(self, joints: np.ndarray, num_points: int, seed: Sequence[int],
+                subject: str | None = None) -> dict[str, Any]:  # fmt: skip
+        """N points (+ normals, labels) of the nearest training frame, moved onto the query root."""
         from pocoloco.data import format as fmt
 
-        i, rms = self.nearest(joints)
-        fr = fmt.read_frame(self.frames[i][2], ["points", "normals", "joints"])
+        i, rms = self.nearest(joints, subject)
+        fr = fmt.read_frame(self.frames[i][2], ["points", "normals", "joints", "labels"], allow_missing=True)
         sel = _subset(fr.points.shape[0], num_points, seed)
         shift = np.asarray(joints, np.float64)[self.root_joint] - fr.joints[self.root_joint]
         return {"points": fr.points[sel] + shift, "normals": fr.normals[sel], "source": str(self.frames[i][2]),
-                "pose_rms_m": rms}  # fmt: skip
+                "labels": None if fr.labels is None else fr.labels[sel], "pose_rms_m": rms}  # fmt: skip
 
 
 def _posed_body(frame, faces: np.ndarray, num_points: int, seed: int) -> dict[str, Any]:
@@ -225,7 +234,7 @@ def evaluate(
         info.update(checkpoint=str(path), step=int(meta["step"]), preset=config.preset,
                     num_parameters=int(sum(p.numel() for p in model.parameters())))  # fmt: skip
         _check_normalisation(normalisation, card, path, data)
-    nearest = NearestFrameBaseline(data, subjects) if "nearest_frame" in settings.baselines else None
+    nearest_frame = NearestFrameBaseline(data, subjects) if "nearest_frame" in settings.baselines else None
     faces: dict[str, np.ndarray] = {}
 
     result = EvalResult(info)
@@ -264,11 +273,11 @@ def evaluate(
                     m["diversity_body_cm"] = diversity_cm(sampled.points, gt, gt_lab, region="body")
             row["model"] = m
             clouds["model"] = sampled.points
-        if nearest is not None:
-            pred = nearest.predict(fr.joints, settings.num_points, (1, n_done))
+        if nearest_frame is not None:
+            pred = nearest_frame.predict(fr.joints, settings.num_points, (1, n_done), subject=subject)
             row["nearest_frame"] = {**score(pred["points"], pred["normals"]), "pose_rms_cm": 100 * pred["pose_rms_m"]}
             row["nearest_frame_source"] = pred["source"]
-            clouds["nearest_frame"] = pred["points"]
+            clouds["nearest_frame"] = (pred["points"], pred["labels"])
         if "posed_body" in settings.baselines:
             if fr.body_vertices is None:
                 raise ValueError(f"{path}: no body_vertices (imported data?): drop the posed_body baseline")
@@ -276,7 +285,7 @@ def evaluate(
                 faces[subject] = fmt.read_subject(layout.subject_path(subject)).faces
             pred = _posed_body(fr, faces[subject], settings.num_points, seed=n_done)
             row["posed_body"] = score(pred["points"], pred["normals"])
-            clouds["posed_body"] = pred["points"]
+            clouds["posed_body"] = (pred["points"], np.zeros(settings.num_points, np.uint8))
         if "gt_resample" in settings.baselines:
             other = _subset(fr.num_points, settings.num_points, (2, n_done))
             row["gt_resample"] = score(fr.points[other], fr.normals[other])
@@ -376,10 +385,11 @@ def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dic
         panels.append((gt, lab, None, f"GT {ex['key'].split('/')[0]}"))
         for method in ("nearest_frame", "posed_body"):
             if method in ex:
-                panels.append((ex[method], None, None, method.replace("_", " ")))
+                panels.append((*ex[method], None, method.replace("_", " ")))
         if "model" in ex:
-            for k, pts in enumerate(ex["model"][:3]):
-                panels.append((pts, None, None, f"sample {k}"))
+            for k, pts in enumerate(ex["model"][:3]):  # coloured by the label of the nearest GT point
+                plab = None if lab is None else lab[nearest(pts, gt)[1]]
+                panels.append((pts, plab, None, f"sample {k}"))
     if panels:
         per_row = len(panels) // max(len(examples), 1)
         render_grid(panels, out / "examples.png", views=("front",), ncols=max(per_row, 1))

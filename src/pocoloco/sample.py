@@ -124,7 +124,8 @@ def load_joints(spec: str | os.PathLike, frame_id: int | None = None, num_joints
     - a LOOSE-style joints text file (per line a frame id and 3J floats,
       :func:`pocoloco.data.published.read_joints_txt`): ``frame_id`` picks the line with that
       frame id (None: the first line);
-    - a dataset frame ``DATASET:subject/split/sequence/index`` (e.g. ``data/tiny:s0/test/seq_000/3``).
+    - a dataset frame ``DATASET:subject/split/sequence/index`` (e.g. ``data/tiny:s0/test/seq_000/3``);
+    - ``demo:NAME``, a pose shipped with the package (``demo:skirt``, ``demo:shirt``, ``demo:tight``).
 
     Raises:
         ValueError (one line, naming the file): unreadable file, not a dataset, no such frame,
@@ -135,6 +136,12 @@ def load_joints(spec: str | os.PathLike, frame_id: int | None = None, num_joints
 
     spec = os.fspath(spec)
     path = Path(spec)
+    if spec.startswith("demo:") and not path.exists():
+        from pocoloco.pretrained import demo_pose_path
+
+        if frame_id is not None:
+            raise ValueError(f"{spec}: --frame-id only applies to joints text files")
+        return _check_joints(spec, _load_array_file(demo_pose_path(spec[5:])), num_joints)
     if not path.exists() and ":" in spec:
         if frame_id is not None:
             raise ValueError(f"{spec}: --frame-id only applies to joints text files")
@@ -304,10 +311,13 @@ def write_samples(
 # -------------------------------------------------------------------------------- entry points
 def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``pocoloco sample`` options to ``parser`` (its handler is :func:`cmd_sample`)."""
-    parser.add_argument("--ckpt", required=True, help="checkpoint folder, checkpoints folder or run folder")
-    parser.add_argument("--joints", required=True,
+    parser.add_argument("--ckpt", default="default",
+                        help="checkpoint folder, checkpoints folder or run folder; 'default' (the default) = the "
+                             "model shipped with pocoloco")  # fmt: skip
+    parser.add_argument("--joints", default="demo:skirt",
                         help="pose: .npy/.npz (24, 3) joints, a LOOSE-style joints .txt, a dataset frame .npz, "
-                             "or DATASET:subject/split/sequence/index")  # fmt: skip
+                             "DATASET:subject/split/sequence/index, or demo:skirt|shirt|tight (a shipped pose; "
+                             "default demo:skirt)")  # fmt: skip
     parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
     parser.add_argument("--num", type=int, default=4, help="K hypotheses to draw (default 4)")
     parser.add_argument("--sampler", default="dpm++", help=f"one of {', '.join(SAMPLERS)} (default dpm++)")
@@ -344,7 +354,9 @@ def cmd_sample(args: argparse.Namespace) -> None:
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"--device {args.device}: CUDA is not available")
 
-    ckpt = resolve_checkpoint(args.ckpt)
+    from pocoloco.pretrained import resolve_ckpt_arg
+
+    ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
     model, normalisation, config = load_denoiser(ckpt, use_ema=not args.raw_weights, device=device)
     step = json.loads((ckpt / "meta.json").read_text(encoding="utf-8"))["step"]  # validated by load_denoiser
     joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints)

@@ -200,9 +200,9 @@ TRAIN_PRESETS: dict[str, TrainConfig] = {
     ),
     # what this 2-core CPU can train in hours
     "small": TrainConfig(
-        preset="small", denoiser=DENOISER_PRESETS["small"], steps=20_000, batch_size=16, num_points=1024,
-        lr=5e-4, weight_decay=0.01, warmup_steps=500, lr_schedule="cosine", grad_clip=1.0, ema_decay=0.999,
-        ckpt_every=1000, sample_every=1000, log_every=10, sample_steps=25,
+        preset="small", denoiser=DENOISER_PRESETS["small"], steps=20_000, batch_size=16, num_points=512,
+        lr=5e-4, weight_decay=0.01, warmup_steps=200, lr_schedule="constant", grad_clip=1.0, ema_decay=0.999,
+        ckpt_every=250, sample_every=1000, log_every=10, sample_steps=25,
     ),
     # tests and smoke runs: seconds
     "tiny": TrainConfig(
