@@ -118,9 +118,9 @@ def _child_memory(args) -> None:
 
 
 def measure_memory(preset: str, impl: str, batch: int, points: int, timeout: float) -> dict:
-    """Spawn ``_child_memory`` in a subprocess; returns its JSON or an ``error`` entry."""
+    """Spawn ``_child_memory`` in a subprocess (same torch thread count); returns its JSON or an ``error`` entry."""
     cmd = [sys.executable, __file__, "--_child", "--preset", preset, "--impl", impl,
-           "--batch", str(batch), "--points", str(points)]  # fmt: skip
+           "--batch", str(batch), "--points", str(points), "--threads", str(torch.get_num_threads())]  # fmt: skip
     entry = {"impl": impl, "batch": batch, "points": points}
     try:
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -147,6 +147,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--big-points", type=int, default=50_000)
     p.add_argument("--no-dense-memory", action="store_true", help="skip the dense memory run (needs ~13 GB at 4 x 10K)")
     p.add_argument("--no-train", action="store_true", help="skip the training-step timings")
+    p.add_argument("--memory-only", action="store_true", help="only the memory / big-forward subprocesses")
     p.add_argument("--bf16", action="store_true", help="also time the SDPA forward under bf16 autocast")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument("--timeout", type=float, default=3600.0, help="per memory subprocess, seconds")
@@ -166,7 +167,8 @@ def main(argv: list[str] | None = None) -> dict:
         args.preset, args.batch, args.points, args.repeats = "small", 2, 512, 1
         args.mem_batch, args.mem_points, args.big_points = 2, 2000, 5000
     if args.out is None:
-        args.out = Path(__file__).parent / "results" / ("denoiser_quick.json" if args.quick else "denoiser.json")
+        name = "denoiser_quick.json" if args.quick else "denoiser_memory.json" if args.memory_only else "denoiser.json"
+        args.out = Path(__file__).parent / "results" / name
 
     cfg = denoiser_preset(args.preset)
     n_params = PocoLocoDenoiser(cfg).num_parameters()
@@ -188,7 +190,7 @@ def main(argv: list[str] | None = None) -> dict:
     }
     rows = []
 
-    for impl in ("sdpa", "dense"):
+    for impl in () if args.memory_only else ("sdpa", "dense"):
         model = build(args.preset, impl)
         ts = time_forward(model, inputs, args.repeats)
         results["forward_s"][impl] = {"median": median(ts), "runs": ts}
@@ -204,7 +206,8 @@ def main(argv: list[str] | None = None) -> dict:
         del model
 
     fwd = results["forward_s"]
-    results["forward_speedup"] = fwd["dense"]["median"] / fwd["sdpa"]["median"]
+    if fwd:
+        results["forward_speedup"] = fwd["dense"]["median"] / fwd["sdpa"]["median"]
     if "sdpa_bf16" in fwd:
         results["forward_speedup_bf16"] = fwd["dense"]["median"] / fwd["sdpa_bf16"]["median"]
     if results["train_step_s"]:
@@ -230,7 +233,8 @@ def main(argv: list[str] | None = None) -> dict:
     w = max(len(r[0]) for r in rows)
     for name, size, val in rows:
         print(f"  {name:<{w}}  {size:>12}  {val}")
-    print(f"  forward speed-up sdpa vs dense: {results['forward_speedup']:.2f}x")
+    if "forward_speedup" in results:
+        print(f"  forward speed-up sdpa vs dense: {results['forward_speedup']:.2f}x")
     if "forward_speedup_bf16" in results:
         print(f"  forward speed-up sdpa bf16 vs dense fp32: {results['forward_speedup_bf16']:.2f}x")
     if "train_step_speedup" in results:

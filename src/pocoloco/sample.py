@@ -322,7 +322,7 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num", type=int, default=4, help="K hypotheses to draw (default 4)")
     parser.add_argument("--sampler", default="dpm++", help=f"one of {', '.join(SAMPLERS)} (default dpm++)")
     parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++ 20, ddim 50, ddpm all)")
-    parser.add_argument("--points", type=int, help="N points per cloud (default: the training num_points)")
+    parser.add_argument("--points", type=int, default=4096, help="N points per cloud (default 4096; any N works)")
     parser.add_argument("--seed", type=int, default=0, help="cloud k uses seed SEED + k (default 0)")
     parser.add_argument("--batch-size", type=int, default=8, help="clouds denoised together (default 8)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
