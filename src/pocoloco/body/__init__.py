@@ -1,4 +1,5 @@
-"""Body model adapter (anny), the fixed 24-joint skeleton, skinning.
+"""Body model adapter (anny), the fixed 24-joint skeleton, skinning; ``surface``:
+UV rasterisation, position maps, barycentric sampling and local frames (POP/CloSET).
 
 The skeleton constants import instantly; ``AnnyBody`` and friends load torch
 and are imported on first use.
