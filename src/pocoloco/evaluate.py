@@ -77,6 +77,7 @@ class EvalSettings:
     the GT subset). seeds: one model sample per seed and frame. sampler / steps: see
     ``pocoloco sample``. baselines: which of ``nearest_frame``, ``posed_body``, ``gt_resample``.
     subjects: restrict to these subjects (None: all). batch_size: clouds sampled together.
+    use_ema: EMA (default) or raw weights. clip: x0 clamp of the sampler (``sample_clouds``).
     """
 
     split: str = "test"
@@ -89,6 +90,7 @@ class EvalSettings:
     subjects: tuple[str, ...] | None = None
     batch_size: int = 4
     use_ema: bool = True
+    clip: float | None = None
 
     def __post_init__(self):
         if self.num_frames < 0:
@@ -104,6 +106,8 @@ class EvalSettings:
             raise ValueError(f"unknown baselines {unknown}; choose from {', '.join(METHODS[1:])}")
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.clip is not None and not self.clip > 0:
+            raise ValueError(f"clip must be > 0, got {self.clip}")
 
 
 # ------------------------------------------------------------------------------------- frames
@@ -259,7 +263,7 @@ def evaluate(
             t0 = time.perf_counter()
             sampled = sample_clouds(model, normalisation, config, fr.joints, len(settings.seeds), settings.num_points,
                                     sampler=settings.sampler, steps=settings.steps, seeds=list(settings.seeds),
-                                    batch_size=settings.batch_size)  # fmt: skip
+                                    batch_size=settings.batch_size, clip=settings.clip)  # fmt: skip
             per_sample = (time.perf_counter() - t0) / len(settings.seeds)
             scores = [score(sampled.points[k], None if sampled.normals is None else sampled.normals[k])
                       for k in range(len(settings.seeds))]  # fmt: skip
@@ -311,7 +315,8 @@ def _mean(rows: list[dict[str, Any]], method: str) -> dict[str, float]:
 def _settings_dict(s: EvalSettings) -> dict[str, Any]:
     return {"split": s.split, "num_frames": s.num_frames, "num_points": s.num_points, "seeds": list(s.seeds),
             "sampler": s.sampler, "steps": s.steps, "baselines": list(s.baselines),
-            "subjects": None if s.subjects is None else list(s.subjects), "weights": "ema" if s.use_ema else "raw"}  # fmt: skip
+            "subjects": None if s.subjects is None else list(s.subjects), "weights": "ema" if s.use_ema else "raw",
+            "clip": s.clip}  # fmt: skip
 
 
 def _check_normalisation(normalisation, card: dict[str, Any], ckpt: Path, data) -> None:
@@ -425,6 +430,7 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
     parser.add_argument("--batch-size", type=int, default=4, help="clouds sampled together (default 4)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
+    parser.add_argument("--clip", type=float, default=None, help="clamp the sampler's x0 estimates (see pocoloco sample)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
     parser.add_argument("--out", required=True, help="output folder (eval.json, eval.md, plots)")
 
@@ -447,7 +453,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             sampler=args.sampler, steps=args.steps,
                             baselines=() if args.no_baselines else EvalSettings.baselines,
                             subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
-                            use_ema=not args.raw_weights)  # fmt: skip
+                            use_ema=not args.raw_weights, clip=args.clip)  # fmt: skip
     from pocoloco.sample import SAMPLERS
 
     if settings.sampler not in SAMPLERS:
