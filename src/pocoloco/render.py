@@ -302,3 +302,51 @@ def plot_curves(
     ax.legend(frameon=False)
     fig.tight_layout()
     return _save_atomic(fig, path)
+
+
+def render_mesh(
+    vertices: np.ndarray, faces: np.ndarray, path: str | os.PathLike, views: Sequence[str] = ("front", "side"),
+    color: Sequence[float] = (0.75, 0.78, 0.85), panel_size: float = 4.0, dpi: int = 100,
+) -> str:
+    """Render a triangle mesh to a PNG, one panel per view (orthographic, atomic write).
+
+    Faces are drawn in painter's order (far first) with headlight Lambert shading
+    (0.25 ambient); back faces are culled. vertices: (V, 3); faces: (F, 3) int.
+    Returns ``path`` as a string.
+    """
+    from matplotlib.collections import PolyCollection
+
+    vertices = _check_points(vertices, "vertices")
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
+        raise ValueError(f"faces must be an integer array of shape (F, 3), got {faces.dtype} {faces.shape}")
+    if len(faces) == 0:
+        raise ValueError("faces is empty: nothing to render")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(f"face index out of range [0, {len(vertices)})")
+    tri = vertices[faces]  # (F, 3, 3)
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-20)
+    fig = _figure(panel_size * len(views), panel_size, dpi)
+    fig.patch.set_facecolor("white")
+    for j, view in enumerate(views):
+        u, v, depth = _project(tri.reshape(-1, 3), view)
+        u, v, depth = u.reshape(-1, 3), v.reshape(-1, 3), depth.reshape(-1, 3).mean(1)
+        facing = fn @ np.asarray(VIEWS[view][2], dtype=np.float64)
+        keep = facing > 0
+        order = np.argsort(depth[keep], kind="stable")
+        shade = 0.25 + 0.75 * facing[keep][order]
+        colors = np.clip(np.asarray(color)[None, :] * shade[:, None], 0, 1)
+        polys = np.stack([u[keep][order], v[keep][order]], axis=-1)  # (F', 3, 2)
+        ax = fig.add_subplot(1, len(views), j + 1)
+        ax.add_collection(PolyCollection(polys, facecolors=colors, edgecolors="face", linewidths=0.1,
+                                         rasterized=True))  # fmt: skip
+        uu, vv, _ = _project(vertices, view)
+        pad = 0.03 * max(float(np.ptp(uu)), float(np.ptp(vv)), 1e-6)
+        ax.set_xlim(uu.min() - pad, uu.max() + pad)
+        ax.set_ylim(vv.min() - pad, vv.max() + pad)
+        ax.set_aspect("equal", adjustable="box")
+        ax.set_axis_off()
+        ax.set_title(view, fontsize=9)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.93, wspace=0.02)
+    return _save_atomic(fig, path)

@@ -1,0 +1,212 @@
+"""Tests of ``pocoloco mesh`` (pocoloco.meshing): screened Poisson reconstruction of clouds.
+
+Shapes with a known surface: a sphere (radius 0.5) and a "dress" (an ellipsoid torso above an
+open cone skirt), sampled uniformly; mesh vertices are compared with the analytic surface or
+with a dense reference sample of it.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+import trimesh
+
+pytest.importorskip("open3d")
+
+from pocoloco.cli import main  # noqa: E402
+from pocoloco.data.published import read_ply, write_ply  # noqa: E402
+from pocoloco.meshing import (  # noqa: E402
+    MIN_POINTS,
+    _cancel_face_pairs,
+    _drop_small_components,
+    estimate_normals,
+    is_watertight,
+    mesh_from_points,
+)
+
+R = 0.5
+
+
+def _sphere(n: int, seed: int = 0) -> np.ndarray:
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    return R * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _dress(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Ellipsoid torso (semi-axes 0.3, 0.2, 0.5 around z=0.8) above an open cone skirt
+    (z in [0, 0.5], radius 0.15 at the top to 0.40 at the hem), sampled about uniformly by area.
+    Returns points (n, 3) and outward normals (n, 3)."""
+    rng = np.random.default_rng(seed)
+    axes = np.array([0.3, 0.2, 0.5])
+    d = rng.normal(size=(n // 2, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    torso = d * axes + [0, 0, 0.8]
+    torso_n = d / axes
+    m = n - n // 2
+    h = np.sqrt(rng.uniform(0, 1, m))  # area grows towards the hem: density ~ radius
+    z = 0.5 * (1 - h)
+    r = 0.15 + 0.5 * (0.5 - z)
+    a = rng.uniform(0, 2 * np.pi, m)
+    skirt = np.stack([r * np.cos(a), r * np.sin(a), z], 1)
+    skirt_n = np.stack([np.cos(a), np.sin(a), np.full(m, 0.5)], 1)  # cone slope dr/dz = -0.5
+    pts = np.concatenate([torso, skirt])
+    nrm = np.concatenate([torso_n, skirt_n])
+    return pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+def _dist_to(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    return cKDTree(reference).query(points)[0]
+
+
+# ----------------------------------------------------------------------------- normals
+def test_estimated_normals_point_outwards_on_a_sphere():
+    pts = _sphere(3000)
+    n = estimate_normals(pts)
+    cos = np.sum(n * pts / R, axis=1)
+    assert (cos > 0.95).mean() > 0.99, np.quantile(cos, [0, 0.01, 0.5])
+
+
+def test_estimated_normals_are_consistent_on_the_dress():
+    pts, true_n = _dress(4000)
+    n = estimate_normals(pts)
+    cos = np.sum(n * true_n, axis=1)
+    assert (cos > 0.8).mean() > 0.97, np.quantile(cos, [0, 0.01, 0.05, 0.5])
+
+
+# ----------------------------------------------------------------------------- reconstruction
+@pytest.mark.parametrize("with_normals", [True, False])
+def test_sphere_mesh_is_watertight_and_on_the_surface(with_normals):
+    pts = _sphere(4000)
+    normals = pts / R if with_normals else None
+    verts, faces = mesh_from_points(pts, normals, depth=7)
+    assert verts.dtype == np.float32 and faces.dtype == np.int64 and faces.shape[1] == 3
+    assert is_watertight(verts, faces)
+    err = np.abs(np.linalg.norm(verts, axis=1) - R)
+    assert err.max() < 0.02 * R and err.mean() < 0.005 * R, (err.max(), err.mean())
+    # a closed surface with uniform sampling has no low-density vertex to trim
+    _, faces0 = mesh_from_points(pts, normals, depth=7, density_quantile=0.0)
+    assert len(faces0) == len(faces)
+    # outward winding: positive enclosed volume close to the ball's
+    vol = trimesh.Trimesh(verts, faces, process=False).volume
+    assert vol == pytest.approx(4 / 3 * np.pi * R**3, rel=0.03)
+
+
+def test_dress_mesh_watertight_untrimmed_and_trimmed_hugs_the_data():
+    pts, _ = _dress(6000)
+    reference, _ = _dress(200_000, seed=1)  # dense sample of the true surface
+    verts0, faces0 = mesh_from_points(pts, None, depth=7, density_quantile=0.0)
+    assert is_watertight(verts0, faces0)  # Poisson closes the open hem
+    d0 = _dist_to(verts0, reference)
+    assert (d0 > 0.05).any()  # ... with a cap far from any sample
+    verts, faces = mesh_from_points(pts, None, depth=7, density_quantile=0.05)
+    d = _dist_to(verts, reference)
+    height = 1.3  # the cap is gone; what is left hugs the surface (sample spacing here ~1 cm)
+    assert np.median(d) < 0.002 * height and np.quantile(d, 0.99) < 0.035 * height and d.max() < 0.05 * height, (
+        np.quantile(d, [0.5, 0.99, 1]), np.quantile(d0, [0.5, 0.99, 1]))
+    assert np.quantile(d0, 0.99) > 3 * np.quantile(d, 0.99)
+    assert len(faces) < len(faces0) and not is_watertight(verts, faces)
+
+
+# ----------------------------------------------------------------------------- mesh clean-up
+def test_cancel_face_pairs_matches_a_reference():
+    tet = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+    fin = np.array([[1, 2, 4], [2, 1, 4]])  # same triangle, opposite windings: both go
+    twin = np.array([[0, 1, 3], [1, 3, 0]])  # same winding twice: one stays
+    out = _cancel_face_pairs(np.concatenate([tet, fin, twin]))
+    key = {tuple(np.roll(f, -int(np.argmin(f)))) for f in out}
+    assert len(out) == 4 and key == {tuple(np.roll(f, -int(np.argmin(f)))) for f in tet}
+    assert _cancel_face_pairs(tet) is tet
+
+
+def test_drop_small_components_keeps_the_big_ones():
+    big = trimesh.creation.icosphere(2)  # 320 faces
+    small = trimesh.creation.icosphere(0)  # 20 faces
+    faces = np.concatenate([big.faces, small.faces + len(big.vertices)])
+    n = len(big.vertices) + len(small.vertices)
+    assert len(_drop_small_components(faces, n, 0.1)) == 320
+    assert len(_drop_small_components(faces, n, 0.05)) == 340
+    assert len(_drop_small_components(faces, n, 0.0)) == 340
+
+
+# ----------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize(
+    "points, message",
+    [
+        (np.zeros((0, 3)), "point cloud is empty"),
+        (_sphere(MIN_POINTS - 1), "too sparse to mesh: 99 points"),
+        (np.where(np.arange(300)[:, None] == 7, np.nan, _sphere(300)), "1 row(s) with NaN"),
+        (np.zeros((200, 2)), "points must have shape (N, 3)"),
+        (np.c_[np.linspace(0, 1, 200), np.zeros((200, 2))], "degenerate"),
+    ],
+)
+def test_bad_points_raise_one_line(points, message):
+    with pytest.raises(ValueError) as e:
+        mesh_from_points(points)
+    assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_bad_normals_and_options_raise_one_line():
+    pts = _sphere(300)
+    for kwargs, message in [
+        (dict(normals=np.ones((10, 3))), "normals must have shape (300, 3)"),
+        (dict(normals=np.zeros((300, 3))), "zero-length"),
+        (dict(depth=0), "depth must be in 1..12"),
+        (dict(density_quantile=1.0), "density quantile must be in [0, 1)"),
+    ]:
+        with pytest.raises(ValueError, match=None) as e:
+            mesh_from_points(pts, **kwargs)
+        assert message in str(e.value) and "\n" not in str(e.value)
+
+
+# ----------------------------------------------------------------------------- CLI
+def test_cli_meshes_a_cloud_without_normals(tmp_path, capsys):
+    src = tmp_path / "ball.ply"
+    write_ply(src, _sphere(2000))
+    out, png = tmp_path / "ball_mesh.ply", tmp_path / "ball.png"
+    assert main(["mesh", str(src), "--depth", "6", "--render", str(png)]) == 0, capsys.readouterr().err
+    msg = capsys.readouterr().out
+    assert "watertight" in msg and "NOT" not in msg and str(out) in msg
+    mesh = read_ply(out)
+    assert mesh.faces is not None and mesh.normals is not None
+    assert is_watertight(mesh.points, mesh.faces)
+    # vertex normals point outwards
+    assert (np.sum(mesh.normals * mesh.points, axis=1) > 0).mean() > 0.99
+    assert png.stat().st_size > 5000
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"not a ply file", "not a PLY file"),
+        (None, "no such file"),
+        ("sparse", "too sparse to mesh"),
+        ("nan", "non-finite vertex coordinates"),
+    ],
+)
+def test_cli_bad_input_one_line_and_nothing_written(tmp_path, capsys, content, message):
+    src = tmp_path / "in.ply"
+    if content == "sparse":
+        write_ply(src, _sphere(50))
+    elif content == "nan":
+        pts = _sphere(500)
+        pts[3, 1] = np.nan
+        write_ply(src, pts)
+    elif content is not None:
+        src.write_bytes(content)
+    out = tmp_path / "out.ply"
+    assert main(["mesh", str(src), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("pocoloco: error:") and message in err and "\n" not in err, err
+    assert not out.exists()
+    assert sorted(os.listdir(tmp_path)) == (["in.ply"] if content is not None else [])
+
+
+def test_cli_refuses_to_overwrite_the_input(tmp_path, capsys):
+    src = tmp_path / "in.ply"
+    write_ply(src, _sphere(500))
+    assert main(["mesh", str(src), "--out", str(src)]) == 2
+    assert "overwrite the input" in capsys.readouterr().err
