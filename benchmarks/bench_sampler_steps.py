@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3], help="samples per frame (default 4 seeds)")
     p.add_argument("--points", type=int, default=2048, help="points per cloud (default 2048)")
     p.add_argument("--configs", nargs="+", default=list(DEFAULT_CONFIGS), help="sampler:steps (first = baseline)")
+    p.add_argument("--clip", type=float, default=5.0, help="sampler x0 clamp (0 = off), as pocoloco eval")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--out", default="benchmarks/results/sampler_steps.json")
     args = p.parse_args(argv)
@@ -70,7 +71,8 @@ def main(argv: list[str] | None = None) -> dict:
         cds = []
         for joints, gt in gts:
             clouds = sample_clouds(model, norm, config, joints, len(args.seeds), args.points, sampler=kind,
-                                   steps=steps, seeds=args.seeds, batch_size=len(args.seeds))  # fmt: skip
+                                   steps=steps, seeds=args.seeds, batch_size=len(args.seeds),
+                                   clip=args.clip or None)  # fmt: skip
             cds += [chamfer_cm(c, gt) for c in clouds.points]
         sec = (time.perf_counter() - t0) / (len(gts) * len(args.seeds))
         rows.append({"sampler": kind, "steps": steps, "chamfer_cm": float(np.mean(cds)),
@@ -86,7 +88,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"{r['sampler']:>8} {r['steps']:>6} {r['chamfer_cm']:>11.3f} {r['chamfer_ratio']:>14.3f} "
               f"{r['seconds_per_sample']:>9.2f} {r['speedup']:>8.1f}x")  # fmt: skip
     result = {"checkpoint": str(ckpt), "data": args.data, "split": args.split, "frames": len(gts), "seeds": args.seeds,
-              "points": args.points, "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
+              "points": args.points, "clip": args.clip or None, "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
               "rows": rows}  # fmt: skip
     out = Path(args.out)
     write_json_atomic(out, result)

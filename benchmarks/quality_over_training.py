@@ -31,7 +31,8 @@ from pocoloco.utils.atomic import write_json_atomic
 
 def _settings(args, baselines=()) -> EvalSettings:
     return EvalSettings(split="test", num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
-                        sampler=args.sampler, steps=args.steps, baselines=tuple(baselines))  # fmt: skip
+                        sampler=args.sampler, steps=args.steps, baselines=tuple(baselines),
+                        clip=args.clip or None)  # fmt: skip
 
 
 def _plot(doc: dict, run: Path, path: Path) -> None:
@@ -56,6 +57,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--sampler", default="dpm++")
     p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--clip", type=float, default=5.0, help="sampler x0 clamp (0 = off), as pocoloco eval")
     p.add_argument("--no-raw", action="store_true", help="only the EMA weights")
     p.add_argument("--watch", action="store_true", help="keep polling for new checkpoints")
     p.add_argument("--poll", type=float, default=60.0, help="seconds between polls")

@@ -430,7 +430,8 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
     parser.add_argument("--batch-size", type=int, default=4, help="clouds sampled together (default 4)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
-    parser.add_argument("--clip", type=float, default=None, help="clamp the sampler's x0 estimates (see pocoloco sample)")
+    parser.add_argument("--clip", type=float, default=5.0,
+                        help="clamp the sampler's x0 estimates, normalised units (default 5; 0 = off; see pocoloco sample)")  # fmt: skip
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
     parser.add_argument("--out", required=True, help="output folder (eval.json, eval.md, plots)")
 
@@ -453,7 +454,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             sampler=args.sampler, steps=args.steps,
                             baselines=() if args.no_baselines else EvalSettings.baselines,
                             subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
-                            use_ema=not args.raw_weights, clip=args.clip)  # fmt: skip
+                            use_ema=not args.raw_weights, clip=args.clip or None)  # fmt: skip
     from pocoloco.sample import SAMPLERS
 
     if settings.sampler not in SAMPLERS:
