@@ -210,11 +210,47 @@ def build_parser() -> argparse.ArgumentParser:
     add_sample_arguments(s)
     s.set_defaults(func=cmd_sample)
 
+    from .apps.completion import add_complete_arguments, cmd_complete
+
+    s = sub.add_parser("complete", help="complete a partial scan with the model (inpainting; PLY + PNG + JSON)")
+    add_complete_arguments(s)
+    s.set_defaults(func=cmd_complete)
+
+    from .apps.editing import add_edit_arguments, cmd_edit
+
+    s = sub.add_parser("edit", help="move a cloud to a new pose (renoise or regenerate the moving region)")
+    add_edit_arguments(s)
+    s.set_defaults(func=cmd_edit)
+
+    from .apps.animation import add_animate_arguments, cmd_animate
+
+    s = sub.add_parser("animate", help="clouds for a motion (independent / shared-noise / chain; PLYs + GIF + JSON)")
+    add_animate_arguments(s)
+    s.set_defaults(func=cmd_animate)
+
     from .evaluate import add_eval_arguments, cmd_eval
 
     s = sub.add_parser("eval", help="score a checkpoint and the baselines on a dataset split (JSON + markdown + plots)")
     add_eval_arguments(s)
     s.set_defaults(func=cmd_eval)
+
+    from .body.surface import add_uvmap_arguments, cmd_uvmap
+
+    s = sub.add_parser("uvmap", help="rasterise the anny UV layout: pixel -> (face, barycentric) + template position map")
+    add_uvmap_arguments(s)
+    s.set_defaults(func=cmd_uvmap)
+
+    from .meshing import add_mesh_arguments, cmd_mesh
+
+    s = sub.add_parser("mesh", help="watertight mesh from a point cloud PLY (screened Poisson reconstruction)")
+    add_mesh_arguments(s)
+    s.set_defaults(func=cmd_mesh)
+
+    from .viewer import add_view_arguments, cmd_view
+
+    s = sub.add_parser("view", help="self-contained HTML viewer (WebGL) for a folder of PLY clouds")
+    add_view_arguments(s)
+    s.set_defaults(func=cmd_view)
     return p
 
 

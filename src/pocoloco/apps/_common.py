@@ -1,0 +1,302 @@
+"""Shared machinery of the applications: partial reverse chains, input checks, output folders.
+
+The core is :func:`denoise_from`: start the reverse process at an intermediate step from a
+*renoised* clean cloud (SDEdit, Meng et al. 2022: ``x_t ~ q(x_t | x0) = N(sqrt(abar_t) x0,
+(1 - abar_t) I)``, DDPM eq. 4) or from pure noise, optionally keeping known points (RePaint,
+Lugmayr et al. 2022, via the samplers' ``known=``), and denoise under one pose.
+
+Step convention (``t`` everywhere in :mod:`pocoloco.apps`): ``t`` is the 1-based step of the
+paper, ``1 <= t <= T``. The chain starts at timestep index ``t - 1`` (the samplers' 0-based
+index): ``t = 1`` is the least noisy step (one denoiser call at abar_0 = 1 - beta_0), ``t = T``
+means *pure noise*, exactly what :func:`pocoloco.sample.sample_clouds` does (the samplers treat
+N(0, I) as x at index T - 1, although abar_{T-1} = 0.004 > 0 for the "four" schedule), so
+``t = T`` forgets the source entirely.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shutil
+import uuid
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pocoloco.data.dataset import Normalisation
+
+#: a scan whose bounding box is larger than this (metres) is taken to be in the wrong unit
+MAX_EXTENT_M = 5.0
+#: a scan whose centroid is farther than this from the pose's root joint is refused
+MAX_ROOT_DISTANCE_M = 1.0
+
+
+# ------------------------------------------------------------------------------------ chains
+def chain_timesteps(t: int, num_timesteps: int, sampler: str, steps: int | None = None) -> list[int]:
+    """Descending timestep indices of a reverse chain that starts at step ``t`` (1-based, see the
+    module docstring): ``steps`` of them with the samplers' "trailing" spacing over the first
+    ``t`` indices, ``round(t - k t / steps) - 1`` for ``k = 0 .. steps-1`` (so the first is
+    ``t - 1`` and, for ``t = T``, the list equals the from-scratch sampler's).
+
+    ``steps=None``: every index for ddpm, else ``min(t, default)`` (dpm++ 20, ddim 50).
+    """
+    from pocoloco.sample import SAMPLERS, _check_sampler
+
+    _check_sampler(sampler, None, num_timesteps)
+    if not 1 <= t <= num_timesteps:
+        raise ValueError(f"t must be in [1, {num_timesteps}] (the model's training timesteps), got {t}")
+    if steps is None:
+        default = SAMPLERS[sampler]
+        steps = t if default is None else min(t, default)
+    if not 1 <= steps <= t:
+        raise ValueError(f"steps must be in [1, t={t}] for a chain starting at step t, got {steps}")
+    ts = np.round(t - np.arange(steps) * (t / steps)).astype(np.int64) - 1
+    return [int(x) for x in ts]
+
+
+@torch.no_grad()
+def denoise_from(
+    model: torch.nn.Module,
+    normalisation: Normalisation,
+    config: Any,
+    joints: np.ndarray,
+    x0: np.ndarray | None,
+    t: int,
+    sampler: str = "dpm++",
+    steps: int | None = None,
+    seeds: Sequence[int] = (0,),
+    known: tuple[np.ndarray, np.ndarray] | None = None,
+    num_points: int | None = None,
+) -> np.ndarray:
+    """Run the reverse chain from step ``t`` under one pose, in the *normalised* frame.
+
+    Args:
+        model, normalisation, config: as returned by ``load_denoiser``.
+        joints: (J, 3) target pose in metres (its root defines the normalised frame).
+        x0: (B, N, C) clean clouds, normalised with ``joints``' root, to renoise to step t
+            (SDEdit); None, or ``t = T``: start from pure noise.
+        t: 1-based start step (module docstring).
+        sampler, steps: see :func:`chain_timesteps`.
+        seeds: B seeds; sample b's initial noise, the renoising noise and any sampler noise come
+            from one generator seeded ``seeds[b]`` (``PerSampleRNG``), so with ``t = T`` and no
+            ``known`` the result equals ``sample_clouds`` with the same seeds and steps.
+        known: (mask (B, N) bool, x0_known (B, N, C) normalised) points kept (RePaint without
+            resampling: known points are replaced by q(x_s | x0_known) after every step).
+        num_points: N when neither x0 nor known is given.
+    Returns:
+        (B, N, C) float32 normalised clouds (``normalisation.denormalise(out[..., :3], root)``).
+    """
+    from pocoloco.diffusion.samplers import PerSampleRNG, sample
+    from pocoloco.diffusion.schedules import NoiseSchedule
+
+    den = config.denoiser
+    C, J, T = int(den.point_channels), int(den.num_joints), int(config.num_timesteps)
+    timesteps = chain_timesteps(t, T, sampler, steps)
+    seeds = [int(s) for s in seeds]
+    if x0 is not None:
+        x0 = np.asarray(x0, np.float32)
+        if x0.ndim != 3 or x0.shape[0] != len(seeds) or x0.shape[2] != C:
+            raise ValueError(f"x0 must have shape ({len(seeds)}, N, {C}), got {x0.shape}")
+        N = x0.shape[1]
+    elif known is not None:
+        N = np.asarray(known[0]).shape[1]
+    elif num_points is not None:
+        N = int(num_points)
+    else:
+        raise ValueError("denoise_from needs x0, known or num_points (to know N)")
+    param = next(model.parameters())
+    device, dtype = param.device, param.dtype
+    _, joints_n = normalisation.normalise(np.zeros((1, 3), np.float32), np.asarray(joints, np.float32))
+    schedule = NoiseSchedule.from_kind(config.schedule, T)
+    rng = PerSampleRNG(seeds, device=device)
+    noise = rng.randn((N, C), dtype=dtype, device=device)  # (B, N, C)
+    if x0 is not None and t < T:
+        ab = schedule.alpha_bar(t - 1)
+        x = math.sqrt(ab) * torch.as_tensor(x0, dtype=torch.float64, device=device) + math.sqrt(1 - ab) * noise.double()
+        noise = x.to(dtype)  # (B, N, C) x at index t - 1 (SDEdit's renoised source)
+    kw: dict[str, Any] = {}
+    if known is not None:
+        mask, xk = known
+        kw["known"] = (torch.as_tensor(np.asarray(mask, bool), device=device),
+                       torch.as_tensor(np.asarray(xk, np.float32), dtype=dtype, device=device))  # fmt: skip
+    cond = torch.as_tensor(joints_n, dtype=dtype, device=device).expand(len(seeds), J, 3)  # (B, J, 3)
+    was_training = model.training
+    model.eval()
+    try:
+        out = sample(sampler, model, schedule, noise, cond, timesteps=timesteps, rng=rng,
+                     prediction_type=config.prediction_type, **kw)  # fmt: skip
+    finally:
+        model.train(was_training)
+    return out.float().cpu().numpy()
+
+
+def to_metres(normalisation: Normalisation, x: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(B, N, C) normalised -> points (B, N, 3) metres in ``joints``' frame, unit normals or None."""
+    root = normalisation.root(np.asarray(joints, np.float32)).astype(np.float32)
+    points = normalisation.denormalise(x[..., :3], root).astype(np.float32)
+    normals = None
+    if x.shape[-1] == 6:
+        n = x[..., 3:6]
+        normals = (n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)).astype(np.float32)
+    return points, normals
+
+
+def to_normalised(normalisation: Normalisation, points: np.ndarray, normals: np.ndarray | None,
+                  joints: np.ndarray, channels: int) -> np.ndarray:  # fmt: skip
+    """(..., N, 3) metres (+ normals) -> (..., N, C) normalised with ``joints``' root (C = 3 or 6)."""
+    p, _ = normalisation.normalise(np.asarray(points, np.float32), np.asarray(joints, np.float32))
+    if channels == 3:
+        return p.astype(np.float32)
+    if normals is None:
+        raise ValueError("the model predicts normals (point_channels 6) but the input cloud has none")
+    return np.concatenate([p, np.asarray(normals, np.float32)], axis=-1).astype(np.float32)
+
+
+def subset(n: int, k: int, seed: int | Sequence[int]) -> np.ndarray:
+    """Sorted indices of min(k, n) of n items drawn without replacement from ``default_rng(seed)``."""
+    return np.sort(np.random.default_rng(seed).choice(n, size=min(k, n), replace=False))
+
+
+# ------------------------------------------------------------------------------------- inputs
+def check_scan(name: str, points: np.ndarray, joints: np.ndarray, root_joint: int = 0) -> np.ndarray:
+    """(N, 3) float32 scan points that plausibly belong to ``joints`` or a one-line ValueError:
+    empty, NaN / inf, larger than MAX_EXTENT_M (millimetres?), centroid farther than
+    MAX_ROOT_DISTANCE_M from the root joint."""
+    p = np.asarray(points)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name}: expected points of shape (N, 3), got {p.shape}")
+    if p.shape[0] == 0:
+        raise ValueError(f"{name}: the scan is empty (0 points)")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{name}: the scan contains NaN or inf coordinates")
+    p = p.astype(np.float32)
+    extent = float(np.ptp(p, axis=0).max())
+    if extent > MAX_EXTENT_M:
+        raise ValueError(f"{name}: the scan is {extent:.3g} units across, more than {MAX_EXTENT_M:g} m "
+                         "(not in metres? millimetres must be divided by 1000)")  # fmt: skip
+    dist = float(np.linalg.norm(p.mean(0) - np.asarray(joints, np.float64)[root_joint]))
+    if dist > MAX_ROOT_DISTANCE_M:
+        raise ValueError(f"{name}: the scan's centroid is {dist:.2f} m from the pose's root joint (more than "
+                         f"{MAX_ROOT_DISTANCE_M:g} m): wrong pose or another coordinate frame?")  # fmt: skip
+    return p
+
+
+def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (N, 3) and normals (N, 3) or None of a .ply, or of a dataset frame .npz / .npy (N, 3)."""
+    from pocoloco.data.published import read_ply
+
+    src = os.fspath(path)
+    if not os.path.isfile(src):
+        raise ValueError(f"{src}: no such file")
+    if src.endswith(".npz"):
+        from pocoloco.data.format import read_frame
+
+        fr = read_frame(src, ["points", "normals"], allow_missing=True)
+        return fr.points, fr.normals
+    if src.endswith(".npy"):
+        try:
+            arr = np.load(src, allow_pickle=False)
+        except Exception as e:
+            raise ValueError(f"{src}: cannot read ({type(e).__name__})") from None
+        return arr, None
+    ply = read_ply(src)
+    return ply.points, ply.normals
+
+
+def load_model_from_args(args: argparse.Namespace):
+    """(model, normalisation, config, checkpoint path, step) for ``--ckpt``, ``--device``, ``--raw-weights``."""
+    import json
+
+    from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
+    from pocoloco.pretrained import resolve_ckpt_arg
+
+    if args.device is None:
+        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    else:
+        device = torch.device(args.device)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"--device {args.device}: CUDA is not available")
+    ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
+    model, normalisation, config = load_denoiser(ckpt, use_ema=not args.raw_weights, device=device)
+    step = json.loads((ckpt / "meta.json").read_text(encoding="utf-8"))["step"]
+    return model, normalisation, config, ckpt, step
+
+
+def add_common_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
+    """--ckpt, --sampler, --steps, --seed, --raw-weights, --device, --no-render, --out."""
+    parser.add_argument("--ckpt", default="default",
+                        help="checkpoint / run folder; 'default' = the model shipped with pocoloco")  # fmt: skip
+    parser.add_argument("--sampler", default="dpm++", help="dpm++, ddim or ddpm (default dpm++)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++ 20, ddim 50, ddpm all; at most t)")
+    parser.add_argument("--seed", type=int, default=0, help="output k uses seed SEED + k (default 0)")
+    parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
+    parser.add_argument("--device", default=None, help="cuda, cpu (default: cuda if available)")
+    parser.add_argument("--no-render", action="store_true", help="skip the PNG / GIF")
+    parser.add_argument("--out", required=True, help=out_help)
+
+
+def check_common_args(args: argparse.Namespace) -> None:
+    """One-line errors for the options of :func:`add_common_arguments` (before any work)."""
+    from pocoloco.sample import SAMPLERS
+
+    if args.sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLERS)}")
+    if args.steps is not None and args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: exists and is not a folder")
+
+
+# ------------------------------------------------------------------------------------- output
+def write_folder(out: str | os.PathLike, fill: Callable[[Path], set[str]],
+                 stale: Callable[[str], bool] | None = None) -> Path:  # fmt: skip
+    """Create ``out`` with ``fill(folder) -> names written``. A new folder is filled under a
+    temporary name and renamed into place (complete or absent); an existing one gets its files
+    replaced (each written atomically by ``fill``), then files matching ``stale(name)`` that
+    this run did not write (e.g. frames of an earlier, longer run) are removed."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: exists and is not a folder")
+    if out.exists():
+        written = fill(out)
+        if stale is not None:
+            for p in out.iterdir():
+                if stale(p.name) and p.name not in written:
+                    p.unlink()
+        return out
+    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        tmp.mkdir(parents=True)
+        fill(tmp)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def save_npy(path: str | os.PathLike, arr: np.ndarray) -> None:
+    """``np.save`` to ``path`` atomically."""
+    from pocoloco.utils.atomic import atomic_write
+
+    atomic_write(path, lambda f: np.save(f, np.asarray(arr)))
+
+
+def jsonable(x: Any) -> Any:
+    """NaN -> None, numpy scalars / arrays -> Python, recursively."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return jsonable(x.item())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x

@@ -1,0 +1,284 @@
+"""Applications (completion, pose editing, animation) on a tiny 2-step model: invariants, slow
+references, CLI outputs and one-line errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pocoloco.apps._common import chain_timesteps, denoise_from, subset, to_normalised
+from pocoloco.apps.animation import animate, flicker_cm, load_motion, warp_by_body
+from pocoloco.apps.completion import complete, estimate_coverage, region_mask
+from pocoloco.apps.editing import _bones, edit, moving_region, nearest_bone
+from pocoloco.checkpoint import load_denoiser
+from pocoloco.cli import main
+from pocoloco.data.format import DatasetLayout, read_frame
+from pocoloco.data.published import read_ply, write_ply
+from pocoloco.diffusion.samplers import make_timesteps
+from pocoloco.sample import sample_clouds
+from pocoloco.train import train, train_preset
+
+pytestmark = pytest.mark.usefixtures("torch_single_thread")
+
+
+@pytest.fixture(scope="module")
+def run(tiny_dataset, tmp_path_factory):
+    """A tiny model trained for 2 steps (its run folder)."""
+    out = tmp_path_factory.mktemp("apps") / "run"
+    cfg = train_preset("tiny", steps=2, batch_size=2, num_points=64, ckpt_every=0, sample_every=0, log_every=1)
+    train(cfg, tiny_dataset, out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def loaded(run):
+    return load_denoiser(run)
+
+
+@pytest.fixture(scope="module")
+def seq(tiny_dataset):
+    """(spec, frames) of the first test sequence of the tiny dataset, frames read fully."""
+    layout = DatasetLayout(tiny_dataset)
+    subject, sequence, _ = layout.iter_frames("test")[0]
+    paths = [layout.frame_path(subject, "test", sequence, i) for i in layout.frame_indices(subject, "test", sequence)]
+    return f"{tiny_dataset}:{subject}/test/{sequence}", [read_frame(p) for p in paths]
+
+
+# ------------------------------------------------------------------------------------ common
+def test_chain_timesteps_match_the_samplers_at_T_and_start_at_t():
+    assert chain_timesteps(1000, 1000, "dpm++") == make_timesteps(1000, 20)
+    assert chain_timesteps(1000, 1000, "ddim", 7) == make_timesteps(1000, 7)
+    assert chain_timesteps(100, 1000, "ddpm") == list(range(99, -1, -1))
+    ts = chain_timesteps(100, 1000, "dpm++")
+    assert ts[0] == 99 and len(ts) == 20 and all(a > b >= 0 for a, b in zip(ts, ts[1:]))
+    assert chain_timesteps(3, 1000, "dpm++") == [2, 1, 0]
+    with pytest.raises(ValueError, match=r"t must be in \[1, 1000\]"):
+        chain_timesteps(0, 1000, "dpm++")
+
+
+# -------------------------------------------------------------------------------- completion
+def test_completion_keeps_known_points_exactly(loaded, seq):
+    model, norm, cfg = loaded
+    fr = seq[1][0]
+    inside = region_mask(fr.points, fr.joints, "left_hand")
+    partial = fr.points[~inside]
+    comp = complete(model, norm, cfg, partial, fr.joints, 64, num=2, steps=3, seeds=[3, 4], coverage=0.5)
+    assert comp.points.shape == (2, 64, 3) and comp.known.shape == (2, 64) and comp.num_known == 32
+    assert comp.known[:, :32].all() and not comp.known[:, 32:].any()
+    for k, s in enumerate([3, 4]):  # bit-exact copies of the scan subset drawn from the output's seed
+        np.testing.assert_array_equal(comp.points[k, :32], partial[subset(len(partial), 32, [s, 1])])
+    assert np.isfinite(comp.points).all() and np.abs(comp.points[0, 32:] - comp.points[1, 32:]).max() > 1e-3
+    # the sampler itself keeps them (up to float round-off), before the exact copy
+    xk = np.zeros((1, 64, 3), np.float32)
+    xk[0, :32] = to_normalised(norm, partial[:32], None, fr.joints, 3)
+    mask = np.zeros((1, 64), bool)
+    mask[0, :32] = True
+    for sampler in ("dpm++", "ddpm"):
+        x = denoise_from(model, norm, cfg, fr.joints, None, 1000, sampler, 4, [0], known=(mask, xk))
+        np.testing.assert_allclose(x[0, :32], xk[0, :32], atol=1e-5)
+
+
+def test_coverage_estimate_against_brute_force(loaded, seq):
+    model, norm, cfg = loaded
+    fr = seq[1][0]
+    partial = fr.points[~region_mask(fr.points, fr.joints, "hem")][::7]
+    c = estimate_coverage(model, norm, cfg, partial, fr.joints, 48, radius=0.3, seed=2, probe_steps=2)
+    probe = sample_clouds(model, norm, cfg, fr.joints, 1, 48, steps=2, seeds=[2]).points[0]
+    d = np.sqrt(((probe[:, None].astype(np.float64) - partial[None]) ** 2).sum(-1)).min(1)
+    assert c == pytest.approx(float((d < 0.3).mean()))
+    comp = complete(model, norm, cfg, partial, fr.joints, 48, steps=2, seeds=[2], radius=0.3, probe_steps=2)
+    assert comp.coverage_estimated and comp.num_known == round(comp.coverage * 48)
+
+
+# ----------------------------------------------------------------------------------- editing
+def test_edit_renoise_small_t_keeps_the_source_full_chain_forgets_it(loaded, seq):
+    model, norm, cfg = loaded
+    src_fr, tgt_fr = seq[1][0], seq[1][-1]
+    source = src_fr.points[:64]  # N = M: the subsample is the identity (sorted indices)
+    kw = dict(source_joints=src_fr.joints, num_points=64, seeds=[1])
+    # t = 1: one denoiser call at abar_0 = 1 - 1e-4; the result is the source moved with the root
+    near = edit(model, norm, cfg, source, tgt_fr.joints, mode="renoise", t=1, **kw).points[0]
+    shift = norm.root(tgt_fr.joints) - norm.root(src_fr.joints)
+    dev = np.linalg.norm(near - (source + shift), axis=1)
+    assert dev.mean() < 0.01 and dev.max() < 0.05, (dev.mean(), dev.max())
+    # t = T: pure noise, exactly sampling from scratch, whatever the source
+    full = edit(model, norm, cfg, source, tgt_fr.joints, mode="renoise", t=1000, steps=3, **kw).points[0]
+    other = edit(model, norm, cfg, source[::-1].copy() + 0.1, tgt_fr.joints, mode="renoise", t=1000, steps=3,
+                 **kw).points[0]  # fmt: skip
+    scratch = sample_clouds(model, norm, cfg, tgt_fr.joints, 1, 64, steps=3, seeds=[1]).points[0]
+    np.testing.assert_allclose(full, scratch, atol=1e-5)
+    np.testing.assert_allclose(other, scratch, atol=1e-5)
+    assert np.linalg.norm(full - (source + shift), axis=1).mean() > 10 * dev.mean()
+
+
+def _nearest_bone_slow(points, joints):
+    out = []
+    for p in points.astype(np.float64):
+        best, arg = np.inf, -1
+        for b, (i, j) in enumerate(_bones(len(joints))):
+            a, c = joints[i].astype(np.float64), joints[j].astype(np.float64)
+            s = min(max(np.dot(p - a, c - a) / max(np.dot(c - a, c - a), 1e-12), 0.0), 1.0)
+            d = np.linalg.norm(p - (a + s * (c - a)))
+            if d < best:
+                best, arg = d, b
+        out.append(arg)
+    return np.array(out)
+
+
+def test_region_edit_keeps_static_points_and_regenerates_moving_ones(loaded, seq):
+    model, norm, cfg = loaded
+    src_fr = seq[1][0]
+    hand = region_mask(src_fr.points, src_fr.joints, ((22,), 0.06))
+    source = np.concatenate([src_fr.points[hand][:32], src_fr.points[~hand][:32]])  # (64, 3)
+    np.testing.assert_array_equal(nearest_bone(source, src_fr.joints), _nearest_bone_slow(source, src_fr.joints))
+    target = src_fr.joints.copy() + np.array([0.3, 0.0, 0.0], np.float32)  # whole body moved...
+    target[[20, 22]] += np.array([0.0, 0.0, 0.2], np.float32)  # ...and the left wrist and hand lifted
+    moving, moved = moving_region(source, src_fr.joints, target, threshold=0.05)
+    assert np.flatnonzero(moved).tolist() == [20, 22]
+    bone_moves = np.array([moved[a] or moved[b] for a, b in _bones(24)])
+    np.testing.assert_array_equal(moving, bone_moves[_nearest_bone_slow(source, src_fr.joints)])
+    res = edit(model, norm, cfg, source, target, mode="region", source_joints=src_fr.joints, num_points=64,
+               steps=3, seeds=[0], threshold=0.05)  # fmt: skip
+    np.testing.assert_array_equal(res.regenerated[0], moving)
+    np.testing.assert_allclose(res.points[0][~moving], source[~moving] + np.float32([0.3, 0, 0]), atol=1e-6)
+    assert moving[:32].mean() > 0.5 and not moving[32:].all()  # the hand moves, most of the body does not
+    assert np.abs(res.points[0][moving] - source[moving]).max() > 1e-2
+    with pytest.raises(ValueError, match="region mode needs the source pose"):
+        edit(model, norm, cfg, source, target, mode="region")
+
+
+# --------------------------------------------------------------------------------- animation
+def test_chain_depends_on_the_previous_frame_independent_does_not(loaded, seq):
+    model, norm, cfg = loaded
+    joints = np.stack([f.joints for f in seq[1][:3]])
+    kw = dict(t=200, steps=3)
+    a = animate(model, norm, cfg, joints, 48, method="chain", seeds=[0, 1, 2], **kw).points
+    b = animate(model, norm, cfg, joints, 48, method="chain", seeds=[9, 1, 2], **kw).points
+    assert np.abs(a[0] - b[0]).max() > 1e-2 and np.abs(a[1] - b[1]).max() > 1e-3
+    i = animate(model, norm, cfg, joints, 48, method="independent", seeds=[0, 1, 2], **kw).points
+    j = animate(model, norm, cfg, joints, 48, method="independent", seeds=[9, 1, 2], **kw).points
+    np.testing.assert_array_equal(i[1:], j[1:])
+    for k in range(3):  # independent frames are plain samples
+        ref = sample_clouds(model, norm, cfg, joints[k], 1, 48, steps=3, seeds=[k]).points[0]
+        np.testing.assert_allclose(i[k], ref, atol=1e-5)
+    same = animate(model, norm, cfg, joints[[0, 0]], 48, method="shared-noise", seed=4, **kw).points
+    np.testing.assert_array_equal(same[0], same[1])
+
+
+def _flicker_slow(clouds, bodies):
+    out = []
+    for k in range(len(clouds) - 1):
+        warped = []
+        for p in clouds[k]:
+            i = int(np.argmin(((bodies[k] - p) ** 2).sum(1)))
+            warped.append(p + bodies[k + 1][i] - bodies[k][i])
+        warped, nxt = np.array(warped), clouds[k + 1]
+        d = np.sqrt(((warped[:, None] - nxt[None]) ** 2).sum(-1))
+        out.append(100 * (d.min(0).mean() + d.min(1).mean()))
+    return np.array(out)
+
+
+def test_flicker_zero_for_a_rigid_copy_and_matches_slow_reference(seq):
+    rng = np.random.default_rng(0)
+    body = seq[1][0].body_vertices.astype(np.float64)[::40]  # (V, 3)
+    cloud = body[rng.choice(len(body), 60)] + rng.normal(0, 0.01, (60, 3))
+    steps = np.array([[0, 0, 0], [0.05, -0.02, 0.01], [0.11, 0.0, 0.03]])
+    bodies = [body + s for s in steps]
+    clouds = [cloud + s for s in steps]
+    np.testing.assert_allclose(flicker_cm(clouds, bodies), 0.0, atol=1e-9)
+    np.testing.assert_allclose(warp_by_body(cloud, bodies[0], bodies[2]), clouds[2], atol=1e-12)
+    bodies = [body, body + rng.normal(0, 0.02, body.shape), body + rng.normal(0, 0.04, body.shape)]
+    clouds = [cloud, cloud + rng.normal(0, 0.02, cloud.shape), rng.normal(0, 0.3, (45, 3))]
+    np.testing.assert_allclose(flicker_cm(clouds, bodies), _flicker_slow(clouds, bodies), rtol=1e-10)
+
+
+def test_load_motion_forms_and_errors(seq, tmp_path):
+    spec, frames = seq
+    m = load_motion(spec)
+    assert m.joints.shape == (len(frames), 24, 3) and len(m.frames) == len(frames)
+    np.testing.assert_array_equal(m.joints[1], frames[1].joints)
+    np.save(tmp_path / "m.npy", m.joints)
+    np.testing.assert_array_equal(load_motion(tmp_path / "m.npy").joints, m.joints)
+    np.save(tmp_path / "m22.npy", m.joints[:, :22])
+    for bad, msg in [(tmp_path / "m22.npy", "the skeleton has 22 joints, the model expects 24"),
+                     (spec + "x", "no such sequence"), (tmp_path / "none.npy", "no such motion file")]:  # fmt: skip
+        with pytest.raises(ValueError, match=msg) as e:
+            load_motion(bad)
+        assert len(str(e.value).splitlines()) == 1
+
+
+# --------------------------------------------------------------------------------------- CLI
+def test_cli_complete_edit_animate_write_their_outputs(run, seq, tmp_path, capsys):
+    spec, frames = seq
+    fr = frames[0]
+    write_ply(tmp_path / "partial.ply", fr.points[~region_mask(fr.points, fr.joints, "left_hand")][::10])
+    write_ply(tmp_path / "src.ply", fr.points[::10])
+    np.save(tmp_path / "j0.npy", fr.joints)
+    np.save(tmp_path / "j1.npy", frames[-1].joints)
+    common = ["--ckpt", str(run), "--steps", "2", "--device", "cpu"]
+    out = tmp_path / "c"
+    argv = ["complete", *common, "--partial", str(tmp_path / "partial.ply"), "--joints", str(tmp_path / "j0.npy"),
+            "--points", "32", "--num", "2", "--coverage", "0.75", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["completed_000.ply", "completed_001.ply", "completion.json",
+                                                     "completion.png", "known.npy"]  # fmt: skip
+    known = np.load(out / "known.npy")
+    assert known.shape == (2, 32) and known.sum() == 48
+    assert json.loads((out / "completion.json").read_text())["num_known"] == 24
+    assert read_ply(out / "completed_001.ply").points.shape == (32, 3)
+    out = tmp_path / "e"
+    assert main(["edit", *common, "--source", str(tmp_path / "src.ply"), "--joints", str(tmp_path / "j1.npy"),
+                 "--source-joints", str(tmp_path / "j0.npy"), "--mode", "region", "--points", "32",
+                 "--out", str(out)]) == 0, capsys.readouterr().err  # fmt: skip
+    assert sorted(p.name for p in out.iterdir()) == ["edit.json", "edit.png", "edited_000.ply", "regenerated.npy"]
+    assert json.loads((out / "edit.json").read_text())["t"] == 1000
+    out = tmp_path / "a"
+    assert main(["animate", *common, "--motion", spec, "--frames", "0:3", "--points", "32", "--t", "50",
+                 "--out", str(out)]) == 0, capsys.readouterr().err  # fmt: skip
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["animation.gif", "animation.json", "frame_0000.ply", "frame_0001.ply", "frame_0002.ply"]
+    meta = json.loads((out / "animation.json").read_text())
+    assert len(meta["metrics"]["flicker_cm"]) == 2 and len(meta["metrics"]["chamfer_to_gt_cm"]) == 3
+    from PIL import Image
+
+    assert Image.open(out / "animation.gif").n_frames == 3
+    # rerun with fewer frames into the same folder: stale frames go
+    assert main(["animate", *common, "--motion", spec, "--frames", "0:2", "--points", "32", "--no-render",
+                 "--out", str(out)]) == 0  # fmt: skip
+    assert sorted(p.name for p in out.glob("frame_*.ply")) == ["frame_0000.ply", "frame_0001.ply"]
+
+
+def test_cli_bad_inputs_one_line_and_nothing_written(run, seq, tmp_path, capsys):
+    spec, frames = seq
+    fr = frames[0]
+    write_ply(tmp_path / "empty.ply", np.zeros((0, 3), np.float32))
+    write_ply(tmp_path / "mm.ply", fr.points[::50] * 1000)
+    write_ply(tmp_path / "far.ply", fr.points[::50] + np.float32([3, 0, 0]))
+    write_ply(tmp_path / "ok.ply", fr.points[::50])
+    nan = fr.points[::50].copy()
+    nan[3, 1] = np.nan
+    np.save(tmp_path / "nan.npy", nan)
+    np.save(tmp_path / "j.npy", fr.joints)
+    np.save(tmp_path / "m22.npy", np.stack([fr.joints[:22]] * 2))
+    common = ["--ckpt", str(run), "--steps", "2", "--device", "cpu", "--out", str(tmp_path / "out")]
+    j = str(tmp_path / "j.npy")
+    cases = [
+        (["complete", "--partial", str(tmp_path / "empty.ply"), "--joints", j], "the scan is empty"),
+        (["complete", "--partial", str(tmp_path / "nan.npy"), "--joints", j], "NaN or inf"),
+        (["complete", "--partial", str(tmp_path / "mm.ply"), "--joints", j], "millimetres"),
+        (["complete", "--partial", str(tmp_path / "far.ply"), "--joints", j], "m from the pose's root joint"),
+        (["complete", "--partial", str(tmp_path / "ok.ply"), "--joints", j, "--coverage", "2"], "--coverage must be"),
+        (["edit", "--source", str(tmp_path / "ok.ply"), "--joints", j, "--mode", "region"], "needs --source-joints"),
+        (["edit", "--source", str(tmp_path / "ok.ply"), "--joints", j, "--t", "0"], "--t must be in [1, 1000]"),
+        (["edit", "--source", str(tmp_path / "ok.ply"), "--joints", j, "--points", "5000"], "fewer than the 5000"),
+        (["edit", "--source", str(tmp_path / "ok.ply"), "--joints", j, "--mode", "warp"], "unknown --mode 'warp'"),
+        (["animate", "--motion", str(tmp_path / "m22.npy")], "the skeleton has 22 joints, the model expects 24"),
+        (["animate", "--motion", spec, "--method", "morph"], "unknown --method 'morph'"),
+        (["animate", "--motion", spec, "--frames", "3:1"], "selects no frame"),
+    ]
+    for argv, message in cases:
+        code = main([*argv, *common])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and message in err and len(err.splitlines()) == 1, (argv, err)
+        assert not (tmp_path / "out").exists()
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
