@@ -415,6 +415,7 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     tmp.mkdir(parents=True)
     try:
         save_file({k: v.contiguous() for k, v in state.items()}, str(tmp / MODEL_FILE))
+        os.chmod(tmp / MODEL_FILE, 0o644)  # shipped with the package: readable by every user
         with atomic_open(tmp / META_FILE, "w") as f:
             json.dump(meta, f, indent=2)
         os.replace(tmp, out)
