@@ -299,7 +299,7 @@ def plot_curves(
     if title:
         ax.set_title(title)
     ax.grid(True, alpha=0.3, which="both")
-    ax.legend(frameon=False)
+    ax.legend(frameon=False, fontsize=7 if len(curves) > 3 else 9)
     fig.tight_layout()
     return _save_atomic(fig, path)
 

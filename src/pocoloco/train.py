@@ -379,6 +379,13 @@ class _Logger:
             k = max(len(recs) // 20, 5)
             ys = np.convolve([r["loss"] for r in recs], np.ones(k) / k, mode="valid")
             curves[f"loss (mean of {k})"] = (steps[k - 1:], ys.tolist())
+            # the loss per quarter of [0, T): the low-noise quarter q0 is near 1 for a long time
+            # and hides the progress of the others
+            for q in range(4):
+                sel = [(r["step"], r[f"mse_q{q}"]) for r in recs if f"mse_q{q}" in r]
+                if len(sel) >= k:
+                    ys = np.convolve([v for _, v in sel], np.ones(k) / k, mode="valid")
+                    curves[f"mse, t in quarter {q} (mean of {k})"] = ([s_ for s_, _ in sel][k - 1:], ys.tolist())
         plot_curves(curves, path, logy=True, title="training loss")
 
     def close(self) -> None:
