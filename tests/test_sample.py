@@ -240,3 +240,13 @@ def test_default_checkpoint_samples_a_demo_pose(tmp_path, capsys):
     out = tmp_path / "o"
     assert main(["--joints", "demo:shirt", "--num", "2", "--points", "256", "--steps", "4", "--out", str(out)]) == 0
     assert (out / "hypotheses.png").is_file() and len(list(out.glob("sample_*.ply"))) == 2
+
+
+def test_export_model_cli(run, tmp_path):
+    from conftest import run_cli
+
+    r = run_cli("export-model", "--ckpt", str(run), "--out", str(tmp_path / "m"))
+    assert r.returncode == 0 and "EMA weights" in r.stdout, r.stderr
+    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == ["meta.json", "model.safetensors"]
+    r = run_cli("export-model", "--ckpt", str(run), "--out", str(tmp_path / "m"))
+    assert r.returncode == 2 and "already exists" in r.stderr

@@ -146,6 +146,15 @@ def cmd_data_import(args: argparse.Namespace) -> None:
 
 
 # --------------------------------------------------------------------------------------- main
+def cmd_export_model(args: argparse.Namespace) -> None:
+    """``pocoloco export-model``: a small sampling-only copy of a checkpoint (how the default model ships)."""
+    from .checkpoint import export_for_sampling, resolve_checkpoint
+
+    out = export_for_sampling(resolve_checkpoint(args.ckpt), args.out, use_ema=not args.raw_weights)
+    size = sum(f.stat().st_size for f in out.iterdir())
+    print(f"wrote {out} ({size / 1e6:.1f} MB, {'raw' if args.raw_weights else 'EMA'} weights)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .config import SYNTH_PRESETS
 
@@ -233,6 +242,12 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("eval", help="score a checkpoint and the baselines on a dataset split (JSON + markdown + plots)")
     add_eval_arguments(s)
     s.set_defaults(func=cmd_eval)
+
+    s = sub.add_parser("export-model", help="write a sampling-only copy of a checkpoint (meta.json + weights)")
+    s.add_argument("--ckpt", required=True, help="checkpoint folder, checkpoints folder or run folder")
+    s.add_argument("--out", required=True, help="new folder to write (must not exist)")
+    s.add_argument("--raw-weights", action="store_true", help="export the raw weights instead of the EMA")
+    s.set_defaults(func=cmd_export_model)
 
     from .body.surface import add_uvmap_arguments, cmd_uvmap
 
