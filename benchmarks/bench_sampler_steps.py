@@ -33,7 +33,7 @@ from pocoloco.render import plot_curves
 from pocoloco.sample import sample_clouds
 from pocoloco.utils.atomic import write_json_atomic
 
-DEFAULT_CONFIGS = ("ddpm:1000", "ddim:10", "ddim:25", "ddim:50", "ddim:100", "dpm++:5", "dpm++:10", "dpm++:20",
+DEFAULT_CONFIGS = ("ddpm:1000", "ddpm:25", "ddpm:50", "ddpm:100", "ddim:10", "ddim:25", "ddim:50", "ddim:100", "dpm++:5", "dpm++:10", "dpm++:20",
                    "dpm++:50")  # fmt: skip
 
 
@@ -45,11 +45,14 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--frames", type=int, default=8, help="test frames, evenly spaced (default 8)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3], help="samples per frame (default 4 seeds)")
     p.add_argument("--points", type=int, default=2048, help="points per cloud (default 2048)")
-    p.add_argument("--configs", nargs="+", default=list(DEFAULT_CONFIGS), help="sampler:steps (first = baseline)")
+    p.add_argument("--configs", nargs="+", default=list(DEFAULT_CONFIGS), help="sampler:steps to compare")
+    p.add_argument("--baseline", default="ddpm:1000", help="the reference configuration (must be in --configs)")
     p.add_argument("--clip", type=float, default=5.0, help="sampler x0 clamp (0 = off), as pocoloco eval")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--out", default="benchmarks/results/sampler_steps.json")
     args = p.parse_args(argv)
+    if args.baseline not in args.configs:
+        p.error(f"--baseline {args.baseline} is not one of --configs")
     if args.threads:
         torch.set_num_threads(args.threads)
 
@@ -78,12 +81,12 @@ def main(argv: list[str] | None = None) -> dict:
         rows.append({"sampler": kind, "steps": steps, "chamfer_cm": float(np.mean(cds)),
                      "chamfer_sem_cm": float(np.std(cds) / np.sqrt(len(cds))), "seconds_per_sample": sec})  # fmt: skip
         print(f"{spec:>10}: Chamfer {rows[-1]['chamfer_cm']:.3f} cm  {sec:.2f} s/sample", flush=True)
-    base = rows[0]
+    base = next(r for r in rows if f"{r['sampler']}:{r['steps']}" == args.baseline)
     for r in rows:
         r["chamfer_ratio"] = r["chamfer_cm"] / base["chamfer_cm"]
         r["speedup"] = base["seconds_per_sample"] / r["seconds_per_sample"]
 
-    print(f"\n{'sampler':>8} {'steps':>6} {'Chamfer cm':>11} {'vs ' + args.configs[0]:>14} {'s/sample':>9} {'speed-up':>9}")
+    print(f"\n{'sampler':>8} {'steps':>6} {'Chamfer cm':>11} {'vs ' + args.baseline:>14} {'s/sample':>9} {'speed-up':>9}")
     for r in rows:
         print(f"{r['sampler']:>8} {r['steps']:>6} {r['chamfer_cm']:>11.3f} {r['chamfer_ratio']:>14.3f} "
               f"{r['seconds_per_sample']:>9.2f} {r['speedup']:>8.1f}x")  # fmt: skip
