@@ -328,11 +328,11 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
                              "DATASET:subject/split/sequence/index, or demo:skirt|shirt|tight (a shipped pose; "
                              "default demo:skirt)")  # fmt: skip
     parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
-    parser.add_argument("--num", type=int, default=4, help="K hypotheses to draw (default 4)")
+    parser.add_argument("--num", type=int, default=3, help="K hypotheses to draw (default 3)")
     parser.add_argument("--sampler", default="ddpm",
                         help=f"one of {', '.join(SAMPLERS)} (default ddpm: ancestral, 100 strided steps)")  # fmt: skip
     parser.add_argument("--steps", type=int, help="sampler steps (default: ddpm 100, dpm++ 20, ddim 50; ddpm 1000 = the paper's)")
-    parser.add_argument("--points", type=int, default=4096, help="N points per cloud (default 4096; any N works)")
+    parser.add_argument("--points", type=int, default=2048, help="N points per cloud (default 2048; any N works)")
     parser.add_argument("--seed", type=int, default=0, help="cloud k uses seed SEED + k (default 0)")
     parser.add_argument("--batch-size", type=int, default=8, help="clouds denoised together (default 8)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
