@@ -105,7 +105,7 @@ def test_edit_renoise_small_t_keeps_the_source_full_chain_forgets_it(loaded, seq
     full = edit(model, norm, cfg, source, tgt_fr.joints, mode="renoise", t=1000, steps=3, **kw).points[0]
     other = edit(model, norm, cfg, source[::-1].copy() + 0.1, tgt_fr.joints, mode="renoise", t=1000, steps=3,
                  **kw).points[0]  # fmt: skip
-    scratch = sample_clouds(model, norm, cfg, tgt_fr.joints, 1, 64, steps=3, seeds=[1]).points[0]
+    scratch = sample_clouds(model, norm, cfg, tgt_fr.joints, 1, 64, sampler="dpm++", steps=3, seeds=[1]).points[0]
     np.testing.assert_allclose(full, scratch, atol=1e-5)
     np.testing.assert_allclose(other, scratch, atol=1e-5)
     assert np.linalg.norm(full - (source + shift), axis=1).mean() > 10 * dev.mean()
@@ -159,7 +159,7 @@ def test_chain_depends_on_the_previous_frame_independent_does_not(loaded, seq):
     j = animate(model, norm, cfg, joints, 48, method="independent", seeds=[9, 1, 2], **kw).points
     np.testing.assert_array_equal(i[1:], j[1:])
     for k in range(3):  # independent frames are plain samples
-        ref = sample_clouds(model, norm, cfg, joints[k], 1, 48, steps=3, seeds=[k]).points[0]
+        ref = sample_clouds(model, norm, cfg, joints[k], 1, 48, sampler="dpm++", steps=3, seeds=[k]).points[0]
         np.testing.assert_allclose(i[k], ref, atol=1e-5)
     same = animate(model, norm, cfg, joints[[0, 0]], 48, method="shared-noise", seed=4, **kw).points
     np.testing.assert_array_equal(same[0], same[1])

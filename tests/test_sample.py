@@ -145,7 +145,7 @@ def test_cli_writes_plys_png_and_json(run, frame, tmp_path, capsys):
     assert meta["seeds"] == [5, 6, 7] and meta["steps"] == 3 and meta["points"] == 64 and meta["step"] == 2
     assert meta["seconds_per_sample"] > 0
     model, norm, cfg = load_denoiser(run)
-    ref = sample_clouds(model, norm, cfg, _joints(frame), 3, 64, steps=3, seeds=[5, 6, 7], clip=5.0).points  # CLI default
+    ref = sample_clouds(model, norm, cfg, _joints(frame), 3, 64, sampler="dpm++", steps=3, seeds=[5, 6, 7], clip=5.0).points
     np.testing.assert_allclose(read_ply(out / "sample_002.ply").points, ref[2], atol=1e-5)
     # rerun into the same folder with fewer samples: stale clouds are removed
     assert main([*argv[:5], "2", *argv[6:], "--no-render"]) == 0
