@@ -370,13 +370,13 @@ def markdown_tables(result: EvalResult) -> str:
 def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dict[str, Any]]) -> Path:
     """eval.json, eval.md, chamfer_per_frame.png, examples.png in ``out`` (each written atomically)."""
     from pocoloco.render import plot_curves, render_grid
-    from pocoloco.utils.atomic import write_json_atomic, write_text_atomic
+    from pocoloco.utils.atomic import jsonable, write_json_atomic, write_text_atomic
 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out / "eval.json", _jsonable(result.to_dict()))
+    write_json_atomic(out / "eval.json", jsonable(result.to_dict()))
     write_text_atomic(out / "eval.md", markdown_tables(result))
     curves = {}
     for method in result.means:
@@ -399,18 +399,6 @@ def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dic
         per_row = len(panels) // max(len(examples), 1)
         render_grid(panels, out / "examples.png", views=("front",), ncols=max(per_row, 1))
     return out
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, float) and math.isnan(x):
-        return None
-    if isinstance(x, (np.floating, np.integer)):
-        return _jsonable(x.item())
-    return x
 
 
 # -------------------------------------------------------------------------------------- the CLI

@@ -44,6 +44,7 @@ __all__ = [
     "add_sample_arguments",
     "cmd_sample",
     "load_joints",
+    "load_model_from_args",
     "main",
     "sample_clouds",
     "write_samples",
@@ -344,13 +345,28 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (sample_000.ply ..., hypotheses.png, sample.json)")
 
 
+def load_model_from_args(args: argparse.Namespace):
+    """(model, normalisation, config, checkpoint path, step) for ``--ckpt``, ``--device``, ``--raw-weights``."""
+    from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
+    from pocoloco.pretrained import resolve_ckpt_arg
+
+    if args.device is None:
+        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    else:
+        device = torch.device(args.device)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"--device {args.device}: CUDA is not available")
+    ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
+    model, normalisation, config = load_denoiser(ckpt, use_ema=not args.raw_weights, device=device)
+    step = json.loads((ckpt / "meta.json").read_text(encoding="utf-8"))["step"]
+    return model, normalisation, config, ckpt, step
+
+
 def cmd_sample(args: argparse.Namespace) -> None:
     """``pocoloco sample``: validate everything, sample, then write the output folder.
 
     All user mistakes raise a one-line ValueError before anything is written.
     """
-    from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
-
     if args.clip < 0:
         raise ValueError(f"--clip must be >= 0 (0 = off), got {args.clip}")
     for name in ("num", "points", "steps", "batch_size"):
@@ -362,18 +378,8 @@ def cmd_sample(args: argparse.Namespace) -> None:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: exists and is not a folder")
-    if args.device is None:
-        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    else:
-        device = torch.device(args.device)
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise ValueError(f"--device {args.device}: CUDA is not available")
-
-    from pocoloco.pretrained import resolve_ckpt_arg
-
-    ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
-    model, normalisation, config = load_denoiser(ckpt, use_ema=not args.raw_weights, device=device)
-    step = json.loads((ckpt / "meta.json").read_text(encoding="utf-8"))["step"]  # validated by load_denoiser
+    model, normalisation, config, ckpt, step = load_model_from_args(args)
+    device = next(model.parameters()).device
     joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints)
     _check_sampler(args.sampler, args.steps, config.num_timesteps)
     num_points = args.points if args.points is not None else config.num_points

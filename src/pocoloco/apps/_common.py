@@ -28,6 +28,8 @@ import numpy as np
 import torch
 
 from pocoloco.data.dataset import Normalisation
+from pocoloco.sample import load_model_from_args  # noqa: F401  (re-exported for the apps)
+from pocoloco.utils.atomic import jsonable  # noqa: F401  (re-exported for the apps and benchmarks)
 
 #: a scan whose bounding box is larger than this (metres) is taken to be in the wrong unit
 MAX_EXTENT_M = 5.0
@@ -207,25 +209,6 @@ def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     return ply.points, ply.normals
 
 
-def load_model_from_args(args: argparse.Namespace):
-    """(model, normalisation, config, checkpoint path, step) for ``--ckpt``, ``--device``, ``--raw-weights``."""
-    import json
-
-    from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
-    from pocoloco.pretrained import resolve_ckpt_arg
-
-    if args.device is None:
-        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    else:
-        device = torch.device(args.device)
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise ValueError(f"--device {args.device}: CUDA is not available")
-    ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
-    model, normalisation, config = load_denoiser(ckpt, use_ema=not args.raw_weights, device=device)
-    step = json.loads((ckpt / "meta.json").read_text(encoding="utf-8"))["step"]
-    return model, normalisation, config, ckpt, step
-
-
 def add_common_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
     """--ckpt, --sampler, --steps, --seed, --raw-weights, --device, --no-render, --out."""
     parser.add_argument("--ckpt", default="default",
@@ -285,18 +268,3 @@ def save_npy(path: str | os.PathLike, arr: np.ndarray) -> None:
     from pocoloco.utils.atomic import atomic_write
 
     atomic_write(path, lambda f: np.save(f, np.asarray(arr)))
-
-
-def jsonable(x: Any) -> Any:
-    """NaN -> None, numpy scalars / arrays -> Python, recursively."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return jsonable(x.item())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x

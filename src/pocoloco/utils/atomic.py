@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import uuid
 from collections.abc import Callable, Iterator
@@ -17,7 +18,7 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "atomic_open", "save_npz_atomic", "write_json_atomic"]
+__all__ = ["atomic_write", "atomic_open", "jsonable", "save_npz_atomic", "write_json_atomic", "write_text_atomic"]
 
 
 def _fsync_dir(folder: str) -> None:
@@ -92,3 +93,18 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     """Write a UTF-8 text file atomically."""
     with atomic_open(path, "w") as f:
         f.write(text)
+
+
+def jsonable(x: Any) -> Any:
+    """A JSON-ready copy: NaN / inf -> None, numpy scalars / arrays -> Python, dict keys -> str, recursively."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return jsonable(x.item())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
