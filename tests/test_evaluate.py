@@ -9,17 +9,14 @@ from conftest import run_cli
 from pocoloco.data.format import DatasetLayout, read_frame
 from pocoloco.evaluate import EvalSettings, NearestFrameBaseline, evaluate, markdown_tables, select_frames
 from pocoloco.metrics import evaluate_frame
-from pocoloco.train import train, train_preset
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
 
 @pytest.fixture(scope="module")
-def run(tiny_dataset, tmp_path_factory):
-    out = tmp_path_factory.mktemp("eval") / "run"
-    cfg = train_preset("tiny", steps=2, batch_size=2, num_points=128, ckpt_every=0, sample_every=0, log_every=1)
-    train(cfg, tiny_dataset, out, progress=False)
-    return out
+def run(tiny_run):
+    """A tiny model trained for 2 steps (its run folder; conftest.tiny_run)."""
+    return tiny_run
 
 
 def test_select_frames_even_and_all():

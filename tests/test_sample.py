@@ -12,7 +12,6 @@ from pocoloco.data.format import DatasetLayout, read_frame
 from pocoloco.data.published import read_ply, write_joints_txt
 from pocoloco.models.pocoloco import PocoLocoDenoiser
 from pocoloco.sample import load_joints, main, sample_clouds
-from pocoloco.train import train, train_preset
 
 
 # tiny models run fastest on one thread, and bit-exact comparisons need a fixed thread count
@@ -20,12 +19,9 @@ pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
 
 @pytest.fixture(scope="module")
-def run(tiny_dataset, tmp_path_factory):
-    """A tiny model trained for 2 steps (its run folder)."""
-    out = tmp_path_factory.mktemp("sample") / "run"
-    cfg = train_preset("tiny", steps=2, batch_size=2, num_points=128, ckpt_every=0, sample_every=0, log_every=1)
-    train(cfg, tiny_dataset, out, progress=False)
-    return out
+def run(tiny_run):
+    """A tiny model trained for 2 steps (its run folder; conftest.tiny_run)."""
+    return tiny_run
 
 
 @pytest.fixture(scope="module")
