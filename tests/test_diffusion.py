@@ -265,6 +265,26 @@ def test_dpmpp_matches_diffusers(kind, prediction_type, steps, spacing, order):
     _assert_trajectories_close(ours, theirs, rtol=1e-5)
 
 
+@pytest.mark.parametrize(("steps", "order"), [(25, 2), (10, 2), (20, 1)])
+def test_dpmpp_sde_matches_diffusers(four, steps, order):
+    """SDE-DPM-Solver++(2M) step by step against diffusers' "sde-dpmsolver++" (midpoint), with
+    the same per-sample generators (diffusers draws one (N, C) float32 noise per sample and step,
+    as PerSampleRNG does)."""
+    sched = NoiseSchedule.from_betas(make_betas("four", T).float().double())
+    seeds = [21, 22]
+    noise = make_noise((64, 3), [303, 304])
+    ref = diffusers.DPMSolverMultistepScheduler(
+        num_train_timesteps=T, trained_betas=sched.betas.numpy(), algorithm_type="sde-dpmsolver++",
+        solver_order=order, timestep_spacing="trailing",
+    )  # fmt: skip
+    theirs = _diffusers_loop(ref, noise, steps, {"generator": [torch.Generator().manual_seed(s) for s in seeds]})
+    ours, cb = _collect()
+    sample("dpm++sde", fake_denoiser, sched, noise, steps=steps, order=order, rng=PerSampleRNG(seeds), progress=cb)
+    _assert_trajectories_close(ours, theirs, rtol=1e-5)
+    ode = sample("dpm++", fake_denoiser, sched, noise, steps=steps, order=order)
+    assert not torch.allclose(ode, ours[-1], atol=1e-3)  # the noise really enters
+
+
 def test_zero_terminal_snr_stays_finite():
     betas = make_betas("four").clone()
     betas[-1] = 1.0  # alpha_bar_T = 0 exactly
@@ -311,7 +331,9 @@ def _mixture_stats(x: torch.Tensor):
     return pts.mean(0), pts.std(0), within.std(0), (side > 0).double().mean()
 
 
-@pytest.mark.parametrize(("kind", "kwargs"), [("ddim", {"steps": 50}), ("dpm++", {"steps": 20}), ("ddpm", {})])
+@pytest.mark.parametrize(
+    ("kind", "kwargs"), [("ddim", {"steps": 50}), ("dpm++", {"steps": 20}), ("dpm++sde", {"steps": 25}), ("ddpm", {})]
+)
 def test_exact_denoiser_reproduces_data(four, kind, kwargs):
     den = MixtureDenoiser(four)
     rng = PerSampleRNG([0, 1, 2, 3])
@@ -336,7 +358,9 @@ def test_make_noise_per_sample_invariance():
     assert torch.equal(a[1], b[0]) and not torch.equal(a[0], a[1])
 
 
-@pytest.mark.parametrize(("kind", "kwargs"), [("ddpm", {"steps": 100}), ("ddim", {"eta": 1.0}), ("dpm++", {})])
+@pytest.mark.parametrize(
+    ("kind", "kwargs"), [("ddpm", {"steps": 100}), ("ddim", {"eta": 1.0}), ("dpm++", {}), ("dpm++sde", {})]
+)
 def test_sampling_per_sample_seed_invariance(four, kind, kwargs):
     den = MixtureDenoiser(four)
     mask = torch.zeros(1, 256, dtype=torch.bool)

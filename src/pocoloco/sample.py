@@ -55,7 +55,7 @@ __all__ = [
 #: default because the stochastic sampler is far better than the deterministic ones for the
 #: shipped model (BENCHMARKS.md, "Few-step sampling": 100 steps within 4 % of 1000, DDIM / DPM++
 #: ~45 % worse at any step count).
-SAMPLERS: dict[str, int | None] = {"dpm++": 20, "ddim": 50, "ddpm": 100}
+SAMPLERS: dict[str, int | None] = {"dpm++": 20, "dpm++sde": 25, "ddim": 50, "ddpm": 100}
 NUM_JOINTS = 24
 #: default x0 clamp of the CLI (normalised units); the ``small`` data stay within +-3.52
 DEFAULT_CLIP = 5.0
@@ -211,8 +211,10 @@ def sample_clouds(
             ``denoiser.point_channels`` / ``num_joints``), as returned by ``load_denoiser``.
         joints: (J, 3) joints in metres, any frame (the samples come out in the same frame).
         num: K clouds. num_points: N points per cloud (any N >= 1).
-        sampler: "dpm++" (DPM-Solver++ 2M), "ddim" (eta 0) or "ddpm" (ancestral).
-        steps: sampler steps (None: ``SAMPLERS[sampler]``: 20 for dpm++, 50 for ddim, 100 for ddpm).
+        sampler: "dpm++" (DPM-Solver++ 2M), "dpm++sde" (its SDE form), "ddim" (eta 0) or "ddpm"
+            (ancestral).
+        steps: sampler steps (None: ``SAMPLERS[sampler]``: 20 for dpm++, 25 for dpm++sde, 50 for
+            ddim, 100 for ddpm).
         seeds: K seeds, one per cloud (None: 0 .. K-1). Cloud k depends only on seeds[k].
         batch_size: clouds denoised together (memory / speed only; results do not depend on it
             beyond float round-off of batched matrix products).

@@ -1,4 +1,5 @@
-"""Samplers for the discrete diffusion process: ancestral DDPM, DDIM and DPM-Solver++ (2M).
+"""Samplers for the discrete diffusion process: ancestral DDPM, DDIM and DPM-Solver++ (2M),
+deterministic (ODE) or stochastic (SDE).
 
 Every sampler is a pure function of ``(denoiser, schedule, noise, cond)`` plus options; the
 network, the process (:class:`~pocoloco.diffusion.schedules.NoiseSchedule`) and the sampler are
@@ -38,7 +39,7 @@ import torch
 from pocoloco.diffusion.schedules import PREDICTION_TYPES, NoiseSchedule, PredictionType, _pred_to_eps_x0
 
 Spacing = Literal["trailing", "linspace"]
-SamplerKind = Literal["ddpm", "ddim", "dpm++"]
+SamplerKind = Literal["ddpm", "ddim", "dpm++", "dpm++sde"]
 #: What the samplers use instead of abar = 0 (a zero-terminal-SNR schedule, e.g. a last beta
 #: of 1), as diffusers does for such schedules: keeps x0 = (x - sqrt(1-abar) eps) / sqrt(abar)
 #: and DPM-Solver's log-SNR finite. Positive abar are used unchanged, so this is a no-op for the
@@ -369,6 +370,7 @@ def sample_dpmpp(
     prediction_type: PredictionType | None = None,
     steps: int = 20,
     order: int = 2,
+    stochastic: bool = False,
     spacing: Spacing = "trailing",
     timesteps: Sequence[int] | None = None,
     clip: float | None = None,
@@ -376,16 +378,21 @@ def sample_dpmpp(
     known: tuple[torch.Tensor, torch.Tensor] | None = None,
     progress: ProgressFn | None = None,
 ) -> torch.Tensor:
-    """DPM-Solver++(2M), multistep, data-prediction form (Lu et al. 2022, Algorithm 2).
+    """DPM-Solver++(2M), multistep, data-prediction form (Lu et al. 2022, Algorithm 2), or its
+    SDE variant SDE-DPM-Solver++(2M) (same paper, Appendix; diffusers' "sde-dpmsolver++").
 
     With alpha = sqrt(abar), sigma = sqrt(1 - abar), lambda = log(alpha / sigma) and
     h = lambda_s - lambda_t:
     x_s = (sigma_s / sigma_t) x_t - alpha_s (e^{-h} - 1) (D0 + D1 / 2),
     D0 = x0_hat_t, D1 = (x0_hat_t - x0_hat_prev) h / h_prev (D1 = 0 for order 1 and for the first
-    step). The last step goes to sigma = 0 and returns x0_hat ("final_sigmas_type='zero'" in
+    step). ``stochastic=True`` integrates the reverse SDE instead:
+    x_s = (sigma_s / sigma_t) e^{-h} x_t + alpha_s (1 - e^{-2h}) (D0 + D1 / 2)
+    + sigma_s sqrt(1 - e^{-2h}) z, z ~ N(0, I) from ``rng``; like ancestral DDPM it re-injects
+    noise, which corrects an imperfect denoiser's errors instead of carrying them along the ODE.
+    The last step goes to sigma = 0 and returns x0_hat ("final_sigmas_type='zero'" in
     diffusers, which also makes it first order). An abar of exactly 0 is replaced by
-    ALPHA_BAR_MIN so lambda stays finite. ``rng`` is only used for the known points' noise (the
-    solver itself is deterministic).
+    ALPHA_BAR_MIN so lambda stays finite. In the ODE form ``rng`` is only used for the known
+    points' noise.
     Other arguments as in :func:`sample_ddpm`.
     """
     if order not in (1, 2):
@@ -407,7 +414,11 @@ def sample_dpmpp(
             if order == 2 and x0_last is not None:
                 r = (lam[i] - lam[i - 1]) / h
                 d = x0 + (0.5 / r) * (x0 - x0_last)
-            x = (s_s / s_t) * x + (-a_s * np.expm1(-h)) * d
+            if stochastic:
+                x = (s_s / s_t * np.exp(-h)) * x + (-a_s * np.expm1(-2.0 * h)) * d
+                x = x + (s_s * (-np.expm1(-2.0 * h)) ** 0.5) * run.randn_like(x)
+            else:
+                x = (s_s / s_t) * x + (-a_s * np.expm1(-h)) * d
         x0_last = x0
         x = run.impose_known(x, ab_s)
         run.report(i, x, x0)
@@ -423,8 +434,11 @@ def sample(
     **kwargs: Any,
 ) -> torch.Tensor:
     """Dispatch to :func:`sample_ddpm` ("ddpm"), :func:`sample_ddim` ("ddim") or
-    :func:`sample_dpmpp` ("dpm++"); keyword arguments are forwarded."""
-    samplers = {"ddpm": sample_ddpm, "ddim": sample_ddim, "dpm++": sample_dpmpp}
+    :func:`sample_dpmpp` ("dpm++", "dpm++sde" = ``stochastic=True``); keyword arguments are
+    forwarded."""
+    samplers = {"ddpm": sample_ddpm, "ddim": sample_ddim, "dpm++": sample_dpmpp, "dpm++sde": sample_dpmpp}
     if kind not in samplers:
         raise ValueError(f"unknown sampler kind {kind!r} (expected one of {sorted(samplers)})")
+    if kind == "dpm++sde":
+        kwargs = {**kwargs, "stochastic": True}
     return samplers[kind](denoiser, schedule, noise, cond, **kwargs)
