@@ -79,16 +79,24 @@ def main(argv: list[str] | None = None) -> dict:
             cds += [chamfer_cm(c, gt) for c in clouds.points]
         sec = (time.perf_counter() - t0) / (len(gts) * len(args.seeds))
         rows.append({"sampler": kind, "steps": steps, "chamfer_cm": float(np.mean(cds)),
-                     "chamfer_sem_cm": float(np.std(cds) / np.sqrt(len(cds))), "seconds_per_sample": sec})  # fmt: skip
+                     "chamfer_sem_cm": float(np.std(cds) / np.sqrt(len(cds))), "seconds_per_sample": sec,
+                     "chamfer_per_cloud_cm": [float(c) for c in cds]})  # fmt: skip
         print(f"{spec:>10}: Chamfer {rows[-1]['chamfer_cm']:.3f} cm  {sec:.2f} s/sample", flush=True)
     base = next(r for r in rows if f"{r['sampler']}:{r['steps']}" == args.baseline)
     for r in rows:
         r["chamfer_ratio"] = r["chamfer_cm"] / base["chamfer_cm"]
+        # paired: the same frames, seeds and initial noise as the baseline, so the standard error
+        # of the mean per-cloud difference is much smaller than either row's own spread
+        diff = np.asarray(r["chamfer_per_cloud_cm"]) - np.asarray(base["chamfer_per_cloud_cm"])
+        r["diff_vs_baseline_cm"] = float(diff.mean())
+        r["diff_sem_cm"] = float(diff.std() / np.sqrt(len(diff)))
         r["speedup"] = base["seconds_per_sample"] / r["seconds_per_sample"]
 
-    print(f"\n{'sampler':>8} {'steps':>6} {'Chamfer cm':>11} {'vs ' + args.baseline:>14} {'s/sample':>9} {'speed-up':>9}")
+    print(f"\n{'sampler':>8} {'steps':>6} {'Chamfer cm':>11} {'vs ' + args.baseline:>14} {'paired diff cm':>16} "
+          f"{'s/sample':>9} {'speed-up':>9}")  # fmt: skip
     for r in rows:
         print(f"{r['sampler']:>8} {r['steps']:>6} {r['chamfer_cm']:>11.3f} {r['chamfer_ratio']:>14.3f} "
+              f"{r['diff_vs_baseline_cm']:>+9.3f} ± {r['diff_sem_cm']:.3f} "
               f"{r['seconds_per_sample']:>9.2f} {r['speedup']:>8.1f}x")  # fmt: skip
     result = {"checkpoint": str(ckpt), "data": args.data, "split": args.split, "frames": len(gts), "seeds": args.seeds,
               "points": args.points, "clip": args.clip or None, "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
