@@ -152,7 +152,7 @@ def _other_model_ckpt(run, tmp_path):
     other = tmp_path / "other"
     shutil.copytree(run / "checkpoints" / "step_000002", other)
     meta = json.loads((other / "meta.json").read_text())
-    (other / "meta.json").write_text(json.dumps({**meta, "model_kind": "pop"}))
+    (other / "meta.json").write_text(json.dumps({**meta, "model_kind": "mystery"}))
     return other
 
 
@@ -162,7 +162,7 @@ def _other_model_ckpt(run, tmp_path):
         ({"--points": "0"}, "--points must be >= 1"),
         ({"--sampler": "euler"}, "unknown sampler 'euler'"),
         ({"--steps": "5000"}, "steps must be in [1, 1000]"),
-        ({"--ckpt": "OTHER"}, "checkpoint is of model 'pop', expected 'pocoloco'"),
+        ({"--ckpt": "OTHER"}, "checkpoint is of model 'mystery', expected 'pocoloco'"),
         ({"--ckpt": "EMPTY"}, "no checkpoint found"),
         ({"--joints": "NOTDATA:s/train/q/0"}, "not a pocoloco dataset"),
         ({"--joints": "SHORT"}, "expected joints of shape (24, 3), got (23, 3)"),

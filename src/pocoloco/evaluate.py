@@ -225,27 +225,43 @@ def evaluate(
     chosen = [all_frames[i] for i in select_frames(all_frames, settings.num_frames)]
 
     info: dict[str, Any] = {"data": os.fspath(data), **_settings_dict(settings)}
-    model = None
+    model = peer = None
     if ckpt is not None:
         from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
+        from pocoloco.peers import PEER_KINDS, checkpoint_kind, load_peer
 
         path = resolve_checkpoint(ckpt)
+    if ckpt is not None and checkpoint_kind(path) in PEER_KINDS:
+        # POP / CloSET: one deterministic cloud per frame (outfit = the frame's subject)
+        peer = load_peer(path, device=device)
+        info.update(checkpoint=str(path), step=peer.step, preset=peer.config.preset, model_kind=peer.kind,
+                    model_title=peer.title, num_parameters=peer.num_parameters, deterministic=True)  # fmt: skip
+        for subject in sorted({s for s, _, _ in chosen}):
+            peer.outfit_id(subject)  # one-line error before any work if a subject was never trained
+        _check_normalisation(peer.normalisation, card, path, data)
+    elif ckpt is not None:
         model, normalisation, config = load_denoiser(path, use_ema=settings.use_ema, device=device)
         from pocoloco.sample import _check_sampler
 
         _check_sampler(settings.sampler, settings.steps, config.num_timesteps)
         meta = json.loads((path / "meta.json").read_text(encoding="utf-8"))
-        info.update(checkpoint=str(path), step=int(meta["step"]), preset=config.preset,
-                    num_parameters=int(sum(p.numel() for p in model.parameters())))  # fmt: skip
+        info.update(checkpoint=str(path), step=int(meta["step"]), preset=config.preset, model_kind="pocoloco",
+                    model_title="PocoLoco", num_parameters=int(sum(p.numel() for p in model.parameters())),
+                    deterministic=False)  # fmt: skip
         _check_normalisation(normalisation, card, path, data)
     nearest_frame = NearestFrameBaseline(data, subjects) if "nearest_frame" in settings.baselines else None
     faces: dict[str, np.ndarray] = {}
+    mean_cache = None
+    if peer is not None:
+        from pocoloco.peers import _MeanShapeCache, peer_pose_from_frame, predict_peer
+
+        mean_cache = _MeanShapeCache()
 
     result = EvalResult(info)
     examples: list[dict[str, Any]] = []
     example_ids = set(select_frames(chosen, keep_examples)) if keep_examples > 0 else set()
     for n_done, (subject, sequence, path) in enumerate(chosen):
-        fr = fmt.read_frame(path, ["points", "normals", "labels", "joints", "frame_index", "body_vertices"],
+        fr = fmt.read_frame(path, ["points", "normals", "labels", "joints", "frame_index", "body_vertices", "vtransf"],
                             allow_missing=True)  # fmt: skip
         key = f"{subject}/{settings.split}/{sequence}/{fr.frame_index:06d}"
         gsel = _subset(fr.num_points, settings.num_points, (0, n_done))
@@ -277,6 +293,18 @@ def evaluate(
                     m["diversity_body_cm"] = diversity_cm(sampled.points, gt, gt_lab, region="body")
             row["model"] = m
             clouds["model"] = sampled.points
+        if peer is not None:
+            pose = peer_pose_from_frame(path, subject, peer.needs_mean_shape, cache=mean_cache, frame=fr)
+            t0 = time.perf_counter()
+            pred = predict_peer(peer, pose, peer.outfit_id(subject), settings.num_points, seed=settings.seeds[0])
+            m = score(pred.points[0], pred.normals[0])
+            m["seconds_per_sample"] = time.perf_counter() - t0
+            # deterministic: every seed gives the same cloud, so the diversity is exactly 0
+            m["diversity_cm"] = 0.0
+            if gt_lab is not None:
+                m["diversity_garment_cm"] = m["diversity_body_cm"] = 0.0
+            row["model"] = m
+            clouds["model"] = pred.points
         if nearest_frame is not None:
             pred = nearest_frame.predict(fr.joints, settings.num_points, (1, n_done), subject=subject)
             row["nearest_frame"] = {**score(pred["points"], pred["normals"]), "pose_rms_cm": 100 * pred["pose_rms_m"]}
@@ -337,23 +365,34 @@ def _fmt(value: Any, pattern: str) -> str:
     return pattern.format(value)
 
 
-def markdown_table(means: dict[str, dict[str, float]]) -> str:
+def method_titles(settings: dict[str, Any]) -> dict[str, str]:
+    """``METHOD_TITLES`` with the "model" row named after the evaluated checkpoint's kind."""
+    titles = dict(METHOD_TITLES)
+    if settings.get("model_title"):
+        titles["model"] = f"{settings['model_title']} (this checkpoint)"
+    return titles
+
+
+def markdown_table(means: dict[str, dict[str, float]], titles: dict[str, str] | None = None) -> str:
     """One markdown table: a row per method, the ``TABLE_COLUMNS`` present in any row."""
+    titles = METHOD_TITLES if titles is None else titles
     cols = [c for c in TABLE_COLUMNS if any(c[0] in m for m in means.values())]
     lines = ["| method | " + " | ".join(h for _, h, _ in cols) + " |", "|---|" + "---|" * len(cols)]
     for method, m in means.items():
         cells = [_fmt(m.get(k), f) for k, _, f in cols]
-        lines.append(f"| {METHOD_TITLES.get(method, method)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {titles.get(method, method)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def markdown_tables(result: EvalResult) -> str:
     """The whole ``eval.md``: settings, the mean table, one table per subject."""
     s = result.settings
+    titles = method_titles(s)
     head = [f"# pocoloco eval — {s.get('checkpoint', 'baselines only')}", ""]
     if "step" in s:
-        head.append(f"Checkpoint step {s['step']}, preset `{s['preset']}`, {s['num_parameters']:,} parameters, "
-                    f"{s['weights']} weights.")  # fmt: skip
+        head.append(f"{s.get('model_title', 'PocoLoco')} checkpoint step {s['step']}, preset `{s['preset']}`, "
+                    f"{s['num_parameters']:,} parameters" + (", deterministic: one cloud per frame (its seeds only "
+                    "pick the query points), diversity 0." if s.get("deterministic") else f", {s['weights']} weights."))  # fmt: skip
     n = len(result.frames)
     head.append(f"Data `{s['data']}`, split `{s['split']}`: {n} frames, {s['num_points']} points per cloud "
                 f"(GT subsampled to the same N), model samples: {len(s['seeds'])} seeds {s['seeds']} with "
@@ -361,9 +400,9 @@ def markdown_tables(result: EvalResult) -> str:
     head += ["", "Chamfer = S2M + M2S (unsquared, cm; PocoLoco Table 2). CD 1e-4 m^2 = POP convention (squared, "
              "point-to-plane M2S). normal = L1 of unit normals x10. loose % = share of points whose nearest GT point is "
              "garment. div. = mean pairwise Chamfer among the seeds' samples (whole / garment region / body region).",
-             "", "## All frames", "", markdown_table(result.means)]  # fmt: skip
+             "", "## All frames", "", markdown_table(result.means, titles)]  # fmt: skip
     for subject, means in result.per_subject.items():
-        head += ["", f"## {subject}", "", markdown_table(means)]
+        head += ["", f"## {subject}", "", markdown_table(means, titles)]
     return "\n".join(head) + "\n"
 
 
@@ -381,7 +420,7 @@ def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dic
     curves = {}
     for method in result.means:
         ys = [r[method]["chamfer_cm"] for r in result.frames if method in r]
-        curves[METHOD_TITLES.get(method, method)] = (list(range(len(ys))), ys)
+        curves[method_titles(result.settings).get(method, method)] = (list(range(len(ys))), ys)
     plot_curves(curves, out / "chamfer_per_frame.png", logy=False, title="Chamfer (cm) per test frame",
                 xlabel="evaluated frame", ylabel="Chamfer cm")  # fmt: skip
     panels = []
@@ -465,5 +504,5 @@ def cmd_eval(args: argparse.Namespace) -> None:
         result, examples = evaluate(ckpt, args.data, settings, device=args.device,
                                     progress=lambda d, n: bar.update(task, completed=d, total=n))  # fmt: skip
     write_outputs(out, result, examples)
-    print(markdown_table(result.means))
+    print(markdown_table(result.means, method_titles(result.settings)))
     print(f"wrote {out / 'eval.json'}, {out / 'eval.md'}, {out / 'chamfer_per_frame.png'}, {out / 'examples.png'}")

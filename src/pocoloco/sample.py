@@ -329,9 +329,13 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--joints", default="demo:skirt",
                         help="pose: .npy/.npz (24, 3) joints, a LOOSE-style joints .txt, a dataset frame .npz, "
                              "DATASET:subject/split/sequence/index, or demo:skirt|shirt|tight (a shipped pose; "
-                             "default demo:skirt)")  # fmt: skip
+                             "default demo:skirt). POP / CloSET need the posed body: a dataset frame, or an .npz "
+                             "with anny pose parameters joint_rotvecs (24, 3)")  # fmt: skip
     parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
-    parser.add_argument("--num", type=int, default=3, help="K hypotheses to draw (default 3)")
+    parser.add_argument("--num", type=int, default=None,
+                        help="K hypotheses to draw (default 3; POP / CloSET are deterministic: 1)")  # fmt: skip
+    parser.add_argument("--outfit",
+                        help="POP / CloSET: outfit name or id (default: the subject of a DATASET:... frame)")  # fmt: skip
     parser.add_argument("--sampler", default="ddpm",
                         help=f"one of {', '.join(SAMPLERS)} (default ddpm: ancestral, 100 strided steps)")  # fmt: skip
     parser.add_argument("--steps", type=int, help="sampler steps (default: ddpm 100, dpm++ 20, ddim 50; ddpm 1000 = the paper's)")
@@ -367,8 +371,17 @@ def load_model_from_args(args: argparse.Namespace):
 def cmd_sample(args: argparse.Namespace) -> None:
     """``pocoloco sample``: validate everything, sample, then write the output folder.
 
-    All user mistakes raise a one-line ValueError before anything is written.
+    All user mistakes raise a one-line ValueError before anything is written. A POP / CloSET
+    checkpoint goes to :func:`pocoloco.peers.cmd_sample_peer` (one deterministic cloud).
     """
+    from pocoloco.peers import PEER_KINDS, checkpoint_kind, cmd_sample_peer
+
+    if args.ckpt != "default" and checkpoint_kind(args.ckpt) in PEER_KINDS:
+        return cmd_sample_peer(args)
+    if args.outfit is not None:
+        raise ValueError("--outfit applies to POP / CloSET checkpoints only (PocoLoco has no outfit codes)")
+    if args.num is None:
+        args.num = 3
     if args.clip < 0:
         raise ValueError(f"--clip must be >= 0 (0 = off), got {args.clip}")
     for name in ("num", "points", "steps", "batch_size"):

@@ -77,6 +77,8 @@ __all__ = [
 ]
 
 MODEL_KINDS = ("pocoloco",)
+#: what ``pocoloco train --model`` accepts: PocoLoco here, the peers in :mod:`pocoloco.peers`
+ALL_MODEL_KINDS = ("pocoloco", "pop", "closet")
 SCHEDULE_KINDS = ("four", "linear", "cosine")
 LR_SCHEDULES = ("constant", "cosine")
 #: TrainConfig fields that may change when resuming (they do not affect the optimisation).
@@ -664,7 +666,8 @@ def _render_samples(model: PocoLocoDenoiser, schedule: NoiseSchedule, config: Tr
 # -------------------------------------------------------------------------------- entry points
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``pocoloco train`` options to ``parser`` (its handler is :func:`cmd_train`)."""
-    parser.add_argument("--model", default="pocoloco", choices=MODEL_KINDS, help="model to train")
+    parser.add_argument("--model", default="pocoloco", choices=ALL_MODEL_KINDS,
+                        help="model to train: pocoloco (diffusion) or the peers pop / closet (pocoloco.peers)")  # fmt: skip
     parser.add_argument("--data", required=True, help="pocoloco dataset folder (trains on its train split)")
     parser.add_argument("--preset", default=None, help=f"training preset: {', '.join(TRAIN_PRESETS)} "
                         "(default: small; with --resume, the checkpoint's)")  # fmt: skip
@@ -687,6 +690,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads per process (default: cores / processes)")  # fmt: skip
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from pocoloco.peers import add_peer_train_arguments
+
+    add_peer_train_arguments(parser)
 
 
 def _config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -729,7 +735,18 @@ def _init_distributed(device_arg: str | None) -> tuple[torch.device, bool]:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    """``pocoloco train``: build the config from the preset and options, choose the device, train."""
+    """``pocoloco train``: build the config from the preset and options, choose the device, train.
+    ``--model pop|closet`` trains the peers (:func:`pocoloco.peers.cmd_train_peer`)."""
+    from pocoloco.peers import PEER_KINDS, cmd_train_peer
+
+    if args.model in PEER_KINDS:
+        return cmd_train_peer(args)
+    for flag, value in (("--no-decomposition", getattr(args, "no_decomposition", False)),
+                        ("--normal-start", getattr(args, "normal_start", None)),
+                        ("--query-points", getattr(args, "query_points", None)),
+                        ("--subjects", getattr(args, "subjects", None))):  # fmt: skip
+        if value not in (None, False):
+            raise ValueError(f"{flag} applies to --model pop / closet only")
     if args.model not in MODEL_KINDS:
         raise ValueError(f"unknown model {args.model!r}; choose one of: {', '.join(MODEL_KINDS)}")
     from pocoloco.data.format import read_card

@@ -465,6 +465,22 @@ def pose_mean_shape(joint_rotvecs, root_translation=None):
     return mean_shape_body().pose(joint_rotvecs, root_translation)
 
 
+def pose_mean_shape_vertices(joint_rotvecs, chunk: int = 32) -> np.ndarray:
+    """(T, 24, 3) rotations -> (T, V, 3) float32 vertices of the posed mean-shape body, centred
+    on its root joint (POP's pose-encoder input, Sec. 3.2). Same vertices as
+    :func:`pose_mean_shape` without the per-vertex skinning transforms (~8x faster)."""
+    body = mean_shape_body()
+    rot = torch.as_tensor(np.asarray(joint_rotvecs, dtype=np.float32))
+    if rot.ndim != 3 or rot.shape[1:] != (24, 3):
+        raise ValueError(f"joint_rotvecs must have shape (T, 24, 3), got {tuple(rot.shape)}")
+    out = []
+    for i in range(0, rot.shape[0], chunk):
+        r = body._run_anny(rot[i : i + chunk])
+        root = r["bone_poses"][:, body.bone_of_joint[0], :3, 3]  # (t, 3)
+        out.append((r["vertices"] - root[:, None]).numpy().astype(np.float32))
+    return np.concatenate(out)
+
+
 class BodySurface:
     """One mesh's surface helpers with rasters cached per resolution.
 

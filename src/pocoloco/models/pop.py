@@ -69,6 +69,7 @@ __all__ = [
     "POPFit",
     "POPLosses",
     "POPOutput",
+    "POPQuery",
     "POP_PRESETS",
     "POPSample",
     "collate_pop",
@@ -225,6 +226,23 @@ class POPBatch:
         return POPBatch(*(None if t is None else t.to(device) for t in
                           (self.pose_vertices, self.body_vertices, self.vtransf, self.outfit,
                            self.scan_points, self.scan_normals)))  # fmt: skip
+
+
+@dataclass
+class POPQuery:
+    """P query points on the body surface: face_idx (P,) int64, barycentric (P, 3), uv (P, 2)."""
+
+    face_idx: torch.Tensor
+    barycentric: torch.Tensor
+    uv: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.face_idx.shape[0])
+
+    def subset(self, idx) -> POPQuery:
+        """The points ``idx`` (K,) of this query."""
+        i = torch.as_tensor(idx, dtype=torch.long, device=self.face_idx.device)
+        return POPQuery(self.face_idx[i], self.barycentric[i], self.uv[i])
 
 
 @dataclass
@@ -408,7 +426,13 @@ class POP(nn.Module):
         if self.num_vertices <= int(surface.faces.max()):
             raise ValueError(f"num_vertices={self.num_vertices} but faces index vertex {int(surface.faces.max())}")
         c = config
+        self.surface = surface  # kept to build query rasters at other resolutions (``query_points``)
         self.register_buffer("faces", torch.from_numpy(surface.faces.astype(np.int64)), persistent=False)
+        # the UV layout, saved with the weights so a checkpoint rebuilds the model alone (``from_state``)
+        self.register_buffer("surface_uv", torch.from_numpy(np.asarray(surface.uv, np.float32)))
+        self.register_buffer("surface_uv_faces", torch.from_numpy(np.asarray(surface.uv_faces, np.int64)))
+        self.register_buffer("surface_faces", torch.from_numpy(surface.faces.astype(np.int64)))
+        self.register_buffer("surface_face_mask", torch.from_numpy(np.asarray(surface.face_mask, bool)))
         rin = surface.raster(c.input_resolution)
         rq = surface.raster(c.query_resolution)
         if rin.num_valid == 0 or rq.num_valid == 0:
@@ -438,6 +462,33 @@ class POP(nn.Module):
                                     c.skip_layer, c.branch_layer, c.softplus_beta)  # fmt: skip
 
     # -- bookkeeping -------------------------------------------------------
+    @classmethod
+    def from_state(cls, config: POPConfig | dict, state: dict[str, torch.Tensor], num_vertices: int) -> POP:
+        """Rebuild a model from ``config`` (or its ``to_dict()``) and a ``state_dict()``: the UV
+        layout and the number of outfits are read from the state."""
+        cfg = config if isinstance(config, POPConfig) else POPConfig.from_dict(config)
+        for k in ("surface_uv", "surface_uv_faces", "surface_faces", "surface_face_mask", "geom"):
+            if k not in state:
+                raise ValueError(f"POP state is missing {k!r}")
+        surface = BodySurface(state["surface_faces"].numpy(), state["surface_uv"].numpy(),
+                              state["surface_uv_faces"].numpy(), state["surface_face_mask"].numpy().astype(bool))  # fmt: skip
+        model = cls(cfg, surface, int(state["geom"].shape[0]), int(num_vertices))
+        model.load_state_dict(state)
+        return model
+
+    def query_points(self, resolution: int | None = None) -> POPQuery:
+        """The valid pixels of the R x R UV query map (default R = ``config.query_resolution``)
+        as a :class:`POPQuery` (P points). POP's decoder takes any UV, so a map finer than the
+        training one gives more points on the same surface (paper Sec. 3.1)."""
+        R = self.config.query_resolution if resolution is None else int(resolution)
+        if R == self.config.query_resolution:
+            return POPQuery(self.q_face, self.q_bary, self.q_uv)
+        r = self.surface.raster(R)
+        pts = r.points()
+        dev = self.q_face.device
+        return POPQuery(torch.from_numpy(pts.face_idx).to(dev), torch.from_numpy(pts.barycentric).to(dev),
+                        torch.from_numpy(r.uv()).to(dev))  # fmt: skip
+
     @property
     def num_outfits(self) -> int:
         return int(self.geom.shape[0])
@@ -483,16 +534,20 @@ class POP(nn.Module):
         """(B, 3, Ri, Ri) posmap, (B, Cg, Ri, Ri) raw geometric features -> (B, Cp+Cg, Ri, Ri)."""
         return torch.cat([self.unet(posmap), self.geom_smooth(geom)], dim=1)
 
-    def decode(self, feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def decode(self, feats: torch.Tensor, query_uv: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, C, Ri, Ri) feature maps -> raw (B, P, 3) displacement, (B, P, 3) normal at
-        the valid query pixels, with the configured ``decoder_impl``."""
+        the valid query pixels, with the configured ``decoder_impl``; or at ``query_uv``
+        (P, 2) (any UV points; ``linear_valid`` only)."""
         B = feats.shape[0]
-        P = self.num_query_points
+        if query_uv is not None and self.config.decoder_impl != "linear_valid":
+            raise ValueError("query points other than the training query map need decoder_impl='linear_valid'")
+        q_uv = self.q_uv if query_uv is None else query_uv
+        P = q_uv.shape[0]
         if self.config.decoder_impl == "linear_valid":
-            grid = uv_to_grid(self.q_uv).to(feats.dtype)[None, None].expand(B, 1, P, 2)
+            grid = uv_to_grid(q_uv).to(feats.dtype)[None, None].expand(B, 1, P, 2)
             z = F.grid_sample(feats, grid, mode="bilinear", padding_mode="border", align_corners=False)  # (B, C, 1, P)
             z = z[:, :, 0].transpose(1, 2)  # (B, P, C)
-            uv = self.q_uv.to(feats.dtype)[None].expand(B, P, 2)
+            uv = q_uv.to(feats.dtype)[None].expand(B, P, 2)
             x = torch.cat([uv, z], dim=-1).reshape(B * P, -1)  # (B*P, 2+C)
             r, n = self.decoder(x)
             return r.reshape(B, P, 3), n.reshape(B, P, 3)
@@ -504,9 +559,10 @@ class POP(nn.Module):
         r, n = self.decoder.forward_conv1d(x, self.q_flat)
         return r.index_select(2, self.q_flat).transpose(1, 2), n.index_select(2, self.q_flat).transpose(1, 2)
 
-    def forward(self, batch: POPBatch, geom: torch.Tensor | None = None) -> POPOutput:
+    def forward(self, batch: POPBatch, geom: torch.Tensor | None = None, query: POPQuery | None = None) -> POPOutput:
         """Clothed points for a batch (Eq. 2). ``geom`` (B or 1, Cg, Ri, Ri) overrides the
-        outfit rows (used when fitting an unseen outfit)."""
+        outfit rows (used when fitting an unseen outfit). ``query``: decode at these P surface
+        points instead of the training query map (e.g. ``query_points(R)`` or a subset)."""
         pv, bv, vt = batch.pose_vertices, batch.body_vertices, batch.vtransf
         self._check_body("pose_vertices", pv, (3,))
         B = pv.shape[0]
@@ -525,9 +581,10 @@ class POP(nn.Module):
                 raise ValueError(f"geom must have shape (1 or B, {', '.join(map(str, want))}), got {tuple(geom.shape)}")
             geom = geom.expand(B, *want)
         feats = self.feature_maps(self.input_posmap(pv), geom)
-        r_raw, n_raw = self.decode(feats)
-        base = barycentric_interpolate(bv, self.faces, self.q_face, self.q_bary)  # (B, P, 3)
-        T = blend_transforms(vt, self.faces, self.q_face, self.q_bary, self.config.transform_mode)  # (B, P, 3, 3)
+        q_face, q_bary = (self.q_face, self.q_bary) if query is None else (query.face_idx, query.barycentric)
+        r_raw, n_raw = self.decode(feats, None if query is None else query.uv)
+        base = barycentric_interpolate(bv, self.faces, q_face, q_bary)  # (B, P, 3)
+        T = blend_transforms(vt, self.faces, q_face, q_bary, self.config.transform_mode)  # (B, P, 3, 3)
         r = r_raw * self.config.displacement_scale
         x = torch.einsum("bpij,bpj->bpi", T, r) + base
         n = F.normalize(torch.einsum("bpij,bpj->bpi", T, n_raw), dim=-1, eps=1e-12)
@@ -683,13 +740,16 @@ class POPFit:
 
 
 def fit_unseen_outfit(model: POP, scan_points, scan_normals, pose_vertices, body_vertices, vtransf, steps: int = 400,
-                      lr: float | None = None, normal_weight: float | None = None) -> POPFit:  # fmt: skip
+                      lr: float | None = None, normal_weight: float | None = None, init: torch.Tensor | None = None,
+                      progress=None) -> POPFit:  # fmt: skip
     """Fit a new outfit to one scan (paper Eq. 7, Sec. 3.3): the network is frozen (eval
     mode, no gradients); only a new geometric feature tensor, initialised to the mean
     of the trained outfits' tensors, is optimised with Adam (lr ``config.lr_features``).
 
     scan_points, scan_normals: (N, 3) pelvis-centred scan; pose_vertices, body_vertices:
     (V, 3); vtransf: (V, 3, 3). Use ``model.add_outfit(fit.features)`` to animate it.
+    init: (1, Cg, Ri, Ri) start instead of the mean outfit. progress: optional
+    ``callable(done_steps, steps, loss)``.
     The model's parameters, buffers and training flag are left unchanged.
     """
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
@@ -704,7 +764,10 @@ def fit_unseen_outfit(model: POP, scan_points, scan_normals, pose_vertices, body
                      torch.zeros(1, dtype=torch.long), y[None], None if ny is None else ny[None])  # fmt: skip
     was_training = model.training
     flags = {n: p.requires_grad for n, p in model.named_parameters()}
-    G = nn.Parameter(model.geom.detach().mean(0, keepdim=True).clone())
+    start = model.geom.detach().mean(0, keepdim=True) if init is None else init.detach().to(model.geom)
+    if tuple(start.shape) != (1, *model.geom.shape[1:]):
+        raise ValueError(f"init must have shape {(1, *model.geom.shape[1:])}, got {tuple(start.shape)}")
+    G = nn.Parameter(start.clone())
     opt = torch.optim.Adam([G], lr=model.config.lr_features if lr is None else lr)
     fit = POPFit(G.data)
     try:
@@ -718,6 +781,8 @@ def fit_unseen_outfit(model: POP, scan_points, scan_normals, pose_vertices, body
             loss.total.backward()
             opt.step()
             fit.losses.append(float(loss.total.detach()))
+            if progress is not None:
+                progress(len(fit.losses), steps, fit.losses[-1])
     finally:
         model.train(was_training)
         for n, p in model.named_parameters():

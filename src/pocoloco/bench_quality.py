@@ -1,0 +1,334 @@
+"""``pocoloco bench quality``: PocoLoco, POP, CloSET and CloSET without decomposition on the same
+test frames, with the nearest-frame and posed-body baselines, in one table.
+
+Every model goes through :func:`pocoloco.evaluate.evaluate` with the same :class:`EvalSettings`,
+so the frames, the GT subsets (fixed seeds per frame) and the metrics are identical across rows;
+the baselines are computed once (a baselines-only pass over the same frames). Checkpoints are given
+(``--ckpt-pocoloco`` ...) or, with ``--train-steps K``, trained into ``--work DIR/<row>`` (a run there
+is resumed up to K steps, or reused if it is already there); a model with neither is left out.
+
+Output (``--out``): ``quality.json`` (settings, checkpoints, the mean table, per-subject tables,
+per-frame rows of every model), ``quality.md`` (the tables and the papers' two claims checked on
+these numbers) and ``quality.png`` (one test pose per subject, every model side by side, points
+coloured by the label of their nearest GT point, rendered by :mod:`pocoloco.render`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+from pocoloco.evaluate import EvalSettings, evaluate
+
+__all__ = ["QUALITY_ROWS", "add_bench_quality_arguments", "bench_quality", "cmd_bench_quality", "quality_markdown"]
+
+#: model rows: key -> (title, model kind, decomposition)
+QUALITY_ROWS: dict[str, tuple[str, str, bool | None]] = {
+    "pocoloco": ("PocoLoco", "pocoloco", None),
+    "pop": ("POP", "pop", None),
+    "closet": ("CloSET", "closet", True),
+    "closet_nodecomp": ("CloSET (no decomposition)", "closet", False),
+}
+BASELINE_ROWS = {"nearest_frame": "nearest training frame", "posed_body": "posed body (no clothes)",
+                 "gt_resample": "GT resample (noise floor)"}  # fmt: skip
+COLUMNS = (
+    ("chamfer_cm", "Chamfer cm", "{:.2f}"),
+    ("s2m_cm", "S2M cm", "{:.2f}"),
+    ("m2s_cm", "M2S cm", "{:.2f}"),
+    ("pop_chamfer_e-4m2", "CD 1e-4 m^2", "{:.2f}"),
+    ("normal_l1_e-1", "normal 1e-1", "{:.2f}"),
+    ("loose_pred_pct", "loose %", "{:.1f}"),
+    ("loose_gt_pct", "loose GT %", "{:.1f}"),
+    ("diversity_cm", "div. cm", "{:.2f}"),
+    ("seconds_per_sample", "s/sample", "{:.3f}"),
+    ("num_parameters", "params", "{:,.0f}"),
+)
+
+
+def _check_kind(key: str, ckpt) -> Path:
+    """The checkpoint folder of ``ckpt`` after checking it is the model ``key`` expects (one-line errors)."""
+    from pocoloco.checkpoint import META_FILE, _read_meta, resolve_checkpoint
+    from pocoloco.pretrained import resolve_ckpt_arg
+
+    path = resolve_checkpoint(resolve_ckpt_arg(ckpt))  # "default" = the shipped PocoLoco model
+    meta = _read_meta(path)
+    title, kind, decomposition = QUALITY_ROWS[key]
+    if meta["model_kind"] != kind:
+        raise ValueError(f"{path / META_FILE}: checkpoint is of model {meta['model_kind']!r}, expected {kind!r} "
+                         f"(--ckpt-{key.replace('_', '-')})")  # fmt: skip
+    if decomposition is not None:
+        has = bool(meta["config"].get("net", {}).get("decomposition", True))
+        if has != decomposition:
+            other = "--ckpt-closet" if has else "--ckpt-closet-nodecomp"
+            raise ValueError(f"{path}: CloSET checkpoint {'with' if has else 'without'} decomposition given to "
+                             f"--ckpt-{key.replace('_', '-')}; pass it to {other}")  # fmt: skip
+    return path
+
+
+def _train_missing(key: str, data, work: Path, steps: int, preset: str, progress: bool) -> Path:
+    """Train (or resume / reuse) row ``key`` for ``steps`` steps in ``work/key``; its newest checkpoint."""
+    from pocoloco import checkpoint as ckpt_io
+
+    run = work / key
+    existing = ckpt_io.latest_checkpoint(run / "checkpoints")
+    if existing is not None and ckpt_io._read_meta(existing)["step"] >= steps:
+        return _check_kind(key, existing)
+    resume = existing is not None
+    _, kind, decomposition = QUALITY_ROWS[key]
+    if kind == "pocoloco":
+        from pocoloco.train import TrainConfig, train, train_preset
+
+        if resume:
+            cfg = TrainConfig.from_dict(ckpt_io.load_checkpoint(existing, training_state=False).config).replace(steps=steps)
+        else:
+            cfg = train_preset(preset, steps=steps, sample_every=0, ckpt_every=max(steps // 4, 1))
+        train(cfg, data, run, resume=resume, progress=progress)
+    else:
+        from pocoloco.peers import PeerTrainConfig, peer_preset, train_peer
+
+        if resume:
+            meta = ckpt_io.load_checkpoint(existing, expect_model=kind, training_state=False)
+            cfg = PeerTrainConfig.from_dict(meta.config).replace(steps=steps)
+        else:
+            cfg = peer_preset(kind, preset, decomposition=False if decomposition is False else None, steps=steps,
+                              sample_every=0, ckpt_every=max(steps // 4, 1))  # fmt: skip
+        train_peer(cfg, data, run, resume=resume, progress=progress)
+    return _check_kind(key, run)
+
+
+def bench_quality(
+    data,
+    ckpts: dict[str, Any],
+    out,
+    settings: EvalSettings = EvalSettings(),
+    *,
+    train_steps: int | None = None,
+    work=None,
+    preset: str = "small",
+    device: str = "cpu",
+    progress=None,
+    train_progress: bool = False,
+) -> dict[str, Any]:
+    """Evaluate every row on the same frames and write quality.json / quality.md / quality.png.
+
+    ckpts: row key (``QUALITY_ROWS``) -> checkpoint path or None. With ``train_steps``, missing
+    rows are trained with ``preset`` into ``work``. progress: ``callable(message)``.
+    Returns the quality.json dict.
+    """
+    from pocoloco.data.format import read_card
+    from pocoloco.utils.atomic import jsonable, write_json_atomic, write_text_atomic
+
+    read_card(data)
+    unknown = sorted(set(ckpts) - set(QUALITY_ROWS))
+    if unknown:
+        raise ValueError(f"unknown model rows {unknown}; choose from {', '.join(QUALITY_ROWS)}")
+    if train_steps is not None and (train_steps < 1 or work is None):
+        raise ValueError("--train-steps needs a positive K and --work DIR")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: exists and is not a folder")
+    paths: dict[str, Path] = {}
+    for key in QUALITY_ROWS:  # validate every given checkpoint before any long work
+        if ckpts.get(key) is not None:
+            paths[key] = _check_kind(key, ckpts[key])
+    trained = []
+    for key in QUALITY_ROWS:
+        if key not in paths and train_steps is not None:
+            if progress:
+                progress(f"training {QUALITY_ROWS[key][0]} for {train_steps} steps in {Path(work) / key}")
+            paths[key] = _train_missing(key, data, Path(work), train_steps, preset, train_progress)
+            trained.append(key)
+    if not paths:
+        raise ValueError("no model to compare: give --ckpt-pocoloco / --ckpt-pop / --ckpt-closet / "
+                         "--ckpt-closet-nodecomp, or --train-steps K with --work DIR")  # fmt: skip
+
+    if progress:
+        progress("baselines")
+    base, base_examples = evaluate(None, data, settings, device=device, keep_examples=10**9)
+    results: dict[str, Any] = {}
+    examples: dict[str, list[dict[str, Any]]] = {}
+    no_baselines = EvalSettings(**{**settings.__dict__, "baselines": ()})
+    for key, path in paths.items():
+        if progress:
+            progress(f"evaluating {QUALITY_ROWS[key][0]} ({path})")
+        t0 = time.perf_counter()
+        res, ex = evaluate(path, data, no_baselines, device=device, keep_examples=10**9)
+        results[key] = (res, time.perf_counter() - t0)
+        examples[key] = ex
+
+    def row_means(key: str, means: dict[str, float], res) -> dict[str, float]:
+        return {**means, "num_parameters": float(res.settings["num_parameters"])}
+
+    table: dict[str, dict[str, float]] = {}
+    for key, (res, _) in results.items():
+        table[key] = row_means(key, res.means["model"], res)
+    for b in BASELINE_ROWS:
+        if b in base.means:
+            table[b] = dict(base.means[b])
+    subjects = sorted(base.per_subject)
+    per_subject: dict[str, dict[str, dict[str, float]]] = {}
+    for s in subjects:
+        per_subject[s] = {key: row_means(key, res.per_subject[s]["model"], res) for key, (res, _) in results.items()}
+        per_subject[s].update({b: dict(base.per_subject[s][b]) for b in BASELINE_ROWS if b in base.per_subject[s]})
+
+    report = {
+        "settings": {**base.settings, "rows": {k: QUALITY_ROWS[k][0] for k in results}, "trained_here": trained,
+                     "train_steps": train_steps, "train_preset": preset if trained else None},
+        "checkpoints": {k: {"path": str(p), "step": results[k][0].settings["step"],
+                            "preset": results[k][0].settings["preset"], "eval_seconds": results[k][1]}
+                        for k, p in paths.items()},
+        "means": table,
+        "per_subject": per_subject,
+        "claims": check_claims(per_subject),
+        "frames": {k: res.frames for k, (res, _) in results.items()} | {"baselines": base.frames},
+    }  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "quality.json", jsonable(report))
+    write_text_atomic(out / "quality.md", quality_markdown(report))
+    render_comparison(base_examples, examples, out / "quality.png")
+    return report
+
+
+def _title(key: str) -> str:
+    return QUALITY_ROWS[key][0] if key in QUALITY_ROWS else BASELINE_ROWS.get(key, key)
+
+
+def _cell(v, pattern: str) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    return pattern.format(v)
+
+
+def table_markdown(rows: dict[str, dict[str, float]]) -> str:
+    cols = [c for c in COLUMNS if any(c[0] in m for m in rows.values())]
+    lines = ["| model | " + " | ".join(h for _, h, _ in cols) + " |", "|---|" + "---|" * len(cols)]
+    for key, m in rows.items():
+        lines.append(f"| {_title(key)} | " + " | ".join(_cell(m.get(k), f) for k, _, f in cols) + " |")
+    return "\n".join(lines)
+
+
+def check_claims(per_subject: dict[str, dict[str, dict[str, float]]]) -> list[dict[str, Any]]:
+    """The papers' two claims on this data, computed from the per-subject tables:
+
+    1. PocoLoco: POP puts too few points on a loose skirt (its loose share is further below
+       the GT's than PocoLoco's), on the subject with the largest GT loose share.
+    2. CloSET: the template decomposition lowers the Chamfer on the loose garment (same subject).
+    """
+    claims: list[dict[str, Any]] = []
+    loose = [(r["loose_gt_pct"], s) for s, m in per_subject.items() for r in m.values() if "loose_gt_pct" in r]
+    if not loose:
+        return claims
+    _, s = max(loose)
+    rows = per_subject[s]
+    gt = next(r["loose_gt_pct"] for r in rows.values() if "loose_gt_pct" in r)
+    if "pop" in rows and "pocoloco" in rows:
+        pop, poco = rows["pop"].get("loose_pred_pct"), rows["pocoloco"].get("loose_pred_pct")
+        if pop is not None and poco is not None:
+            holds = pop < gt and abs(poco - gt) < abs(pop - gt)
+            claims.append({"claim": f"POP under-covers the loose garment ({s}) compared with PocoLoco",
+                           "subject": s, "gt_loose_pct": gt, "pop_loose_pct": pop, "pocoloco_loose_pct": poco,
+                           "holds": bool(holds)})  # fmt: skip
+    if "closet" in rows and "closet_nodecomp" in rows:
+        a, b = rows["closet"]["chamfer_cm"], rows["closet_nodecomp"]["chamfer_cm"]
+        claims.append({"claim": f"template decomposition lowers CloSET's Chamfer on the loose garment ({s})",
+                       "subject": s, "closet_chamfer_cm": a, "closet_nodecomp_chamfer_cm": b,
+                       "holds": bool(a < b)})  # fmt: skip
+    return claims
+
+
+def quality_markdown(report: dict[str, Any]) -> str:
+    s = report["settings"]
+    lines = ["# pocoloco bench quality", "",
+             f"Data `{s['data']}`, split `{s['split']}`: the same {len(report['frames']['baselines'])} frames and GT "
+             f"subsets ({s['num_points']} points) for every row. PocoLoco: mean over seeds {s['seeds']} "
+             f"({s['sampler']}); POP / CloSET are deterministic (one cloud per frame, diversity 0).", "",
+             "Chamfer = S2M + M2S (unsquared, cm); CD 1e-4 m^2 = POP convention (squared, point-to-plane M2S); "
+             "normal = L1 of unit normals x10; loose % = share of points whose nearest GT point is garment; "
+             "s/sample on this machine; params = all parameters incl. outfit codes.", "", "## Checkpoints", ""]  # fmt: skip
+    for k, c in report["checkpoints"].items():
+        lines.append(f"- {_title(k)}: `{c['path']}` (step {c['step']}, preset `{c['preset']}`)")
+    lines += ["", "## All frames", "", table_markdown(report["means"])]
+    for subject, rows in report["per_subject"].items():
+        lines += ["", f"## {subject}", "", table_markdown(rows)]
+    if report["claims"]:
+        lines += ["", "## The papers' claims on these numbers", ""]
+        for c in report["claims"]:
+            nums = ", ".join(f"{k} {v:.2f}" for k, v in c.items() if isinstance(v, float))
+            lines.append(f"- {c['claim']}: **{'holds' if c['holds'] else 'does not hold'}** ({nums})")
+    return "\n".join(lines) + "\n"
+
+
+def render_comparison(base_examples: list[dict[str, Any]], examples: dict[str, list[dict[str, Any]]],
+                      path: Path) -> Path | None:  # fmt: skip
+    """One row per subject (its first evaluated frame): GT, every model, nearest frame, posed body;
+    points coloured by the label of their nearest GT point."""
+    from pocoloco.metrics import nearest
+    from pocoloco.render import render_grid
+
+    by_key = {ex["key"]: ex for ex in base_examples}
+    model_by_key = {k: {ex["key"]: ex for ex in exs} for k, exs in examples.items()}
+    seen, panels, ncols = set(), [], 0
+    for key, ex in by_key.items():
+        subject = key.split("/")[0]
+        if subject in seen:
+            continue
+        seen.add(subject)
+        gt, lab = ex["gt"]
+        row = [(gt, lab, None, f"GT {key}")]
+        for mk, exs in model_by_key.items():
+            if key in exs and "model" in exs[key]:
+                pts = exs[key]["model"][0]
+                row.append((pts, None if lab is None else lab[nearest(pts, gt)[1]], None, _title(mk)))
+        for b in ("nearest_frame", "posed_body"):
+            if b in ex:
+                pts, blab = ex[b]
+                row.append((pts, None if lab is None else lab[nearest(pts, gt)[1]], None, _title(b)))
+        ncols = max(ncols, len(row))
+        panels.append(row)
+    if not panels:
+        return None
+    flat = []
+    for row in panels:  # pad rows to a common width
+        flat += row + [(row[0][0][:1], None, None, "")] * (ncols - len(row))
+    return Path(render_grid(flat, path, views=("front",), ncols=ncols))
+
+
+# ----------------------------------------------------------------------------------------- CLI
+def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, help="pocoloco dataset (its test split is evaluated)")
+    for key, (title, _, _) in QUALITY_ROWS.items():
+        parser.add_argument(f"--ckpt-{key.replace('_', '-')}", dest=f"ckpt_{key}", help=f"{title} checkpoint / run folder")
+    parser.add_argument("--train-steps", type=int, help="train missing models for K steps into --work")
+    parser.add_argument("--work", help="folder for the runs trained by --train-steps (reused / resumed)")
+    parser.add_argument("--preset", default="small", help="training preset of the missing models (default small)")
+    parser.add_argument("--frames", type=int, default=24, help="test frames, evenly spaced (0 = all; default 24)")
+    parser.add_argument("--points", type=int, default=10_000, help="points per cloud (default 10000)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="PocoLoco samples per frame")
+    parser.add_argument("--sampler", default="ddpm", help="PocoLoco sampler (default ddpm)")
+    parser.add_argument("--steps", type=int, help="PocoLoco sampler steps")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--out", required=True, help="output folder (quality.json, quality.md, quality.png)")
+
+
+def cmd_bench_quality(args: argparse.Namespace) -> None:
+    import torch
+    from rich.console import Console
+
+    if args.threads is not None:
+        torch.set_num_threads(max(1, args.threads))
+    settings = EvalSettings(num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
+                            sampler=args.sampler, steps=args.steps, clip=5.0)  # fmt: skip
+    console = Console(stderr=True)
+    ckpts = {key: getattr(args, f"ckpt_{key}") for key in QUALITY_ROWS}
+    report = bench_quality(args.data, ckpts, args.out, settings, train_steps=args.train_steps, work=args.work,
+                           preset=args.preset, device=args.device, progress=lambda m: console.print(f"[bold]{m}"),
+                           train_progress=True)  # fmt: skip
+    print(table_markdown(report["means"]))
+    for c in report["claims"]:
+        print(f"- {c['claim']}: {'holds' if c['holds'] else 'does not hold'}")
+    out = Path(args.out)
+    print(f"wrote {out / 'quality.json'}, {out / 'quality.md'}, {out / 'quality.png'}")

@@ -1,0 +1,315 @@
+"""POP and CloSET in the shared harness (pocoloco.peers, bench_quality): training + exact resume,
+checkpoint kinds, sample / eval / fit through the CLI, bench quality end to end. Tiny presets."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pocoloco import checkpoint as ckpt_io
+from pocoloco.cli import main
+from pocoloco.data.format import DatasetLayout, read_frame
+from pocoloco.data.published import read_ply, write_ply
+from pocoloco.peers import (
+    PEER_PRESETS,
+    PeerTrainConfig,
+    load_peer,
+    peer_pose_from_frame,
+    peer_preset,
+    predict_peer,
+    train_peer,
+)
+
+pytestmark = pytest.mark.usefixtures("torch_single_thread")
+
+
+def tiny(model: str, **kw) -> PeerTrainConfig:
+    base = dict(steps=4, ckpt_every=2, sample_every=0, log_every=1)
+    return peer_preset(model, "tiny", **{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def runs(tiny_dataset, tmp_path_factory):
+    """Tiny POP and CloSET runs, 4 steps each (normal loss from step 2)."""
+    root = tmp_path_factory.mktemp("peers")
+    out = {}
+    for m in ("pop", "closet"):
+        train_peer(tiny(m), tiny_dataset, root / m, progress=False)
+        out[m] = root / m
+    return out
+
+
+@pytest.fixture(scope="module")
+def test_frame(tiny_dataset):
+    """(spec, subject, path) of a test frame of the loose subject."""
+    subject, seq, path = next(f for f in DatasetLayout(tiny_dataset).iter_frames("test") if f[0] == "skirt")
+    idx = int(read_frame(path, ["frame_index"]).frame_index)
+    return f"{tiny_dataset}:{subject}/test/{seq}/{idx}", subject, path
+
+
+def _one_line_error(capsys, code):
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+# ---------------------------------------------------------------------------------- config
+def test_presets_roundtrip_and_schedule():
+    for (model, name), cfg in PEER_PRESETS.items():
+        assert cfg.model == model and cfg.preset == name
+        assert PeerTrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    c = peer_preset("pop", "small", steps=800)
+    assert c.normal_start == 500  # the paper's epoch 250 of 400
+    assert c.net_config().normal_start == 500 and c.net_config().lr == c.lr  # the POP config follows the run
+    assert peer_preset("closet", "tiny", decomposition=False).net_config().decomposition is False
+    with pytest.raises(ValueError, match="closet only"):
+        peer_preset("pop", "tiny", decomposition=False)
+    with pytest.raises(ValueError, match="unknown training preset 'huge' for pop"):
+        peer_preset("pop", "huge")
+
+
+# -------------------------------------------------------------------------------- training
+@pytest.mark.parametrize("model", ["pop", "closet"])
+def test_resume_equals_uninterrupted(runs, tiny_dataset, tmp_path, model):
+    out = tmp_path / "run"
+    train_peer(tiny(model).replace(steps=2), tiny_dataset, out, progress=False)
+    train_peer(tiny(model), tiny_dataset, out, progress=False, resume=True)
+    a = ckpt_io.load_checkpoint(runs[model], expect_model=model)
+    b = ckpt_io.load_checkpoint(out, expect_model=model)
+    assert a.step == b.step == 4
+    assert a.model_state.keys() == b.model_state.keys()
+    for k in a.model_state:  # weights, outfit codes and BatchNorm statistics: bit-exact
+        assert torch.equal(a.model_state[k], b.model_state[k]), k
+    recs = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    ref = [json.loads(x) for x in (runs[model] / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in recs] == [1, 2, 3, 4] and [r["loss"] for r in recs] == [r["loss"] for r in ref]
+    assert [r["normal_on"] for r in recs] == [False, False, True, True]
+    assert (out / "loss.png").is_file() and (out / "config.json").is_file()
+    meta = b.meta
+    assert [o["name"] for o in meta["outfits"]] == ["skirt", "tight"] and meta["model_kind"] == model
+    assert meta["has_ema"] is False and "phenotype" in meta["outfits"][0]
+
+
+def test_cli_trains_closet_without_decomposition_and_resumes(tiny_dataset, tmp_path, capsys):
+    out = str(tmp_path / "run")
+    base = ["train", "--model", "closet", "--data", str(tiny_dataset), "--out", out, "--no-progress", "--threads", "1"]
+    assert main([*base, "--preset", "tiny", "--steps", "1", "--no-decomposition"]) == 0
+    assert main([*base, "--resume", "--steps", "2"]) == 0  # config from the checkpoint
+    ck = ckpt_io.load_checkpoint(out, expect_model="closet")
+    assert ck.step == 2 and ck.config["net"]["decomposition"] is False
+    assert not any(k.startswith(("garment_decoder", "pose_decoder")) for k in ck.model_state)
+    capsys.readouterr()
+    err = _one_line_error(capsys, main(["train", "--model", "pop", "--data", str(tiny_dataset), "--out", out,
+                                        "--resume", "--no-progress"]))  # fmt: skip
+    assert "checkpoint is of model 'closet', expected 'pop'" in err
+    err = _one_line_error(capsys, main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "x"),
+                                        "--no-decomposition", "--preset", "tiny"]))  # fmt: skip
+    assert "--no-decomposition applies to --model pop / closet only" in err
+
+
+# ------------------------------------------------------------------------------ kinds
+def test_checkpoint_kind_mismatch_is_one_line(runs, tiny_run, tiny_dataset, test_frame, tmp_path, capsys):
+    with pytest.raises(ValueError, match="checkpoint is of model 'pop', expected 'closet'"):
+        load_peer(runs["pop"], expect_model="closet")
+    with pytest.raises(ValueError, match="checkpoint is of model 'pocoloco', expected 'pop' or 'closet'"):
+        load_peer(tiny_run)
+    with pytest.raises(ValueError, match="checkpoint is of model 'closet', expected 'pocoloco'"):
+        ckpt_io.load_denoiser(runs["closet"])
+    # a CloSET checkpoint where PocoLoco is required, a CloSET checkpoint given to POP's fit
+    scan = tmp_path / "scan.ply"
+    write_ply(scan, np.zeros((300, 3), np.float32), normals=np.tile([0, 0, 1.0], (300, 1)).astype(np.float32))
+    err = _one_line_error(capsys, main(["complete", "--ckpt", str(runs["closet"]), "--partial", str(scan), "--joints",
+                                        "demo:skirt", "--out", str(tmp_path / "c")]))  # fmt: skip
+    assert "'closet'" in err and "'pocoloco'" in err
+    err = _one_line_error(capsys, main(["fit", "--ckpt", str(runs["closet"]), "--scan", str(scan), "--frame",
+                                        test_frame[0], "--out", str(tmp_path / "f")]))  # fmt: skip
+    assert "checkpoint is of model 'closet', expected 'pop'" in err
+    assert not (tmp_path / "f").exists() and not (tmp_path / "c").exists()
+
+
+# ---------------------------------------------------------------------------------- sample
+@pytest.mark.parametrize("model", ["pop", "closet"])
+def test_sample_cli_one_deterministic_cloud(runs, test_frame, tmp_path, capsys, model):
+    spec, subject, path = test_frame
+    argv = ["sample", "--ckpt", str(runs[model]), "--joints", spec, "--points", "300", "--out", str(tmp_path / "a")]
+    assert main(argv) == 0, capsys.readouterr().err
+    out = tmp_path / "a"
+    assert sorted(p.name for p in out.iterdir()) == ["hypotheses.png", "sample.json", "sample_000.ply"]
+    meta = json.loads((out / "sample.json").read_text())
+    assert meta["model_kind"] == model and meta["outfit"] == subject and meta["num"] == 1 and meta["deterministic"]
+    ply = read_ply(out / "sample_000.ply")
+    assert ply.points.shape == (300, 3) and ply.normals is not None
+    # the same as the library call, and in the world frame of the frame (close to the body)
+    loaded = load_peer(runs[model])
+    pose = peer_pose_from_frame(path, subject, loaded.needs_mean_shape)
+    ref = predict_peer(loaded, pose, loaded.outfit_id(subject), 300, seed=0)
+    np.testing.assert_allclose(ply.points, ref.points[0], atol=1e-5)
+    assert np.abs(ply.points.mean(0) - pose.body_vertices.mean(0)).max() < 0.3
+    # by id, into a second folder: identical
+    assert main([*argv[:-1], str(tmp_path / "b"), "--outfit", "0"]) == 0
+    np.testing.assert_array_equal(read_ply(tmp_path / "b" / "sample_000.ply").points, ply.points)
+
+
+def test_pop_gives_more_points_than_its_query_map(runs, test_frame):
+    spec, subject, path = test_frame
+    loaded = load_peer(runs["pop"])
+    P = loaded.model.num_query_points
+    pose = peer_pose_from_frame(path, subject, loaded.needs_mean_shape)
+    pts = predict_peer(loaded, pose, 0, 2 * P + 7, seed=1).points[0]
+    assert pts.shape == (2 * P + 7, 3) and len(np.unique(pts.round(7), axis=0)) == 2 * P + 7
+    # a subset of the training map for N <= P: same points as the full map's prediction
+    full = predict_peer(loaded, pose, 0, P, seed=0).points[0]
+    part = predict_peer(loaded, pose, 0, 50, seed=3).points[0]
+    d = np.linalg.norm(part[:, None] - full[None], axis=-1).min(1)
+    assert d.max() < 1e-5
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"--outfit": "nobody"}, "outfit 'nobody' was never trained"),
+        ({"--outfit": "7"}, "outfit '7' was never trained"),
+        ({"--joints": "demo:skirt"}, "need the posed body, not only joints"),
+        ({"--joints": "JOINTS"}, "need the posed body, not only joints"),
+        ({"--num": "3"}, "deterministic"),
+        ({"--points": "0"}, "--points must be >= 1"),
+    ],
+)
+def test_sample_cli_bad_input(runs, test_frame, tmp_path, capsys, change, message):
+    np.save(tmp_path / "joints.npy", np.zeros((24, 3), np.float32))
+    opts = {"--ckpt": str(runs["pop"]), "--joints": test_frame[0], "--points": "50", "--out": str(tmp_path / "o")}
+    opts.update({k: str(tmp_path / "joints.npy") if v == "JOINTS" else v for k, v in change.items()})
+    err = _one_line_error(capsys, main(["sample", *[x for kv in opts.items() for x in kv]]))
+    assert message in err
+    assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------------------------ eval
+def test_eval_cli_scores_peer_through_evaluate(runs, tiny_dataset, tmp_path, capsys):
+    from pocoloco.evaluate import EvalSettings, evaluate
+    from pocoloco.metrics import evaluate_frame
+
+    out = tmp_path / "ev"
+    argv = ["eval", "--ckpt", str(runs["closet"]), "--data", str(tiny_dataset), "--frames", "2", "--points", "200",
+            "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    doc = json.loads((out / "eval.json").read_text())
+    m = doc["means"]["model"]
+    assert doc["settings"]["model_kind"] == "closet" and doc["settings"]["deterministic"]
+    assert m["diversity_cm"] == 0.0 and m["diversity_garment_cm"] == 0.0
+    assert {"nearest_frame", "posed_body", "gt_resample"} <= set(doc["means"])
+    assert "CloSET (this checkpoint)" in (out / "eval.md").read_text() and (out / "examples.png").is_file()
+    # the row is the metrics of predict_peer's cloud against the same GT subset
+    res, _ = evaluate(runs["closet"], tiny_dataset, EvalSettings(num_frames=1, num_points=200, baselines=()))
+    row = res.frames[0]
+    subject, seq, path = DatasetLayout(tiny_dataset).iter_frames("test")[0]
+    fr = read_frame(path)
+    from pocoloco.evaluate import _subset
+
+    g = _subset(fr.num_points, 200, (0, 0))
+    loaded = load_peer(runs["closet"])
+    pred = predict_peer(loaded, peer_pose_from_frame(path, subject, False), loaded.outfit_id(subject), 200, seed=0)
+    ref = evaluate_frame(pred.points[0], pred.normals[0], fr.points[g], fr.normals[g], fr.labels[g])
+    assert row["model"]["chamfer_cm"] == pytest.approx(ref["chamfer_cm"], rel=1e-6)
+
+
+# ------------------------------------------------------------------------------------- fit
+def _scan_of(path, tmp_path, n=None, normals=True):
+    fr = read_frame(path)
+    sel = slice(None) if n is None else slice(0, n)
+    f = tmp_path / f"scan_{n}_{normals}.ply"
+    write_ply(f, fr.points[sel], normals=fr.normals[sel] if normals else None)
+    return f
+
+
+def test_fit_cli_adds_an_outfit_and_sample_animates_it(runs, tiny_dataset, test_frame, tmp_path, capsys):
+    spec, subject, path = test_frame
+    scan = _scan_of(path, tmp_path)
+    out = tmp_path / "fitted"
+    argv = ["fit", "--ckpt", str(runs["pop"]), "--scan", str(scan), "--frame", spec, "--steps", "25", "--lr", "0.05",
+            "--name", "dress", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "fitted" in capsys.readouterr().out
+    rep = json.loads((out / "fit.json").read_text())
+    assert rep["outfit"] == "dress" and rep["outfit_id"] == 2 and rep["loss_last"] < rep["loss_first"]
+    assert rep["after"]["chamfer_cm"] <= rep["before_mean_outfit"]["chamfer_cm"] + 1e-6
+    new = load_peer(out, expect_model="pop")
+    old = load_peer(runs["pop"])
+    assert new.outfit_names() == ["skirt", "tight", "dress"]
+    for k, v in old.model.state_dict().items():  # only the feature tensor grew; the network is unchanged
+        w = new.model.state_dict()[k]
+        assert torch.equal(w[: v.shape[0]] if k == "geom" else w, v), k
+    assert not torch.equal(new.model.geom[2], old.model.geom.mean(0))
+    # animate the new outfit in another pose (another subject's test frame)
+    other = next(f for f in DatasetLayout(tiny_dataset).iter_frames("test") if f[0] == "tight")
+    idx = int(read_frame(other[2], ["frame_index"]).frame_index)
+    assert main(["sample", "--ckpt", str(out), "--outfit", "dress", "--joints",
+                 f"{tiny_dataset}:tight/test/{other[1]}/{idx}", "--points", "100", "--out", str(tmp_path / "s")]) == 0  # fmt: skip
+    assert json.loads((tmp_path / "s" / "sample.json").read_text())["outfit"] == "dress"
+    # the original checkpoint does not know it
+    err = _one_line_error(capsys, main(["sample", "--ckpt", str(runs["pop"]), "--outfit", "dress", "--joints", spec,
+                                        "--out", str(tmp_path / "s2")]))  # fmt: skip
+    assert "outfit 'dress' was never trained" in err
+
+
+@pytest.mark.parametrize("kind, message", [("few", "fitting needs at least 256"), ("nonormals", "has no normals"),
+                                           ("exists", "already holds a checkpoint")])  # fmt: skip
+def test_fit_cli_bad_scans(runs, test_frame, tmp_path, capsys, kind, message):
+    spec, _, path = test_frame
+    scan = _scan_of(path, tmp_path, n=100 if kind == "few" else None, normals=kind != "nonormals")
+    out = tmp_path / "fitted"
+    if kind == "exists":
+        ckpt_io.save_checkpoint(out / "checkpoints", 1, model_kind="pop", preset="tiny", config={},
+                                normalisation=load_peer(runs["pop"]).normalisation, model_state={"x": torch.zeros(1)})  # fmt: skip
+    err = _one_line_error(capsys, main(["fit", "--ckpt", str(runs["pop"]), "--scan", str(scan), "--frame", spec,
+                                        "--steps", "2", "--out", str(out)]))  # fmt: skip
+    assert message in err
+    assert kind == "exists" or not out.exists()
+
+
+# ------------------------------------------------------------------------------- bench quality
+def test_bench_quality_end_to_end(runs, tiny_run, tiny_dataset, tmp_path, capsys):
+    out, work = tmp_path / "q", tmp_path / "work"
+    argv = ["bench", "quality", "--data", str(tiny_dataset), "--ckpt-pocoloco", str(tiny_run), "--ckpt-pop",
+            str(runs["pop"]), "--ckpt-closet", str(runs["closet"]), "--train-steps", "1", "--preset", "tiny", "--work",
+            str(work), "--frames", "2", "--points", "128", "--seeds", "0", "1", "--sampler", "ddim", "--steps", "2",
+            "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    for name in ("quality.json", "quality.md", "quality.png"):
+        assert (out / name).is_file(), name
+    doc = json.loads((out / "quality.json").read_text())
+    assert list(doc["means"])[:4] == ["pocoloco", "pop", "closet", "closet_nodecomp"]
+    assert {"nearest_frame", "posed_body"} <= set(doc["means"]) and doc["settings"]["trained_here"] == ["closet_nodecomp"]
+    assert ckpt_io.load_checkpoint(work / "closet_nodecomp", expect_model="closet").config["net"]["decomposition"] is False
+    for key in ("pop", "closet", "closet_nodecomp"):
+        assert doc["means"][key]["diversity_cm"] == 0.0 and doc["means"][key]["num_parameters"] > 0
+    assert doc["means"]["pocoloco"]["diversity_cm"] > 0
+    assert sorted(doc["per_subject"]) == ["skirt", "tight"]
+    # every model was scored on the same frames
+    keys = [[r["key"] for r in doc["frames"][k]] for k in ("pocoloco", "pop", "closet", "baselines")]
+    assert all(k == keys[0] for k in keys)
+    md = (out / "quality.md").read_text()
+    assert "CloSET (no decomposition)" in md and "## skirt" in md and "claims" in md
+    assert {c["subject"] for c in doc["claims"]} == {"skirt"} and len(doc["claims"]) == 2
+    # a checkpoint of the wrong kind for its option: one line, before any work
+    capsys.readouterr()
+    err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-pop",
+                                        str(runs["closet"]), "--out", str(tmp_path / "q2")]))  # fmt: skip
+    assert "checkpoint is of model 'closet', expected 'pop'" in err and not (tmp_path / "q2").exists()
+    err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-closet-nodecomp",
+                                        str(runs["closet"]), "--out", str(tmp_path / "q2")]))  # fmt: skip
+    assert "pass it to --ckpt-closet" in err
+
+
+def test_train_on_a_subset_of_subjects(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    train_peer(tiny("pop", steps=1, subjects=["tight"]), tiny_dataset, out, progress=False)
+    loaded = load_peer(out, expect_model="pop")
+    assert loaded.outfit_names() == ["tight"] and loaded.model.num_outfits == 1
+    with pytest.raises(ValueError, match="outfit 'skirt' was never trained"):
+        loaded.outfit_id("skirt")
+    with pytest.raises(ValueError, match="unknown subjects"):
+        train_peer(tiny("pop", steps=1, subjects=["nobody"]), tiny_dataset, tmp_path / "x", progress=False)
