@@ -8,7 +8,7 @@ import pytest
 
 from pocoloco.apps._common import chain_timesteps, denoise_from, subset, to_normalised
 from pocoloco.apps.animation import animate, flicker_cm, load_motion, warp_by_body
-from pocoloco.apps.completion import complete, estimate_coverage, region_mask
+from pocoloco.apps.completion import complete, estimate_coverage, hole_points, region_mask
 from pocoloco.apps.editing import _bones, edit, moving_region, nearest_bone
 from pocoloco.checkpoint import load_denoiser
 from pocoloco.cli import main
@@ -88,6 +88,40 @@ def test_coverage_estimate_against_brute_force(loaded, seq):
     assert c == pytest.approx(float((d < 0.3).mean()))
     comp = complete(model, norm, cfg, partial, fr.joints, 48, steps=2, seeds=[2], radius=0.3, probe_steps=2)
     assert comp.coverage_estimated and comp.num_known == round(comp.coverage * 48)
+
+
+def test_hole_points_finds_the_missing_cap_and_ignores_strays():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(20000, 3))  # dense: no gap in the scan wider than the radius
+    sphere = 0.5 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    scan = sphere[sphere[:, 2] < 0.3]  # the cap z > 0.3 is missing
+    sample = np.concatenate([0.5 * (e := rng.normal(size=(400, 3))) / np.linalg.norm(e, axis=1, keepdims=True),
+                             [[3.0, 0.0, 0.0]]])  # fmt: skip  # + one stray far from everything
+    idx, cov = hole_points(sample, scan, radius=0.05)
+    cap = sample[:400, 2] > 0.35
+    assert 400 not in idx  # the stray is not a hole point
+    assert set(np.flatnonzero(cap)) <= set(idx.tolist()) and (sample[idx, 2] > 0.25).all()
+    assert cov == pytest.approx(1 - len(idx) / 400)
+    far = hole_points(sample, scan, radius=0.05, num=10)[0]  # the 10 farthest (kept) points: top of the cap
+    assert len(far) == 10 and 400 not in far and (sample[far, 2] > 0.45).all()
+
+
+def test_completion_sample_init_starts_from_the_samples_hole_points(loaded, seq):
+    model, norm, cfg = loaded
+    fr = seq[1][0]
+    partial = fr.points[~region_mask(fr.points, fr.joints, "hem")]
+    kw = dict(num=1, sampler="ddpm", steps=3, seeds=[5], radius=0.3)
+    comp = complete(model, norm, cfg, partial, fr.joints, 64, init="sample", t=1, coverage=0.75, **kw)
+    assert comp.init == "sample" and comp.t == 1 and comp.num_known == 48
+    full = sample_clouds(model, norm, cfg, fr.joints, 1, 64, sampler="ddpm", steps=3, seeds=[5]).points[0]
+    start = full[hole_points(full, partial, 0.3, num=16)[0]]
+    gen = comp.points[0, 48:]
+    # t = 1: one nearly noise-free denoiser call, so the generated points stay at their start
+    assert np.linalg.norm(gen - start, axis=1).max() < 0.05
+    noise = complete(model, norm, cfg, partial, fr.joints, 64, init="noise", coverage=0.75, **kw)
+    assert noise.t == 1000 and np.linalg.norm(noise.points[0, 48:] - start, axis=1).mean() > 0.05
+    with pytest.raises(ValueError, match="unknown completion init"):
+        complete(model, norm, cfg, partial, fr.joints, 64, init="magic")
 
 
 # ----------------------------------------------------------------------------------- editing

@@ -210,3 +210,124 @@ def test_cli_refuses_to_overwrite_the_input(tmp_path, capsys):
     write_ply(src, _sphere(500))
     assert main(["mesh", str(src), "--out", str(src)]) == 2
     assert "overwrite the input" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------- body refinement
+def test_replace_parts_takes_part_points_from_the_body():
+    from pocoloco.meshing import replace_parts, sample_faces
+
+    # the "body": an icosphere; its "head" = the vertices above z = 0.3 (a cap)
+    ico = trimesh.creation.icosphere(subdivisions=3, radius=R)
+    verts, faces = np.asarray(ico.vertices), np.asarray(ico.faces)
+    part = verts[:, 2] > 0.3
+    # the "cloud": the sphere 1 cm outside the body, plus a far stray point above the cap
+    cloud = _sphere(3000, seed=1) * 1.02
+    cloud = np.concatenate([cloud, [[0.0, 0.0, 0.9]]])
+    pts, nrm, from_body, body_nrm = replace_parts(cloud, None, verts, faces, part, margin=0.06, seed=0)
+    assert nrm is None and from_body.dtype == bool and len(pts) == len(from_body)
+    near = _dist_to(cloud, verts)
+    nearest_part = part[trimesh.proximity.ProximityQuery(ico).vertex(cloud)[1]]
+    removed = nearest_part & (near < 0.06)
+    kept = pts[~from_body]
+    np.testing.assert_array_equal(kept, cloud[~removed].astype(np.float32))  # the others are untouched, in order
+    assert np.allclose(kept[-1], [0.0, 0.0, 0.9])  # beyond the margin: kept
+    body_pts = pts[from_body]
+    assert len(body_pts) >= removed.sum() and len(body_pts) == len(body_nrm)
+    # body points lie on the body's cap faces (z > 0.3 - one edge), with outward unit normals
+    on_surface = np.abs(np.linalg.norm(body_pts, axis=1) - R)
+    assert on_surface.max() < 0.01 and body_pts[:, 2].min() > 0.3 - 0.1
+    np.testing.assert_allclose(np.linalg.norm(body_nrm, axis=1), 1.0, atol=1e-5)
+    assert (np.sum(body_nrm * body_pts, axis=1) > 0).all()
+    # area-uniform sampling: the cap's points spread like the area (mean height of a uniform cap)
+    p, _ = sample_faces(verts, faces[part[faces].all(1)], 20000, seed=3)
+    assert abs(p[:, 2].mean() - (R + p[:, 2].min()) / 2) < 0.01
+
+
+@pytest.fixture(scope="module")
+def posed_anny():
+    """A posed anny body with known, non-average shape and a cloud sampled on it."""
+    from pocoloco.body.anny_body import AnnyBody
+    from pocoloco.meshing import sample_faces
+
+    rng = np.random.default_rng(0)
+    body = AnnyBody({"weight": 0.8, "height": 0.3, "proportions": 0.7})
+    rot = 0.25 * rng.normal(size=(24, 3)).astype(np.float32)
+    rot[0] = [0.0, 0.0, 0.3]
+    posed = body.pose(rot, root_translation=np.array([0.1, -0.2, 1.0], np.float32))
+    pts, _ = sample_faces(posed.vertices[0], body.faces, 4000, seed=1)
+    return pts, posed.joints[0], posed.vertices[0], body.faces
+
+
+def test_body_fit_meets_the_joints_and_the_surface_fit_reduces_the_error(posed_anny):
+    import torch
+
+    from pocoloco.body.anny_body import fit_body_to_cloud
+
+    torch.set_num_threads(1)
+    pts, joints, true_verts, faces = posed_anny
+    fit = fit_body_to_cloud(pts, joints, joint_steps=60, surface_steps=40, lr=0.03)
+    assert fit.vertices.shape == true_verts.shape and fit.faces.shape == faces.shape
+    assert fit.joint_error_cm < 2.0, fit.joint_error_cm
+    # the surface stage (head and hands vs. the cloud) improves on the pose-from-joints fit
+    assert fit.part_error_cm < 0.9 * fit.part_error_cm_initial, (fit.part_error_cm_initial, fit.part_error_cm)
+    # and the fitted head/hands are closer to the true body's than the average-shape start
+    d = _dist_to(fit.vertices[fit.part_vertices], true_verts).mean()
+    assert d < 0.02, d
+    assert fit.losses[-1] < fit.losses[60]
+
+
+def test_cli_refine_body_writes_a_watertight_mesh_and_the_body(tmp_path, capsys, posed_anny):
+    pts, joints, _, _ = posed_anny
+    src = tmp_path / "cloud.ply"
+    write_ply(src, pts[::2])
+    np.save(tmp_path / "j.npy", joints)
+    out = tmp_path / "m.ply"
+    argv = ["mesh", str(src), "--refine-body", "--joints", str(tmp_path / "j.npy"), "--fit-steps", "5", "--depth",
+            "7", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    msg = capsys.readouterr().out
+    assert "fitted anny" in msg and "head/hands Chamfer" in msg and "watertight" in msg and "NOT" not in msg, msg
+    body = read_ply(tmp_path / "m_body.ply")
+    assert body.faces is not None and len(body.points) > 10000  # the whole anny mesh
+    mesh = read_ply(out)
+    assert mesh.faces is not None and len(mesh.faces) > 1000 and is_watertight(mesh.points, mesh.faces)
+
+
+@pytest.mark.parametrize(
+    "joints, message",
+    [(None, "--refine-body needs --joints"), ("j17.npy", "expected joints of shape (24, 3), got (17, 3)"),
+     ("far.npy", "m from the pose's root joint")],
+)  # fmt: skip
+def test_cli_refine_body_bad_joints_one_line_nothing_written(tmp_path, capsys, joints, message):
+    src = tmp_path / "in.ply"
+    write_ply(src, _sphere(500) + [0, 0, 1.0])
+    np.save(tmp_path / "j17.npy", np.zeros((17, 3)))
+    np.save(tmp_path / "far.npy", np.full((24, 3), 10.0))
+    argv = ["mesh", str(src), "--refine-body", "--out", str(tmp_path / "o.ply")]
+    if joints:
+        argv += ["--joints", str(tmp_path / joints)]
+    before = sorted(os.listdir(tmp_path))
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("pocoloco: error:") and message in err and "\n" not in err, err
+    assert sorted(os.listdir(tmp_path)) == before
+
+
+def test_split_nonmanifold_edges_makes_two_tetrahedra_sharing_an_edge_watertight():
+    from pocoloco.meshing import _split_nonmanifold_edges
+
+    # two closed tetrahedra touching along the edge (0, 1): that edge is used by four faces
+    v = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0.2], [0.5, 0.3, 1], [0.5, -1, 0.2], [0.5, -0.3, -1]], np.float32)
+    tet = lambda a, b, c, d: [[a, c, b], [a, b, d], [a, d, c], [b, c, d]]  # noqa: E731
+    faces = np.array(tet(0, 1, 2, 3) + tet(0, 1, 4, 5))
+    if trimesh.Trimesh(v, faces[:4], process=False).volume < 0:
+        faces[:4] = faces[:4, ::-1]
+    if trimesh.Trimesh(v, faces[4:], process=False).volume < 0:
+        faces[4:] = faces[4:, ::-1]
+    assert not is_watertight(v, faces)
+    v2, f2 = _split_nonmanifold_edges(v, faces)
+    assert is_watertight(v2, f2) and len(v2) == len(v) + 2 and f2.shape == faces.shape
+    np.testing.assert_array_equal(v2[f2], v[faces])  # same triangles, geometrically
+    # a manifold mesh is returned unchanged
+    v3, f3 = _split_nonmanifold_edges(v, faces[:4])
+    assert v3 is v and np.array_equal(f3, faces[:4])

@@ -146,3 +146,101 @@ def test_plot_curves(tmp_path):
         plot_curves({"bad": (x, x[:-1])}, tmp_path / "d.png")
     with pytest.raises(ValueError, match="empty"):
         plot_curves({}, tmp_path / "e.png")
+
+
+# ------------------------------------------------------------------------------ pocoloco render
+def _write_cloud(path, n=600, seed=0, normals=True, labels=True):
+    from pocoloco.data.published import write_ply
+
+    pts, lab, nrm = _cloud(n, seed)
+    write_ply(path, pts, normals=nrm if normals else None, labels=lab if labels else None)
+    return pts, lab, nrm
+
+
+def _gif_frames(path):
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return im.n_frames, im.size
+
+
+def test_cli_render_cloud_views_and_turntable(tmp_path, capsys):
+    from pocoloco.cli import main
+
+    _write_cloud(tmp_path / "c.ply")
+    png, gif = tmp_path / "c.png", tmp_path / "c.gif"
+    argv = ["render", str(tmp_path / "c.ply"), "--out", str(png), "--views", "front", "side", "back",
+            "--turntable", str(gif), "--frames", "4"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "wrote" in capsys.readouterr().out
+    img = imread(png)
+    assert img.shape[1] > 2.5 * img.shape[0]  # three views side by side
+    assert _has_color(img, LABEL_COLORS[1], 0.1) > 200 and _has_color(img, LABEL_COLORS[0], 0.1) > 200
+    frames, size = _gif_frames(gif)
+    assert frames == 4 and size[0] > 50
+    # normal colouring of a cloud without normals: estimated, differs from the label colouring
+    _write_cloud(tmp_path / "n.ply", normals=False, labels=False)
+    one = ["--views", "front"]
+    assert main(["render", str(tmp_path / "n.ply"), "--out", str(tmp_path / "n.png"), "--color", "normal", *one]) == 0
+    assert main(["render", str(tmp_path / "n.ply"), "--out", str(tmp_path / "l.png"), *one]) == 0
+    a, b = imread(tmp_path / "n.png")[..., :3], imread(tmp_path / "l.png")[..., :3]
+    assert a.shape == b.shape and np.abs(a - b).mean() > 0.02
+
+
+def test_cli_render_folder_as_meshes_and_animation(tmp_path, capsys):
+    from pocoloco.cli import main
+    from pocoloco.data.published import write_ply
+
+    folder = tmp_path / "anim"
+    folder.mkdir()
+    for k in range(2):
+        _write_cloud(folder / f"frame_{k:04d}.ply", n=800 + 10 * k, seed=k)
+    # a PLY with faces is drawn with its own faces: a tetrahedron
+    write_ply(folder / "zz_tet.ply", np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32),
+              faces=np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))  # fmt: skip
+    png, gif = tmp_path / "m.png", tmp_path / "a.gif"
+    argv = ["render", str(folder), "--out", str(png), "--mesh", "--depth", "5", "--views", "front", "side",
+            "--animate", str(gif), "--fps", "5"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "rendered 3 meshes" in capsys.readouterr().out
+    img = imread(png)
+    assert img.shape[0] > 2.5 * img.shape[1] / 2  # three rows of two views
+    assert (img[..., :3].min(-1) < 0.9).mean() > 0.05  # surfaces drawn
+    assert _gif_frames(gif)[0] == 3  # every file is a frame (subsampled to the smallest: 4 points)
+
+
+@pytest.mark.parametrize(
+    "setup, extra, message",
+    [
+        ("missing", [], "no such file or folder"),
+        ("empty", [], "has no points"),
+        ("garbage", [], "not a PLY file"),
+        ("ok", ["--views", "diagonal"], "unknown view(s) diagonal"),
+        ("ok", ["--turntable", "t.mp4"], "must end with .gif"),
+        ("ok", ["--animate", "a.gif"], "--animate needs a folder"),
+        ("sparse", ["--mesh"], "too sparse to mesh"),
+        ("emptydir", [], "no .ply files"),
+    ],
+)
+def test_cli_render_bad_input_one_line_nothing_written(tmp_path, capsys, setup, extra, message):
+    from pocoloco.cli import main
+    from pocoloco.data.published import write_ply
+
+    src = tmp_path / "in.ply"
+    if setup == "empty":
+        write_ply(src, np.zeros((0, 3), np.float32))
+    elif setup == "garbage":
+        src.write_bytes(b"hello")
+    elif setup == "ok":
+        _write_cloud(src, n=200)
+    elif setup == "sparse":
+        _write_cloud(src, n=40)
+    elif setup == "emptydir":
+        src = tmp_path / "dir"
+        src.mkdir()
+    before = sorted(os.listdir(tmp_path))
+    out = tmp_path / "out.png"
+    assert main(["render", str(src), "--out", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("pocoloco: error:") and message in err and "\n" not in err, err
+    assert sorted(os.listdir(tmp_path)) == before

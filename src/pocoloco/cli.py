@@ -209,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .train import add_train_arguments, cmd_train
 
-    s = sub.add_parser("train", help="train a model on a dataset (PocoLoco diffusion)")
+    s = sub.add_parser("train", help="train a model on a dataset (PocoLoco diffusion, or the peers POP / CloSET)")
     add_train_arguments(s)
     s.set_defaults(func=cmd_train)
 
@@ -243,6 +243,21 @@ def build_parser() -> argparse.ArgumentParser:
     add_eval_arguments(s)
     s.set_defaults(func=cmd_eval)
 
+    from .peers import add_fit_arguments, cmd_fit
+
+    s = sub.add_parser("fit", help="POP: fit a new outfit to one scan (only its geometric features) -> new checkpoint")
+    add_fit_arguments(s)
+    s.set_defaults(func=cmd_fit)
+
+    bench = sub.add_parser("bench", help="benchmarks over trained models").add_subparsers(dest="bench_command",
+                                                                                         required=True)  # fmt: skip
+    from .bench_quality import add_bench_quality_arguments, cmd_bench_quality
+
+    s = bench.add_parser("quality", help="PocoLoco, POP, CloSET (+/- decomposition) and baselines on the same test "
+                                         "frames: quality.json / .md / .png")  # fmt: skip
+    add_bench_quality_arguments(s)
+    s.set_defaults(func=cmd_bench_quality)
+
     s = sub.add_parser("export-model", help="write a sampling-only copy of a checkpoint (meta.json + weights)")
     s.add_argument("--ckpt", required=True, help="checkpoint folder, checkpoints folder or run folder")
     s.add_argument("--out", required=True, help="new folder to write (must not exist)")
@@ -266,6 +281,12 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("view", help="self-contained HTML viewer (WebGL) for a folder of PLY clouds")
     add_view_arguments(s)
     s.set_defaults(func=cmd_view)
+
+    from .render import add_render_arguments, cmd_render
+
+    s = sub.add_parser("render", help="PNG renders of clouds / meshes from several views (+ turntable / animation GIF)")
+    add_render_arguments(s)
+    s.set_defaults(func=cmd_render)
     return p
 
 

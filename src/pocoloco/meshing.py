@@ -15,6 +15,13 @@ fixes the orientation only up to one global sign, which is chosen so that the
 most extreme points along +-x, +-y, +-z point outwards (a closed surface's
 outward normal at its extreme point along an axis points along that axis).
 
+Body refinement (``--refine-body``, the PocoLoco paper's appendix A.2): generated clouds are
+weakest on the head and hands. The anny body is fitted to the cloud
+(:func:`pocoloco.body.anny_body.fit_body_to_cloud`: pose from the joints, then pose and shape
+refined to the cloud's head and hands), the cloud points nearest to the fitted body's head and
+hands are removed and replaced by points sampled area-uniformly on those parts of the fitted
+body (with its face normals), and the result is meshed as usual (:func:`replace_parts`).
+
 Density trimming: Poisson returns, per vertex, the octree depth at which the
 samples supporting it were splatted (about one unit per factor 4 of sample
 density on a surface). Where the input has holes, the reconstruction bridges
@@ -39,7 +46,7 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = ["PoissonMesh", "MeshReport", "estimate_normals", "mesh_from_points", "mesh_report", "is_watertight",
-           "mesh_ply", "add_mesh_arguments", "cmd_mesh"]  # fmt: skip
+           "mesh_ply", "replace_parts", "refine_body_ply", "add_mesh_arguments", "cmd_mesh"]  # fmt: skip
 
 #: Fewer points than this cannot describe a surface worth reconstructing.
 MIN_POINTS = 100
@@ -202,11 +209,61 @@ def mesh_from_points(
     if len(faces) == 0:
         raise ValueError("Poisson reconstruction produced no surface (are the normals consistent?)")
     faces = _drop_small_components(faces, len(mesh.vertices), min_component_share)
+    all_vertices, faces = _split_nonmanifold_edges(np.asarray(mesh.vertices, dtype=np.float32), faces)
     used = np.unique(faces)
-    remap = np.full(len(mesh.vertices), -1, dtype=np.int64)
+    remap = np.full(len(all_vertices), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
-    vertices = np.asarray(mesh.vertices, dtype=np.float32)[used]
+    vertices = all_vertices[used]
     return PoissonMesh(vertices, remap[faces])
+
+
+def _split_nonmanifold_edges(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Make edges shared by more than two faces manifold by giving each sheet its own vertices.
+
+    Marching cubes emits an edge used by four faces where two sheets of the surface touch along
+    one cube edge (the surface is closed, but not a 2-manifold there, so ``is_watertight`` fails).
+    At every endpoint v of such an edge, v's faces are grouped by adjacency across edges of v
+    used by exactly two faces; each group after the first gets a copy of v (same position).
+    (V, 3), (F, 3) -> (V', 3), (F, 3) with V' >= V.
+    """
+    if len(faces) == 0:
+        return vertices, faces
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)  # (3F, 2)
+    uniq, inv, counts = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+    bad = np.flatnonzero(counts > 2)
+    if len(bad) == 0:
+        return vertices, faces
+    inv = inv.reshape(-1)
+    face_of_edge = np.tile(np.arange(len(faces)), 3)
+    faces = faces.copy()
+    new_vertices = [vertices]
+    next_id = len(vertices)
+    for v in np.unique(uniq[bad].reshape(-1)):
+        fv = np.flatnonzero((faces == v).any(1))  # faces at v (indices may have been renumbered: none yet for v)
+        parent = {int(f): int(f) for f in fv}
+
+        def find(f: int) -> int:
+            while parent[f] != f:
+                parent[f] = parent[parent[f]]
+                f = parent[f]
+            return f
+
+        rows = np.flatnonzero(np.isin(face_of_edge, fv) & (e == v).any(1) & (counts[inv] == 2))
+        by_edge: dict[int, list[int]] = {}
+        for r in rows:
+            by_edge.setdefault(int(inv[r]), []).append(int(face_of_edge[r]))
+        for pair in by_edge.values():
+            if len(pair) == 2:
+                parent[find(pair[0])] = find(pair[1])
+        groups: dict[int, list[int]] = {}
+        for f in fv:
+            groups.setdefault(find(int(f)), []).append(int(f))
+        for members in list(groups.values())[1:]:
+            for f in members:
+                faces[f][faces[f] == v] = next_id
+            new_vertices.append(vertices[v][None])
+            next_id += 1
+    return np.concatenate(new_vertices).astype(vertices.dtype), faces
 
 
 def _cancel_face_pairs(faces: np.ndarray) -> np.ndarray:
@@ -302,6 +359,116 @@ def mesh_ply(
     return report
 
 
+# ------------------------------------------------------------------------------ body refinement
+def sample_faces(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points area-uniformly on triangles ``faces`` (F, 3) of ``vertices`` (V, 3):
+    (points (count, 3) float32, unit face normals (count, 3) float32)."""
+    v = np.asarray(vertices, np.float64)
+    tri = v[np.asarray(faces)]  # (F, 3, 3)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    if count < 1 or len(tri) == 0 or area.sum() <= 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    rng = np.random.default_rng(seed)
+    f = rng.choice(len(tri), size=count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    bary = np.stack([1 - s, s * (1 - r2), s * r2], 1)  # uniform on a triangle
+    pts = (bary[:, :, None] * tri[f]).sum(1)
+    nrm = cross[f] / np.maximum(area[f], 1e-20)[:, None]
+    return pts.astype(np.float32), nrm.astype(np.float32)
+
+
+def replace_parts(points: np.ndarray, normals: np.ndarray | None, body_vertices: np.ndarray, body_faces: np.ndarray,
+                  part_vertices: np.ndarray, margin: float = 0.06,
+                  seed: int = 0) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:  # fmt: skip
+    """Replace a cloud's points on some body parts by points sampled on the body's parts.
+
+    A cloud point (N, 3) is removed when its nearest body vertex (V, 3) is a part vertex
+    (``part_vertices`` (V,) bool) and lies within ``margin`` m. As many points as were removed,
+    but at least the parts' share of the body's area times N, are sampled area-uniformly on the
+    faces whose three vertices are all part vertices (:func:`sample_faces`).
+
+    Returns ``(points (N', 3), normals (N', 3) or None (when ``normals`` is None), from_body
+    (N',) bool, body_normals (K, 3))``: the kept cloud points first, then the K body points
+    (``from_body`` True), whose unit face normals are ``body_normals``.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = _check_points(points)
+    verts = np.asarray(body_vertices, np.float64)
+    part = np.asarray(part_vertices, bool)
+    if part.shape != (len(verts),):
+        raise ValueError(f"part_vertices must have shape ({len(verts)},), got {part.shape}")
+    d, i = cKDTree(verts).query(pts)
+    remove = part[i] & (d < margin)
+    faces = np.asarray(body_faces)
+    part_faces = faces[part[faces].all(1)]
+    tri = verts[faces]
+    areas = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    share = float(areas[part[faces].all(1)].sum() / max(areas.sum(), 1e-20))
+    count = max(int(remove.sum()), int(round(share * len(pts))))
+    new_pts, new_nrm = sample_faces(verts, part_faces, count, seed)
+    out_pts = np.concatenate([pts[~remove], new_pts]).astype(np.float32)
+    from_body = np.concatenate([np.zeros(int((~remove).sum()), bool), np.ones(len(new_pts), bool)])
+    out_nrm = None
+    if normals is not None:
+        out_nrm = np.concatenate([np.asarray(normals, np.float32)[~remove], new_nrm]).astype(np.float32)
+    return out_pts, out_nrm, from_body, new_nrm
+
+
+class RefineReport(NamedTuple):
+    """What :func:`refine_body_ply` did: the mesh report, the body fit (``BodyFit``), the
+    number of cloud points replaced and of body points added."""
+
+    mesh: MeshReport
+    fit: object
+    removed: int
+    added: int
+
+
+def refine_body_ply(src: str | os.PathLike, out: str | os.PathLike, joints: np.ndarray,
+                    body_out: str | os.PathLike, depth: int = 8, density_quantile: float = 0.0,
+                    render: str | os.PathLike | None = None, fit_steps: int = 150, knn: int = 30,
+                    progress=None) -> RefineReport:  # fmt: skip
+    """``pocoloco mesh --refine-body``: fit anny to the cloud ``src``, replace its head and
+    hands by the fitted body's, Poisson-mesh the result to ``out`` and write the fitted body
+    mesh to ``body_out`` (both PLYs with vertex normals; written only when everything
+    succeeded). joints: (24, 3) metres, the cloud's pose. fit_steps: Adam steps per stage."""
+    from .apps._common import check_scan
+    from .body.anny_body import fit_body_to_cloud
+    from .data.published import read_ply, write_ply
+
+    src = os.fspath(src)
+    if os.path.isdir(src):
+        raise ValueError(f"{src}: is a folder, expected a .ply file")
+    cloud = read_ply(src)
+    try:
+        pts = check_scan("cloud", cloud.points, joints)
+        if len(pts) < MIN_POINTS:
+            raise ValueError(f"point cloud too sparse to mesh: {len(pts)} points (need at least {MIN_POINTS})")
+        t0 = time.perf_counter()
+        fit = fit_body_to_cloud(pts, joints, joint_steps=fit_steps, surface_steps=fit_steps, progress=progress)
+        new_pts, new_nrm, from_body, body_nrm = replace_parts(pts, cloud.normals, fit.vertices, fit.faces,
+                                                              fit.part_vertices)  # fmt: skip
+        if new_nrm is None:  # the cloud had none: estimate for all, keep the body's exact normals
+            new_nrm = estimate_normals(new_pts, knn=knn)
+            new_nrm[from_body] = body_nrm
+        mesh = mesh_from_points(new_pts, new_nrm, depth=depth, density_quantile=density_quantile, knn=knn)
+        seconds = time.perf_counter() - t0
+    except ValueError as e:
+        raise ValueError(f"{src}: {e}") from None
+    report = mesh_report(mesh, seconds)
+    if render is not None:
+        from .render import render_meshes
+
+        render_meshes([(mesh.vertices, mesh.faces, "refined mesh"), (fit.vertices, fit.faces, "fitted body")], render)
+    body_faces = np.asarray(fit.faces, np.int64)
+    write_ply(body_out, fit.vertices, normals=_vertex_normals(fit.vertices, body_faces), faces=body_faces)
+    write_ply(out, mesh.vertices, normals=_vertex_normals(mesh.vertices, mesh.faces), faces=mesh.faces)
+    return RefineReport(report, fit, int(len(pts) - (~from_body).sum()), int(from_body.sum()))
+
+
 # -------------------------------------------------------------------------------- entry points
 def add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``pocoloco mesh`` options to ``parser`` (its handler is :func:`cmd_mesh`)."""
@@ -314,6 +481,13 @@ def add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
                              "watertight (the default); e.g. 0.02 trims a skirt hem's bridging surface")  # fmt: skip
     parser.add_argument("--knn", type=int, default=30, help="neighbours for normal estimation (default 30)")
     parser.add_argument("--render", help="also write a PNG of the mesh (front and side views)")
+    parser.add_argument("--refine-body", action="store_true",
+                        help="fit the anny body to the cloud and replace its head and hands by the body's "
+                             "before meshing (PocoLoco appendix A.2); needs --joints")  # fmt: skip
+    parser.add_argument("--joints", help="--refine-body: the cloud's pose, as for `pocoloco sample --joints`")
+    parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
+    parser.add_argument("--body-out", help="--refine-body: fitted body mesh .ply (default: OUT_body.ply)")
+    parser.add_argument("--fit-steps", type=int, default=150, help="--refine-body: Adam steps per stage (default 150)")
 
 
 def cmd_mesh(args: argparse.Namespace) -> None:
@@ -324,9 +498,44 @@ def cmd_mesh(args: argparse.Namespace) -> None:
         raise ValueError(f"--out {out}: would overwrite the input")
     if out.is_dir():
         raise ValueError(f"--out {out}: is a folder")
+    if args.joints is not None and not args.refine_body:
+        raise ValueError("--joints is only used with --refine-body")
+    if args.refine_body:
+        _cmd_refine(args, src, out)
+        return
     r = mesh_ply(src, out, depth=args.depth, density_quantile=args.density_quantile, render=args.render,
                  knn=args.knn)  # fmt: skip
     closed = "watertight" if r.watertight else (
         "NOT watertight (trimmed where the cloud has holes; --density-quantile 0 keeps it closed)")
     print(f"wrote {out}: {r.num_vertices} vertices, {r.num_faces} faces, {closed}, {r.seconds:.1f} s"
+          + (f"; render {args.render}" if args.render else ""))  # fmt: skip
+
+
+def _cmd_refine(args: argparse.Namespace, src: Path, out: Path) -> None:
+    """``pocoloco mesh --refine-body``: validate, fit + replace + mesh with a progress bar, report."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from .sample import load_joints
+
+    if args.joints is None:
+        raise ValueError("--refine-body needs --joints (the pose the cloud was generated for)")
+    if args.fit_steps < 1:
+        raise ValueError(f"--fit-steps must be >= 1, got {args.fit_steps}")
+    body_out = Path(args.body_out) if args.body_out else out.with_name(out.stem + "_body.ply")
+    if body_out.resolve() in (src.resolve(), out.resolve()):
+        raise ValueError(f"--body-out {body_out}: would overwrite the input or the mesh")
+    if not src.is_file():
+        raise ValueError(f"{src}: no such file")
+    joints = load_joints(args.joints, args.frame_id)
+    with Progress(TextColumn("fitting the body"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  transient=True) as bar:  # fmt: skip
+        task = bar.add_task("fit", total=2 * args.fit_steps)
+        r = refine_body_ply(src, out, joints, body_out, depth=args.depth, density_quantile=args.density_quantile,
+                            render=args.render, fit_steps=args.fit_steps, knn=args.knn,
+                            progress=lambda done, total: bar.update(task, completed=done))  # fmt: skip
+    m, f = r.mesh, r.fit
+    closed = "watertight" if m.watertight else "NOT watertight"
+    print(f"fitted anny: joints {f.joint_error_cm:.2f} cm off, head/hands Chamfer {f.part_error_cm_initial:.2f} -> "
+          f"{f.part_error_cm:.2f} cm; replaced {r.removed} head/hand points by {r.added} body points")  # fmt: skip
+    print(f"wrote {out}: {m.num_vertices} vertices, {m.num_faces} faces, {closed}, {m.seconds:.1f} s; body {body_out}"
           + (f"; render {args.render}" if args.render else ""))  # fmt: skip

@@ -304,16 +304,25 @@ def plot_curves(
     return _save_atomic(fig, path)
 
 
-def render_mesh(
-    vertices: np.ndarray, faces: np.ndarray, path: str | os.PathLike, views: Sequence[str] = ("front", "side"),
-    color: Sequence[float] = (0.75, 0.78, 0.85), panel_size: float = 4.0, dpi: int = 100,
-) -> str:
-    """Render a triangle mesh to a PNG, one panel per view (orthographic, atomic write).
+def _face_colors(tri: np.ndarray, fn: np.ndarray, mode: str, color: Sequence[float]) -> np.ndarray:
+    """(F, 3) base RGB per face: ``label`` one colour, ``normal`` (n + 1) / 2, ``height`` viridis on z."""
+    if mode == "normal":
+        return ((fn + 1.0) / 2.0).astype(np.float64)
+    if mode == "height":
+        return colors_for(tri.mean(1), mode="height").astype(np.float64)
+    if mode == "label":
+        return np.broadcast_to(np.asarray(color, np.float64), (len(tri), 3))
+    raise ValueError(f"mode must be 'label', 'normal' or 'height', got {mode!r}")
 
-    Faces are drawn in painter's order (far first) with headlight Lambert shading
-    (0.25 ambient); back faces are culled. vertices: (V, 3); faces: (F, 3) int.
-    Returns ``path`` as a string.
-    """
+
+def draw_mesh(
+    ax, vertices: np.ndarray, faces: np.ndarray, view: str = "front", color: Sequence[float] = (0.75, 0.78, 0.85),
+    mode: str = "label", extent: tuple[float, float, float, float] | None = None,
+) -> None:
+    """Draw a triangle mesh on a matplotlib Axes (orthographic, painter's order, headlight Lambert
+    shading with 0.25 ambient, back faces culled). vertices: (V, 3); faces: (F, 3) int.
+    mode: face colours, see :func:`_face_colors` (``label`` = ``color``). extent: as in
+    :func:`render_points` (None: fit the mesh)."""
     from matplotlib.collections import PolyCollection
 
     vertices = _check_points(vertices, "vertices")
@@ -327,26 +336,236 @@ def render_mesh(
     tri = vertices[faces]  # (F, 3, 3)
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-20)
-    fig = _figure(panel_size * len(views), panel_size, dpi)
-    fig.patch.set_facecolor("white")
-    for j, view in enumerate(views):
-        u, v, depth = _project(tri.reshape(-1, 3), view)
-        u, v, depth = u.reshape(-1, 3), v.reshape(-1, 3), depth.reshape(-1, 3).mean(1)
-        facing = fn @ np.asarray(VIEWS[view][2], dtype=np.float64)
-        keep = facing > 0
-        order = np.argsort(depth[keep], kind="stable")
-        shade = 0.25 + 0.75 * facing[keep][order]
-        colors = np.clip(np.asarray(color)[None, :] * shade[:, None], 0, 1)
-        polys = np.stack([u[keep][order], v[keep][order]], axis=-1)  # (F', 3, 2)
-        ax = fig.add_subplot(1, len(views), j + 1)
-        ax.add_collection(PolyCollection(polys, facecolors=colors, edgecolors="face", linewidths=0.1,
-                                         rasterized=True))  # fmt: skip
+    base = _face_colors(tri, fn, mode, color)
+    u, v, depth = _project(tri.reshape(-1, 3), view)
+    u, v, depth = u.reshape(-1, 3), v.reshape(-1, 3), depth.reshape(-1, 3).mean(1)
+    facing = fn @ np.asarray(VIEWS[view][2], dtype=np.float64)
+    keep = facing > 0
+    order = np.argsort(depth[keep], kind="stable")
+    shade = 0.25 + 0.75 * facing[keep][order]
+    colors = np.clip(base[keep][order] * shade[:, None], 0, 1)
+    polys = np.stack([u[keep][order], v[keep][order]], axis=-1)  # (F', 3, 2)
+    ax.add_collection(PolyCollection(polys, facecolors=colors, edgecolors="face", linewidths=0.1,
+                                     rasterized=True))  # fmt: skip
+    if extent is None:
         uu, vv, _ = _project(vertices, view)
         pad = 0.03 * max(float(np.ptp(uu)), float(np.ptp(vv)), 1e-6)
-        ax.set_xlim(uu.min() - pad, uu.max() + pad)
-        ax.set_ylim(vv.min() - pad, vv.max() + pad)
-        ax.set_aspect("equal", adjustable="box")
-        ax.set_axis_off()
-        ax.set_title(view, fontsize=9)
-    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.93, wspace=0.02)
+        extent = (uu.min() - pad, uu.max() + pad, vv.min() - pad, vv.max() + pad)
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_axis_off()
+
+
+def render_mesh(
+    vertices: np.ndarray, faces: np.ndarray, path: str | os.PathLike, views: Sequence[str] = ("front", "side"),
+    color: Sequence[float] = (0.75, 0.78, 0.85), panel_size: float = 4.0, dpi: int = 100,
+) -> str:
+    """Render a triangle mesh to a PNG, one panel per view (orthographic, atomic write).
+
+    Faces are drawn in painter's order (far first) with headlight Lambert shading
+    (0.25 ambient); back faces are culled (:func:`draw_mesh`). vertices: (V, 3); faces: (F, 3) int.
+    Returns ``path`` as a string.
+    """
+    return render_meshes([(vertices, faces, "")], path, views=views, color=color, panel_size=panel_size, dpi=dpi,
+                         titles=False)  # fmt: skip
+
+
+def render_meshes(
+    meshes: Sequence[tuple], path: str | os.PathLike, views: Sequence[str] = ("front", "side"),
+    mode: str = "label", color: Sequence[float] = (0.75, 0.78, 0.85), panel_size: float = 4.0, dpi: int = 100,
+    titles: bool = True,
+) -> str:
+    """Render meshes ``[(vertices (V, 3), faces (F, 3), title), ...]`` to one PNG: a row per
+    mesh, a panel per view, each panel fitted to its mesh (atomic write). Returns ``path``."""
+    if len(meshes) == 0:
+        raise ValueError("meshes is empty: nothing to render")
+    for v in views:
+        if v not in VIEWS:
+            raise ValueError(f"view must be one of {sorted(VIEWS)}, got {v!r}")
+    rows, cols = len(meshes), len(views)
+    fig = _figure(panel_size * cols, panel_size * rows, dpi)
+    fig.patch.set_facecolor("white")
+    for r, (verts, faces, title) in enumerate(meshes):
+        for j, view in enumerate(views):
+            ax = fig.add_subplot(rows, cols, r * cols + j + 1)
+            draw_mesh(ax, verts, faces, view=view, color=color, mode=mode)
+            ax.set_title(f"{title} ({view})" if titles and title else view, fontsize=9)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - 0.07 / rows, wspace=0.02, hspace=0.08)
     return _save_atomic(fig, path)
+
+
+# ------------------------------------------------------------------------------ turntable GIFs
+def frames_to_gif(images: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 10.0) -> str:
+    """Write RGB frames (each (H, W, 3) uint8) as a looping animated GIF, atomically."""
+    import io
+
+    from PIL import Image
+
+    from .utils.atomic import atomic_open
+
+    if len(images) == 0:
+        raise ValueError("no frames to write")
+    if not fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    pal = [Image.fromarray(np.asarray(im, np.uint8)[..., :3]).convert("P", palette=Image.ADAPTIVE) for im in images]
+    buf = io.BytesIO()
+    pal[0].save(buf, format="GIF", save_all=True, append_images=pal[1:], duration=int(1000 / fps), loop=0)
+    with atomic_open(path, "wb") as f:
+        f.write(buf.getvalue())
+    return os.fspath(path)
+
+
+def _fig_rgb(fig) -> np.ndarray:
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()  # (H, W, 3) uint8
+
+
+def turntable_gif(
+    path: str | os.PathLike, points: np.ndarray, labels: np.ndarray | None = None, normals: np.ndarray | None = None,
+    faces: np.ndarray | None = None, num_frames: int = 24, mode: str = "label", size: float = 4.0, dpi: int = 80,
+    fps: float = 12.0,
+) -> str:
+    """An animated GIF of a cloud (``faces`` None) or a mesh (``points`` = vertices) rotating
+    360 degrees about its vertical centre line, seen from the front; one fixed window for all
+    frames (as :func:`render_turntable_frames`). Returns ``path``."""
+    points = _check_points(points)
+    if num_frames < 1:
+        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
+    if len(points) == 0:
+        raise ValueError("nothing to render: no points")
+    colors = None if faces is not None else colors_for(points, normals=normals, labels=labels, mode=mode)
+    centre = (points.min(0) + points.max(0)) / 2
+    half = 1.04 * max(float(np.linalg.norm((points - centre)[:, :2], axis=1).max()), float(np.ptp(points[:, 2])) / 2,
+                      1e-6)  # fmt: skip
+    images = []
+    for i in range(num_frames):
+        a = 2 * np.pi * i / num_frames
+        rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        p = (points - centre) @ rot.T
+        fig = _figure(size, size, dpi)
+        fig.patch.set_facecolor("white")
+        ax = fig.add_axes((0, 0, 1, 1))
+        if faces is None:
+            nrm = None if normals is None else np.asarray(normals, dtype=np.float64) @ rot.T
+            render_points(ax, p, colors=colors, normals=nrm, view="front", extent=(-half, half, -half, half))
+        else:
+            draw_mesh(ax, p, faces, view="front", mode=mode, extent=(-half, half, -half, half))
+        images.append(_fig_rgb(fig))
+    return frames_to_gif(images, path, fps)
+
+
+# ------------------------------------------------------------------------------- pocoloco render
+#: at most this many clouds of a folder go into one PNG
+MAX_PANELS = 16
+
+
+def add_render_arguments(parser) -> None:
+    """The ``pocoloco render`` options (handler :func:`cmd_render`)."""
+    parser.add_argument("input", help="a .ply (point cloud or mesh) or a folder of .ply files (one panel row each)")
+    parser.add_argument("--out", required=True, help="PNG to write")
+    parser.add_argument("--views", nargs="+", default=["front", "side", "back"],
+                        help=f"views per input, from {', '.join(VIEWS)} (default front side back)")  # fmt: skip
+    parser.add_argument("--color", default="label", choices=("label", "normal", "height"),
+                        help="colour by label (skin / garment), normal (estimated when the PLY has none) or "
+                             "height (default label)")  # fmt: skip
+    parser.add_argument("--mesh", action="store_true",
+                        help="draw surfaces: the PLY's faces, or a Poisson mesh of a cloud (pocoloco mesh)")
+    parser.add_argument("--depth", type=int, default=8, help="--mesh of a cloud: Poisson octree depth (default 8)")
+    parser.add_argument("--turntable", help="also write a turntable GIF of the (first) input")
+    parser.add_argument("--animate", help="folder input: also write its clouds as an animation GIF, in file order")
+    parser.add_argument("--frames", type=int, default=24, help="turntable frames (default 24)")
+    parser.add_argument("--fps", type=float, default=10.0, help="GIF frames per second (default 10)")
+    parser.add_argument("--max-points", type=int, default=20000,
+                        help="subsample larger clouds to this many points (default 20000)")  # fmt: skip
+
+
+def _read_for_render(path, max_points: int, need_normals: bool, as_mesh: bool, seed: int = 0, depth: int = 8) -> dict:
+    """A PLY as {points, labels, normals, faces} ready to draw (one-line ValueErrors)."""
+    from .data.published import read_ply
+
+    ply = read_ply(path)
+    n = len(ply.points)
+    if n == 0:
+        raise ValueError(f"{path}: has no points")
+    item = {"points": ply.points, "labels": ply.labels, "normals": ply.normals, "faces": ply.faces}
+    if as_mesh:
+        if item["faces"] is None or len(item["faces"]) == 0:
+            from .meshing import mesh_from_points
+
+            try:
+                m = mesh_from_points(ply.points, ply.normals, depth=depth)
+            except ValueError as e:
+                raise ValueError(f"{path}: {e}") from None
+            item.update(points=m.vertices, faces=m.faces, labels=None, normals=None)
+        return item
+    item["faces"] = None
+    if n > max_points:
+        keep = np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+        item.update({k: None if item[k] is None else item[k][keep] for k in ("points", "labels", "normals")})
+    if need_normals and item["normals"] is None:
+        from .meshing import estimate_normals
+
+        if len(item["points"]) < 10:
+            raise ValueError(f"{path}: {len(item['points'])} points are too few to estimate normals "
+                             f"(--color normal needs normals)")  # fmt: skip
+        item["normals"] = estimate_normals(item["points"])
+    return item
+
+
+def cmd_render(args) -> None:
+    """``pocoloco render``: PNG (and GIFs) of a cloud / mesh PLY or a folder of them."""
+    from pathlib import Path
+
+    src = Path(args.input)
+    for flag, value, ext in (("--out", args.out, ".png"), ("--turntable", args.turntable, ".gif"),
+                             ("--animate", args.animate, ".gif")):  # fmt: skip
+        if value is not None and not value.lower().endswith(ext):
+            raise ValueError(f"{flag} {value}: must end with {ext}")
+        if value is not None and Path(value).is_dir():
+            raise ValueError(f"{flag} {value}: is a folder")
+    bad = [v for v in args.views if v not in VIEWS]
+    if bad:
+        raise ValueError(f"unknown view(s) {', '.join(bad)}; choose from {', '.join(VIEWS)}")
+    if args.frames < 1 or not args.fps > 0 or args.max_points < 1:
+        raise ValueError("--frames and --max-points must be >= 1 and --fps > 0")
+    if src.is_dir():
+        from .viewer import find_clouds
+
+        files = find_clouds(src)
+    elif src.exists():
+        files = [src]
+    else:
+        raise ValueError(f"{src}: no such file or folder")
+    if args.animate and not src.is_dir():
+        raise ValueError("--animate needs a folder of clouds (frame_0000.ply ...)")
+    panels = files[:MAX_PANELS]
+    items = [_read_for_render(f, args.max_points, args.color == "normal", args.mesh, depth=args.depth) for f in panels]
+    anim = None
+    if args.animate:
+        clouds = items if len(files) <= MAX_PANELS and not args.mesh else [
+            _read_for_render(f, args.max_points, False, False) for f in files]  # fmt: skip
+        n = min(len(c["points"]) for c in clouds)
+        anim = np.stack([c["points"][np.sort(np.random.default_rng(0).choice(len(c["points"]), n, replace=False))]
+                         for c in clouds])  # fmt: skip
+    # everything read and checked: now write
+    if args.mesh:
+        render_meshes([(c["points"], c["faces"], f.name) for c, f in zip(items, panels, strict=True)], args.out,
+                      views=args.views, mode=args.color, panel_size=3.0)  # fmt: skip
+    else:
+        render_grid([(c["points"], c["labels"], c["normals"], f.name) for c, f in zip(items, panels, strict=True)],
+                    args.out, views=args.views, ncols=1 if len(items) > 1 else None, mode=args.color)  # fmt: skip
+    written = [args.out]
+    if args.turntable:
+        c = items[0]
+        turntable_gif(args.turntable, c["points"], c["labels"], c["normals"], c["faces"], num_frames=args.frames,
+                      mode=args.color, fps=args.fps)  # fmt: skip
+        written.append(args.turntable)
+    if anim is not None:
+        from .apps.animation import render_gif
+
+        render_gif(anim, args.animate, fps=args.fps)
+        written.append(args.animate)
+    more = f" (first {MAX_PANELS} of {len(files)} files)" if len(files) > MAX_PANELS else ""
+    print(f"rendered {len(panels)} {'mesh' if args.mesh else 'cloud'}{'es' if args.mesh and len(panels) > 1 else ''}"
+          f"{'' if args.mesh or len(panels) == 1 else 's'}{more}: wrote {', '.join(written)}")  # fmt: skip

@@ -1,6 +1,7 @@
 """Applications of a trained PocoLoco model beyond sampling (``pocoloco complete / edit / animate``).
 
-- :mod:`~pocoloco.apps.completion`: fill the holes of a partial scan (RePaint-style inpainting).
+- :mod:`~pocoloco.apps.completion`: fill the holes of a partial scan (a full sample's hole points,
+  harmonised by RePaint-style inpainting; or plain RePaint from noise).
 - :mod:`~pocoloco.apps.editing`: move a cloud to a new pose (SDEdit renoising, or inpainting the
   parts whose bones moved).
 - :mod:`~pocoloco.apps.animation`: clouds for a motion (independent, shared noise, or a chain of

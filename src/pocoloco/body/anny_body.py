@@ -227,3 +227,181 @@ class AnnyBody:
                 )
         parts = [self._forward(rot[i : i + chunk], trans[i : i + chunk]) for i in range(0, rot.shape[0], chunk)]
         return PosedBody(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("vertices", "joints", "vtransf")))
+
+
+# ------------------------------------------------------------------------------ fitting to a cloud
+#: skeleton joints whose body parts (``AnnyBody.vertex_joint``) make up the head and the hands: neck
+#: and head (with the neck the replaced head joins the torso below the chin), left/right wrist
+#: (palm), left/right hand (fingers)
+HEAD_HAND_JOINTS: tuple[int, ...] = (12, 15, 20, 21, 22, 23)
+
+
+@dataclass
+class BodyFit:
+    """What :func:`fit_body_to_cloud` returns (numpy, metres).
+
+    joint_rotvecs: (24, 3) axis-angle (anny ``local-ref``); root_translation: (3,);
+    phenotype: the fitted phenotype (each in [0, 1]); vertices: (V, 3) the fitted posed body;
+    faces: (F, 3) int64; joints: (24, 3) its skeleton joints; part_vertices: (V,) bool, the
+    head and hand vertices (``HEAD_HAND_JOINTS``).
+    joint_error_cm: mean distance of the fitted joints to the target joints;
+    part_error_cm_initial / part_error_cm: PocoLoco Chamfer (S2M + M2S, cm) between the body's
+    head/hand vertices and the cloud points nearest to them, after the joint stage (pose from
+    the joints only) and after the surface stage; losses: the loss per step of both stages.
+    """
+
+    joint_rotvecs: np.ndarray
+    root_translation: np.ndarray
+    phenotype: dict[str, float]
+    vertices: np.ndarray
+    faces: np.ndarray
+    joints: np.ndarray
+    part_vertices: np.ndarray
+    joint_error_cm: float
+    part_error_cm_initial: float
+    part_error_cm: float
+    losses: list[float]
+
+
+def _pose_matrices(body: AnnyBody, rot: torch.Tensor) -> torch.Tensor:
+    """(T, J, 3) rotvecs -> (T, B, 4, 4) anny pose parameters (other bones identity), differentiable."""
+    pose = torch.eye(4, dtype=rot.dtype).expand(rot.shape[0], body.num_bones, 4, 4).clone()
+    pose[:, body.bone_of_joint, :3, :3] = _rotvec_to_matrix(rot)
+    return pose
+
+
+def _part_chamfer(body_pts: torch.Tensor, cloud_pts: torch.Tensor) -> torch.Tensor:
+    """Unsquared Chamfer (metres): mean over body points of the distance to the nearest cloud
+    point + the same from the cloud side. (P, 3), (Q, 3) -> scalar."""
+    d = torch.cdist(body_pts, cloud_pts)  # (P, Q)
+    return d.min(1).values.mean() + d.min(0).values.mean()
+
+
+def fit_body_to_cloud(
+    points: np.ndarray,
+    joints: np.ndarray,
+    *,
+    joint_steps: int = 150,
+    surface_steps: int = 150,
+    lr: float = 0.02,
+    fit_shape: bool = True,
+    parts: tuple[int, ...] = HEAD_HAND_JOINTS,
+    margin: float = 0.06,
+    max_part_points: int = 2000,
+    seed: int = 0,
+    progress=None,
+) -> BodyFit:
+    """Fit the anny body to a clothed point cloud posed by ``joints`` (PocoLoco appendix A.2,
+    which fits SMPL to a generated cloud to take its head and hands).
+
+    Parameters theta (24 joint rotations, axis-angle), a root translation t and, with
+    ``fit_shape``, the phenotype beta (6 values in [0, 1], as sigmoid of free logits).
+
+    1. Joint stage (``joint_steps`` Adam steps from the zero pose at the target root):
+       ``L_J = mean_j |J_j(theta, beta) + t - J*_j|^2 + 1e-4 |theta|^2`` (inverse kinematics
+       to the target joints J* (24, 3); the small prior picks the least-rotated solution).
+    2. Surface stage (``surface_steps`` steps): ``L = 10 L_J + CD(B_parts, X_parts)``, the
+       unsquared Chamfer between the body's head/hand vertices B_parts (those of ``parts``,
+       subsampled to ``max_part_points``) and the cloud points X_parts whose nearest body
+       vertex is one of them and lies within ``margin`` m (re-selected every 25 steps). Loose
+       clothing elsewhere does not pull the body: only the head and hands, where the clothed
+       cloud is skin, and the joints constrain it.
+
+    points: (N, 3) metres; joints: (24, 3) metres, the pose the cloud was generated for.
+    progress: optional callable(done, total) after each step. Returns :class:`BodyFit`.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float32)
+    target = np.asarray(joints, np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise ValueError(f"points must have shape (N, 3) with N >= 1, got {pts.shape}")
+    if target.shape != (NUM_JOINTS, 3):
+        raise ValueError(f"joints must have shape ({NUM_JOINTS}, 3), got {target.shape}")
+    if not (np.isfinite(pts).all() and np.isfinite(target).all()):
+        raise ValueError("points or joints contain NaN or inf")
+    if joint_steps < 0 or surface_steps < 0:
+        raise ValueError("joint_steps and surface_steps must be >= 0")
+    body = AnnyBody()
+    part_vertices = np.isin(body.vertex_joint, list(parts))
+    part_idx = np.flatnonzero(part_vertices)
+    gen = np.random.default_rng(seed)
+    if len(part_idx) > max_part_points:
+        part_sub = torch.as_tensor(np.sort(gen.choice(part_idx, max_part_points, replace=False)))
+    else:
+        part_sub = torch.as_tensor(part_idx)
+    torch.manual_seed(seed)
+    rot = (1e-3 * torch.randn(1, NUM_JOINTS, 3)).requires_grad_(True)
+    trans = torch.as_tensor(target[0]).clone()[None].requires_grad_(True)
+    logits = torch.zeros(len(PHENOTYPE_KEYS), requires_grad=fit_shape)
+    jt = torch.as_tensor(target)[None]
+    cloud = torch.as_tensor(pts)
+
+    def forward():
+        beta = torch.sigmoid(logits)
+        out = body.model(pose_parameters=_pose_matrices(body, rot),
+                         phenotype_kwargs={k: beta[i : i + 1] for i, k in enumerate(PHENOTYPE_KEYS)})  # fmt: skip
+        verts = out["vertices"][0] + trans[0]
+        jts = out["bone_poses"][:, body.bone_of_joint, :3, 3] + trans
+        return verts, jts
+
+    def joint_loss(jts):
+        return (jts - jt).square().sum(-1).mean() + 1e-4 * rot.square().sum(-1).mean()
+
+    def part_cloud(verts: np.ndarray) -> np.ndarray:
+        d, i = cKDTree(verts).query(pts)
+        return pts[part_vertices[i] & (d < margin)]
+
+    params = [rot, trans] + ([logits] if fit_shape else [])
+    losses: list[float] = []
+    total = joint_steps + surface_steps
+    opt = torch.optim.Adam(params, lr=lr)
+    for step in range(joint_steps):
+        opt.zero_grad()
+        _, jts = forward()
+        loss = joint_loss(jts)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+        if progress is not None:
+            progress(step + 1, total)
+
+    with torch.no_grad():
+        verts, _ = forward()
+    sel = part_cloud(verts.numpy())
+    initial = float(_part_chamfer(verts[part_sub], torch.as_tensor(sel))) * 100 if len(sel) else float("nan")
+    opt = torch.optim.Adam(params, lr=lr / 2)
+    target_pts = torch.as_tensor(sel)
+    for step in range(surface_steps):
+        if step and step % 25 == 0:
+            target_pts = torch.as_tensor(part_cloud(verts.detach().numpy()))
+        opt.zero_grad()
+        verts, jts = forward()
+        loss = 10.0 * joint_loss(jts)
+        if len(target_pts):
+            loss = loss + _part_chamfer(verts[part_sub], target_pts)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+        if progress is not None:
+            progress(joint_steps + step + 1, total)
+
+    with torch.no_grad():
+        verts, jts = forward()
+    verts_np = verts.numpy().astype(np.float32)
+    sel = part_cloud(verts_np)
+    final = float(_part_chamfer(verts[part_sub], torch.as_tensor(sel))) * 100 if len(sel) else float("nan")
+    beta = torch.sigmoid(logits).detach().numpy()
+    return BodyFit(
+        joint_rotvecs=rot.detach().numpy()[0].astype(np.float32),
+        root_translation=trans.detach().numpy()[0].astype(np.float32),
+        phenotype={k: float(beta[i]) for i, k in enumerate(PHENOTYPE_KEYS)},
+        vertices=verts_np,
+        faces=body.faces,
+        joints=jts.numpy()[0].astype(np.float32),
+        part_vertices=part_vertices,
+        joint_error_cm=float(np.linalg.norm(jts.numpy()[0] - target, axis=1).mean() * 100),
+        part_error_cm_initial=initial,
+        part_error_cm=final,
+        losses=losses,
+    )
