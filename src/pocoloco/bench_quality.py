@@ -307,7 +307,7 @@ def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=24, help="test frames, evenly spaced (0 = all; default 24)")
     parser.add_argument("--points", type=int, default=10_000, help="points per cloud (default 10000)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="PocoLoco samples per frame")
-    parser.add_argument("--sampler", default="ddpm", help="PocoLoco sampler (default ddpm)")
+    parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco sampler (default dpm++sde, 25 steps)")
     parser.add_argument("--steps", type=int, help="PocoLoco sampler steps")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--device", default="cpu")

@@ -84,7 +84,7 @@ class EvalSettings:
     num_frames: int = 24
     num_points: int = 10_000
     seeds: tuple[int, ...] = (0, 1, 2)
-    sampler: str = "ddpm"
+    sampler: str = "dpm++sde"
     steps: int | None = None
     baselines: tuple[str, ...] = ("nearest_frame", "posed_body", "gt_resample")
     subjects: tuple[str, ...] | None = None
@@ -450,8 +450,8 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=24, help="frames evenly spaced over the split (0 = all; default 24)")
     parser.add_argument("--points", type=int, default=10_000, help="points per cloud (default 10000, as the paper)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="one sample per seed (default 0 1 2)")
-    parser.add_argument("--sampler", default="ddpm", help="ddpm, dpm++ or ddim (default ddpm, 100 strided steps)")
-    parser.add_argument("--steps", type=int, help="sampler steps (default: ddpm 100, dpm++ 20, ddim 50)")
+    parser.add_argument("--sampler", default="dpm++sde", help="dpm++sde, ddpm, dpm++ or ddim (default dpm++sde, 25 steps)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50)")
     parser.add_argument("--subjects", nargs="+", help="only these subjects")
     parser.add_argument("--no-baselines", action="store_true", help="skip the nearest-frame / posed-body / GT rows")
     parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")

@@ -68,7 +68,7 @@ def denoise_from(
     joints: np.ndarray,
     x0: np.ndarray | None,
     t: int,
-    sampler: str = "dpm++",
+    sampler: str = "dpm++sde",
     steps: int | None = None,
     seeds: Sequence[int] = (0,),
     known: tuple[np.ndarray, np.ndarray] | None = None,
@@ -213,8 +213,8 @@ def add_common_arguments(parser: argparse.ArgumentParser, out_help: str) -> None
     """--ckpt, --sampler, --steps, --seed, --raw-weights, --device, --no-render, --out."""
     parser.add_argument("--ckpt", default="default",
                         help="checkpoint / run folder; 'default' = the model shipped with pocoloco")  # fmt: skip
-    parser.add_argument("--sampler", default="ddpm", help="ddpm, dpm++ or ddim (default ddpm)")
-    parser.add_argument("--steps", type=int, help="sampler steps (default: ddpm 100, dpm++ 20, ddim 50; at most t)")
+    parser.add_argument("--sampler", default="dpm++sde", help="dpm++sde, ddpm, dpm++ or ddim (default dpm++sde)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50; at most t)")
     parser.add_argument("--seed", type=int, default=0, help="output k uses seed SEED + k (default 0)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
     parser.add_argument("--device", default=None, help="cuda, cpu (default: cuda if available)")

@@ -131,7 +131,7 @@ def animate(
     *,
     method: str = "chain",
     t: int = 200,
-    sampler: str = "dpm++",
+    sampler: str = "dpm++sde",
     steps: int | None = None,
     seed: int = 0,
     seeds: Sequence[int] | None = None,

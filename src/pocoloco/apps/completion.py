@@ -141,7 +141,7 @@ def complete(
     *,
     partial_normals: np.ndarray | None = None,
     num: int = 1,
-    sampler: str = "dpm++",
+    sampler: str = "dpm++sde",
     steps: int | None = None,
     seeds: Sequence[int] | None = None,
     coverage: float | None = None,
@@ -241,7 +241,7 @@ def region_mask(points: np.ndarray, joints: np.ndarray, region: str | tuple[Sequ
 
 
 def evaluate_completion(model, normalisation: Normalisation, config: Any, scan: np.ndarray, joints: np.ndarray,
-                        region, num_points: int, seed: int = 0, sampler: str = "dpm++", steps: int | None = None,
+                        region, num_points: int, seed: int = 0, sampler: str = "dpm++sde", steps: int | None = None,
                         radius: float = DEFAULT_RADIUS_M, coverage: float | None = None, t: int | None = None,
                         noise: bool = True) -> dict[str, float] | None:  # fmt: skip
     """Remove ``region`` from a full scan (M, 3), complete it, score the generated points.

@@ -121,7 +121,7 @@ def edit(
     t: int | None = None,
     num_points: int | None = None,
     num: int = 1,
-    sampler: str = "dpm++",
+    sampler: str = "dpm++sde",
     steps: int | None = None,
     seeds: Sequence[int] | None = None,
     threshold: float = DEFAULT_THRESHOLD_M,
@@ -190,7 +190,7 @@ def edit(
 # ------------------------------------------------------------------------------------ benchmark
 def evaluate_edit(model, normalisation: Normalisation, config: Any, source: np.ndarray, source_joints: np.ndarray,
                   target: np.ndarray, target_joints: np.ndarray, num_points: int, seed: int = 0,
-                  sampler: str = "dpm++", steps: int | None = None, renoise_ts: Sequence[int] = (100, 300),
+                  sampler: str = "dpm++sde", steps: int | None = None, renoise_ts: Sequence[int] = (100, 300),
                   threshold: float = DEFAULT_THRESHOLD_M) -> dict[str, dict[str, float]]:  # fmt: skip
     """Edit frame ``source`` (M, 3) to the pose of frame ``target`` and score every method.
 
