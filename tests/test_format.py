@@ -12,6 +12,7 @@ from pocoloco.body.skeleton import JOINT_NAMES
 from pocoloco.data import format as fmt
 from pocoloco.data.published import read_ply, read_pop_npz
 from pocoloco.utils import atomic_write, save_npz_atomic, write_json_atomic
+from pocoloco.utils.atomic import output_folder
 
 
 def random_frame(rng: np.random.Generator, n: int = 50, v: int = 20, vg: int | None = 7, index: int = 3) -> fmt.Frame:
@@ -66,6 +67,15 @@ def test_save_npz_and_json_atomic(tmp_path):
     with pytest.raises(ValueError):
         write_json_atomic(tmp_path / "d.json", {"k": float("nan")})  # strict JSON only
     assert not (tmp_path / "d.json").exists()
+
+
+def test_output_folder_accepts_folders_and_new_paths_not_files(tmp_path):
+    assert output_folder(tmp_path) == tmp_path
+    assert output_folder(str(tmp_path / "new" / "deeper")) == tmp_path / "new" / "deeper"
+    (tmp_path / "file.txt").write_text("x")
+    with pytest.raises(ValueError, match="file.txt: exists and is not a folder"):
+        output_folder(tmp_path / "file.txt")
+    assert not (tmp_path / "new").exists()  # checks only, creates nothing
 
 
 # --------------------------------------------------------------------------- frames

@@ -16,12 +16,12 @@ coloured by the label of their nearest GT point, rendered by :mod:`pocoloco.rend
 from __future__ import annotations
 
 import argparse
-import math
 import time
 from pathlib import Path
 from typing import Any
 
-from pocoloco.evaluate import EvalSettings, evaluate
+from pocoloco.evaluate import TABLE_COLUMNS, EvalSettings, evaluate, markdown_table
+from pocoloco.utils.atomic import output_folder
 
 __all__ = ["QUALITY_ROWS", "add_bench_quality_arguments", "bench_quality", "cmd_bench_quality", "quality_markdown"]
 
@@ -34,15 +34,11 @@ QUALITY_ROWS: dict[str, tuple[str, str, bool | None]] = {
 }
 BASELINE_ROWS = {"nearest_frame": "nearest training frame", "posed_body": "posed body (no clothes)",
                  "gt_resample": "GT resample (noise floor)"}  # fmt: skip
+#: columns of quality.md: evaluate's (same keys, headers, formats) minus F-score and the split
+#: diversity, plus time (finer: the peers take fractions of a second) and parameter count
 COLUMNS = (
-    ("chamfer_cm", "Chamfer cm", "{:.2f}"),
-    ("s2m_cm", "S2M cm", "{:.2f}"),
-    ("m2s_cm", "M2S cm", "{:.2f}"),
-    ("pop_chamfer_e-4m2", "CD 1e-4 m^2", "{:.2f}"),
-    ("normal_l1_e-1", "normal 1e-1", "{:.2f}"),
-    ("loose_pred_pct", "loose %", "{:.1f}"),
-    ("loose_gt_pct", "loose GT %", "{:.1f}"),
-    ("diversity_cm", "div. cm", "{:.2f}"),
+    *(c for c in TABLE_COLUMNS if c[0] not in ("fscore_pct", "diversity_garment_cm", "diversity_body_cm",
+                                              "seconds_per_sample")),
     ("seconds_per_sample", "s/sample", "{:.3f}"),
     ("num_parameters", "params", "{:,.0f}"),
 )
@@ -127,9 +123,7 @@ def bench_quality(
         raise ValueError(f"unknown model rows {unknown}; choose from {', '.join(QUALITY_ROWS)}")
     if train_steps is not None and (train_steps < 1 or work is None):
         raise ValueError("--train-steps needs a positive K and --work DIR")
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
+    out = output_folder(out)
     paths: dict[str, Path] = {}
     for key in QUALITY_ROWS:  # validate every given checkpoint before any long work
         if ckpts.get(key) is not None:
@@ -196,18 +190,8 @@ def _title(key: str) -> str:
     return QUALITY_ROWS[key][0] if key in QUALITY_ROWS else BASELINE_ROWS.get(key, key)
 
 
-def _cell(v, pattern: str) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "-"
-    return pattern.format(v)
-
-
 def table_markdown(rows: dict[str, dict[str, float]]) -> str:
-    cols = [c for c in COLUMNS if any(c[0] in m for m in rows.values())]
-    lines = ["| model | " + " | ".join(h for _, h, _ in cols) + " |", "|---|" + "---|" * len(cols)]
-    for key, m in rows.items():
-        lines.append(f"| {_title(key)} | " + " | ".join(_cell(m.get(k), f) for k, _, f in cols) + " |")
-    return "\n".join(lines)
+    return markdown_table(rows, {key: _title(key) for key in rows}, columns=COLUMNS, first="model")
 
 
 def check_claims(per_subject: dict[str, dict[str, dict[str, float]]]) -> list[dict[str, Any]]:

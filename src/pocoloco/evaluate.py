@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from pocoloco.metrics import diversity_cm, evaluate_frame, nearest, summarise
+from pocoloco.utils.atomic import output_folder
 
 __all__ = ["EvalSettings", "METHODS", "add_eval_arguments", "cmd_eval", "evaluate", "markdown_tables",
            "select_frames", "NearestFrameBaseline"]  # fmt: skip
@@ -373,11 +374,13 @@ def method_titles(settings: dict[str, Any]) -> dict[str, str]:
     return titles
 
 
-def markdown_table(means: dict[str, dict[str, float]], titles: dict[str, str] | None = None) -> str:
-    """One markdown table: a row per method, the ``TABLE_COLUMNS`` present in any row."""
+def markdown_table(means: dict[str, dict[str, float]], titles: dict[str, str] | None = None,
+                   columns: Sequence[tuple[str, str, str]] = TABLE_COLUMNS, first: str = "method") -> str:
+    """One markdown table: a row per method, the ``columns`` (key, header, format) present in any
+    row; ``first`` heads the column of row titles."""
     titles = METHOD_TITLES if titles is None else titles
-    cols = [c for c in TABLE_COLUMNS if any(c[0] in m for m in means.values())]
-    lines = ["| method | " + " | ".join(h for _, h, _ in cols) + " |", "|---|" + "---|" * len(cols)]
+    cols = [c for c in columns if any(c[0] in m for m in means.values())]
+    lines = [f"| {first} | " + " | ".join(h for _, h, _ in cols) + " |", "|---|" + "---|" * len(cols)]
     for method, m in means.items():
         cells = [_fmt(m.get(k), f) for k, _, f in cols]
         lines.append(f"| {titles.get(method, method)} | " + " | ".join(cells) + " |")
@@ -411,9 +414,7 @@ def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dic
     from pocoloco.render import plot_curves, render_grid
     from pocoloco.utils.atomic import jsonable, write_json_atomic, write_text_atomic
 
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
+    out = output_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "eval.json", jsonable(result.to_dict()))
     write_text_atomic(out / "eval.md", markdown_tables(result))
@@ -489,9 +490,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
     if settings.split not in fmt.SPLITS:
         raise ValueError(f"unknown split {settings.split!r}; expected one of {fmt.SPLITS}")
     fmt.read_card(args.data)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
+    out = output_folder(args.out)
     ckpt = args.ckpt
     if ckpt == "default":
         from pocoloco.pretrained import default_checkpoint

@@ -59,6 +59,7 @@ from torch import nn
 
 from pocoloco import checkpoint as ckpt_io
 from pocoloco.data.dataset import Normalisation
+from pocoloco.utils.atomic import output_folder
 
 __all__ = [
     "PEER_KINDS",
@@ -799,9 +800,7 @@ def cmd_sample_peer(args: argparse.Namespace) -> None:
         raise ValueError(f"--num {args.num}: POP and CloSET are deterministic (one cloud per pose and outfit); use --num 1")
     if args.points is not None and args.points < 1:
         raise ValueError(f"--points must be >= 1, got {args.points}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
+    out = output_folder(args.out)
     device = torch.device(args.device or "cpu")
     loaded = load_peer(args.ckpt, device=device)
     outfit_arg = getattr(args, "outfit", None)

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from pocoloco.data.dataset import Normalisation
+from pocoloco.utils.atomic import output_folder
 
 __all__ = [
     "SAMPLERS",
@@ -289,9 +290,7 @@ def write_samples(
     from pocoloco.data.published import write_ply
     from pocoloco.utils.atomic import write_json_atomic
 
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
+    out = output_folder(out)
     fresh = not out.exists()
     target = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}" if fresh else out
     K = clouds.points.shape[0]
@@ -390,9 +389,7 @@ def cmd_sample(args: argparse.Namespace) -> None:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
     if args.sampler not in SAMPLERS:
         raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLERS)}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
+    out = output_folder(args.out)
     model, normalisation, config, ckpt, step = load_model_from_args(args)
     device = next(model.parameters()).device
     joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints)

@@ -30,6 +30,7 @@ import torch
 from pocoloco.data.dataset import Normalisation
 from pocoloco.sample import load_model_from_args  # noqa: F401  (re-exported for the apps)
 from pocoloco.utils.atomic import jsonable  # noqa: F401  (re-exported for the apps and benchmarks)
+from pocoloco.utils.atomic import output_folder
 
 #: a scan whose bounding box is larger than this (metres) is taken to be in the wrong unit
 MAX_EXTENT_M = 5.0
@@ -230,9 +231,7 @@ def check_common_args(args: argparse.Namespace) -> None:
         raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLERS)}")
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
+    out = output_folder(args.out)
 
 
 # ------------------------------------------------------------------------------------- output
@@ -242,9 +241,7 @@ def write_folder(out: str | os.PathLike, fill: Callable[[Path], set[str]],
     temporary name and renamed into place (complete or absent); an existing one gets its files
     replaced (each written atomically by ``fill``), then files matching ``stale(name)`` that
     this run did not write (e.g. frames of an earlier, longer run) are removed."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
+    out = output_folder(out)
     if out.exists():
         written = fill(out)
         if stale is not None:

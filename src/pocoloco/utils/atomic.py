@@ -14,11 +14,12 @@ import math
 import os
 import uuid
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "atomic_open", "jsonable", "save_npz_atomic", "write_json_atomic", "write_text_atomic"]
+__all__ = ["atomic_write", "atomic_open", "jsonable", "output_folder", "save_npz_atomic", "write_json_atomic", "write_text_atomic"]
 
 
 def _fsync_dir(folder: str) -> None:
@@ -87,6 +88,14 @@ def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2)
     text = json.dumps(obj, indent=indent, ensure_ascii=False, allow_nan=False) + "\n"
     with atomic_open(path, "w") as f:
         f.write(text)
+
+
+def output_folder(path: str | os.PathLike) -> Path:
+    """``path`` as a Path, after checking it is a folder or does not exist yet (one-line error)."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: exists and is not a folder")
+    return out
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
