@@ -5,9 +5,14 @@ Tiny preset, tiny maps, fixed seeds, one torch thread; no anny body is built.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
+
+import pocoloco.models.pop as pop_module
 
 from pocoloco.body.skeleton import NUM_JOINTS
 from pocoloco.body.surface import BodySurface
@@ -133,6 +138,85 @@ def test_fast_decoder_matches_conv1d_reference(surface, mesh, training):
         torch.testing.assert_close(grads[0][n], grads[1][n], rtol=1e-8, atol=1e-10, msg=n)
     for (n, x), y in zip(fast.state_dict().items(), ref.state_dict().values()):  # BN running stats too
         torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-12, msg=n)
+
+
+def _plain_layer(layer, *parts):
+    """The slow reference: the modules as written (concatenation, BatchNorm1d, Softplus(beta))."""
+    y = layer.linear(torch.cat(parts, -1))
+    return y if layer.bn is None else F.softplus(layer.bn(y), beta=layer.beta)
+
+
+@pytest.mark.parametrize("training", [True, False])
+def test_fused_mlp_layer_matches_plain_modules(monkeypatch, training):
+    """_MLPLayer's fast paths (fused BatchNorm + softplus node in training, folded BatchNorm in
+    evaluation, row chunks smaller than the batch) against the plain modules: outputs, all
+    gradients and the BatchNorm running statistics, in float64."""
+    monkeypatch.setattr(pop_module, "_ROW_CHUNK", 7)
+    g = torch.Generator().manual_seed(0)
+    fast = pop_module._MLPLayer(9, 6, beta=20.0).double()
+    with torch.no_grad():
+        fast.bn.weight.uniform_(0.5, 1.5, generator=g)
+        fast.bn.bias.normal_(0, 0.5, generator=g)
+        fast.bn.running_mean.normal_(0, 0.3, generator=g)
+        fast.bn.running_var.uniform_(0.5, 2.0, generator=g)
+    ref = copy.deepcopy(fast)
+    fast.train(training), ref.train(training)
+    parts = [torch.randn(50, c, generator=g, dtype=torch.float64) * 3 for c in (5, 4)]
+    w = torch.randn(50, 6, generator=g, dtype=torch.float64)
+    results = []
+    for layer, fn in ((fast, lambda *p: fast(*p)), (ref, lambda *p: _plain_layer(ref, *p))):
+        xs = [p.clone().requires_grad_() for p in parts]
+        out = fn(*xs)
+        (out * w).sum().backward()
+        results.append((out, [x.grad for x in xs], {n: p.grad for n, p in layer.named_parameters()}))
+    (o1, gx1, gp1), (o2, gx2, gp2) = results
+    torch.testing.assert_close(o1, o2, rtol=1e-8, atol=1e-12)
+    for a, b in zip(gx1, gx2):
+        torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-10)
+    for n in gp2:
+        if n == "linear.bias" and training:  # zero up to rounding before a BatchNorm
+            torch.testing.assert_close(gp1[n], torch.zeros_like(gp1[n]), rtol=0, atol=1e-10)
+            continue
+        torch.testing.assert_close(gp1[n], gp2[n], rtol=1e-7, atol=1e-10, msg=n)
+    for (n, a), b in zip(fast.state_dict().items(), ref.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14, msg=n)
+
+
+def test_fused_batchnorm_softplus_gradcheck():
+    g = torch.Generator().manual_seed(1)
+    y = torch.randn(12, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    weight = (torch.rand(3, generator=g, dtype=torch.float64) + 0.5).requires_grad_()
+    bias = torch.randn(3, generator=g, dtype=torch.float64, requires_grad=True)
+    fn = lambda y, a, b: pop_module._BatchNormSoftplus.apply(y, a, b, 3.0, 1e-5)[0]  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (y, weight, bias))
+
+
+def test_inference_decoder_matches_plain_modules(monkeypatch):
+    """ShapeDecoder's no-grad evaluation path (folded BatchNorm, chunked rows, reused buffers)
+    against the plain modules layer by layer."""
+    monkeypatch.setattr(pop_module, "_ROW_CHUNK", 16)
+    torch.manual_seed(0)
+    dec = pop_module.ShapeDecoder(7, 12, 8, 4, 6, 20.0).double()
+    for m in dec.modules():
+        if isinstance(m, torch.nn.BatchNorm1d):
+            m.running_mean.normal_(0, 0.3)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+    dec.eval()
+    x = torch.randn(45, 7, dtype=torch.float64)
+    h = x
+    for i, layer in enumerate(dec.trunk, start=1):
+        h = _plain_layer(layer, h, x) if i == dec.skip else _plain_layer(layer, h)
+    want = []
+    for head in (dec.disp_head, dec.normal_head):
+        r = h
+        for layer in head:
+            r = _plain_layer(layer, r)
+        want.append(r)
+    with torch.no_grad():
+        got = dec(x)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-11)
 
 
 def test_zero_displacement_puts_points_on_the_body(surface, mesh):
