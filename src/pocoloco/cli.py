@@ -298,6 +298,10 @@ def run_command(func, args: argparse.Namespace, prog: str = "pocoloco") -> int:
     """Run one command; a user error becomes one line ``PROG: error: ...`` and
     exit code 2 (``POCOLOCO_DEBUG=1`` shows the traceback instead)."""
     try:
+        if isinstance(getattr(args, "ckpt", None), str):  # --ckpt default / default:pop / default:closet
+            from .pretrained import resolve_ckpt_arg
+
+            args.ckpt = str(resolve_ckpt_arg(args.ckpt))
         func(args)
     except USER_ERRORS as e:
         if os.environ.get("POCOLOCO_DEBUG"):

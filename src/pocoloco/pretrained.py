@@ -1,16 +1,20 @@
-"""The PocoLoco model shipped with the package (``--ckpt default``).
+"""The models shipped with the package (``--ckpt default``, ``default:pop``, ``default:closet``).
 
 ``assets/pocoloco_small/`` holds a sampling-only checkpoint (``meta.json`` + the EMA weights as
-``model.safetensors``) of the ``small`` preset trained on the ``small`` synthetic dataset; how it
-was trained and its evaluation are in README.md ("The default model"). Written by
-:func:`pocoloco.checkpoint.export_for_sampling`.
+``model.safetensors``) of PocoLoco's ``small`` preset trained on the ``small`` synthetic dataset;
+``assets/pop_small/`` and ``assets/closet_small/`` the same for the two peers (``small`` presets,
+their raw weights: they keep no EMA). How each was trained and its evaluation are in README.md
+("The default model", "POP and CloSET"). Written by :func:`pocoloco.checkpoint.export_for_sampling`.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "assets" / "pocoloco_small"
+ASSETS_DIR = Path(__file__).resolve().parent / "assets"
+DEFAULT_MODEL_DIR = ASSETS_DIR / "pocoloco_small"
+#: ``--ckpt default:KIND`` -> folder under assets/ (``default`` alone is PocoLoco's)
+SHIPPED_MODELS = {"pocoloco": "pocoloco_small", "pop": "pop_small", "closet": "closet_small"}
 #: (24, 3) joints in metres of one test frame per subject of the ``small`` dataset (frame 40 of
 #: its test sequence), usable as ``--joints demo:NAME``
 DEMO_POSES_DIR = Path(__file__).resolve().parent / "assets" / "poses"
@@ -29,13 +33,23 @@ def demo_pose_path(name: str) -> Path:
     return path
 
 
-def default_checkpoint() -> Path:
-    """Folder of the shipped checkpoint; a one-line error if this installation lacks it."""
-    if not (DEFAULT_MODEL_DIR / "meta.json").is_file():
-        raise ValueError(f"{DEFAULT_MODEL_DIR}: the default model is not installed with this copy of pocoloco")
-    return DEFAULT_MODEL_DIR
+def default_checkpoint(kind: str = "pocoloco") -> Path:
+    """Folder of the shipped checkpoint of model ``kind``; a one-line error if unknown or if
+    this installation lacks it."""
+    if kind not in SHIPPED_MODELS:
+        raise ValueError(f"default:{kind}: no shipped model of that name; choose one of: "
+                         + ", ".join(f"default:{k}" for k in SHIPPED_MODELS))  # fmt: skip
+    path = ASSETS_DIR / SHIPPED_MODELS[kind]
+    if not (path / "meta.json").is_file():
+        raise ValueError(f"{path}: the default model is not installed with this copy of pocoloco ({kind})")
+    return path
 
 
 def resolve_ckpt_arg(ckpt: str | None) -> str | Path | None:
-    """``"default"`` -> the shipped checkpoint; anything else unchanged."""
-    return default_checkpoint() if ckpt == "default" else ckpt
+    """``"default"`` -> the shipped PocoLoco checkpoint, ``"default:pop"`` / ``"default:closet"``
+    (/ ``"default:pocoloco"``) -> the shipped peer; anything else unchanged."""
+    if ckpt == "default":
+        return default_checkpoint()
+    if isinstance(ckpt, str) and ckpt.startswith("default:"):
+        return default_checkpoint(ckpt.split(":", 1)[1])
+    return ckpt
