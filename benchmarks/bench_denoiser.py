@@ -73,7 +73,7 @@ def time_forward(model, inputs, repeats: int, bf16: bool = False) -> list[float]
     return times
 
 
-def time_train_step(model, inputs, repeats: int) -> list[float]:
+def time_train_step(model, inputs, repeats: int, bf16: bool = False) -> list[float]:
     model.train()
     opt = torch.optim.AdamW(model.parameters(), lr=2e-4)
     x, t, joints = inputs
@@ -81,7 +81,9 @@ def time_train_step(model, inputs, repeats: int) -> list[float]:
     times = []
     for i in range(repeats + 1):
         t0 = time.perf_counter()
-        loss = ((model(x, t, joints) - noise) ** 2).mean()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):  # as train.py's --bf16
+            pred = model(x, t, joints)
+        loss = ((pred.float() - noise) ** 2).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -147,8 +149,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--big-points", type=int, default=50_000)
     p.add_argument("--no-dense-memory", action="store_true", help="skip the dense memory run (needs ~13 GB at 4 x 10K)")
     p.add_argument("--no-train", action="store_true", help="skip the training-step timings")
+    p.add_argument("--no-memory", action="store_true", help="skip the memory / big-forward subprocesses")
     p.add_argument("--memory-only", action="store_true", help="only the memory / big-forward subprocesses")
-    p.add_argument("--bf16", action="store_true", help="also time the SDPA forward under bf16 autocast")
+    p.add_argument("--bf16", action="store_true",
+                   help="also time both implementations under bf16 autocast (pays off with AMX / avx512_bf16)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument("--timeout", type=float, default=3600.0, help="per memory subprocess, seconds")
     p.add_argument("--quick", action="store_true", help="small sizes for a smoke run")
@@ -192,34 +196,37 @@ def main(argv: list[str] | None = None) -> dict:
 
     for impl in () if args.memory_only else ("sdpa", "dense"):
         model = build(args.preset, impl)
-        ts = time_forward(model, inputs, args.repeats)
-        results["forward_s"][impl] = {"median": median(ts), "runs": ts}
-        rows.append((f"forward {impl}", f"{args.batch} x {args.points}", f"{median(ts):.3f} s"))
-        if args.bf16 and impl == "sdpa":
-            ts = time_forward(model, inputs, args.repeats, bf16=True)
-            results["forward_s"]["sdpa_bf16"] = {"median": median(ts), "runs": ts}
-            rows.append(("forward sdpa bf16", f"{args.batch} x {args.points}", f"{median(ts):.3f} s"))
-        if not args.no_train:
-            ts = time_train_step(model, inputs, args.repeats)
-            results["train_step_s"][impl] = {"median": median(ts), "runs": ts}
-            rows.append((f"train step {impl}", f"{args.batch} x {args.points}", f"{median(ts):.3f} s"))
+        for bf16 in (False, True) if args.bf16 else (False,):
+            key = f"{impl}_bf16" if bf16 else impl
+            ts = time_forward(model, inputs, args.repeats, bf16=bf16)
+            results["forward_s"][key] = {"median": median(ts), "runs": ts}
+            rows.append((f"forward {key}", f"{args.batch} x {args.points}", f"{median(ts):.3f} s"))
+            if not args.no_train:
+                ts = time_train_step(model, inputs, args.repeats, bf16=bf16)
+                results["train_step_s"][key] = {"median": median(ts), "runs": ts}
+                rows.append((f"train step {key}", f"{args.batch} x {args.points}", f"{median(ts):.3f} s"))
         del model
 
-    fwd = results["forward_s"]
-    if fwd:
-        results["forward_speedup"] = fwd["dense"]["median"] / fwd["sdpa"]["median"]
-    if "sdpa_bf16" in fwd:
-        results["forward_speedup_bf16"] = fwd["dense"]["median"] / fwd["sdpa_bf16"]["median"]
-    if results["train_step_s"]:
-        tr = results["train_step_s"]
-        results["train_step_speedup"] = tr["dense"]["median"] / tr["sdpa"]["median"]
+    speedups = {}  # dense / sdpa, same precision; and sdpa bf16 against the dense original in fp32
+    for what in ("forward_s", "train_step_s"):
+        tab = results[what]
+        for name, (num, den) in {"fp32": ("dense", "sdpa"), "bf16": ("dense_bf16", "sdpa_bf16"),
+                                 "sdpa_bf16_vs_dense_fp32": ("dense", "sdpa_bf16")}.items():  # fmt: skip
+            if num in tab and den in tab:
+                speedups[f"{what[:-2]} {name}"] = tab[num]["median"] / tab[den]["median"]
+    results["speedups"] = speedups
+    if "forward fp32" in speedups:
+        results["forward_speedup"] = speedups["forward fp32"]
+    if "train_step fp32" in speedups:
+        results["train_step_speedup"] = speedups["train_step fp32"]
 
-    mem_impls = ("sdpa",) if args.no_dense_memory else ("sdpa", "dense")
+    mem_impls = () if args.no_memory else ("sdpa",) if args.no_dense_memory else ("sdpa", "dense")
     results["memory"] = [
         measure_memory(args.preset, impl, args.mem_batch, args.mem_points, args.timeout) for impl in mem_impls
     ]
-    results["big_forward"] = measure_memory(args.preset, "sdpa", 1, args.big_points, args.timeout)
-    for m in [*results["memory"], results["big_forward"]]:
+    if not args.no_memory:
+        results["big_forward"] = measure_memory(args.preset, "sdpa", 1, args.big_points, args.timeout)
+    for m in [*results["memory"], *([results["big_forward"]] if "big_forward" in results else [])]:
         size = f"{m['batch']} x {m['points']}"
         if "error" in m:
             rows.append((f"memory {m['impl']}", size, m["error"]))
@@ -233,12 +240,8 @@ def main(argv: list[str] | None = None) -> dict:
     w = max(len(r[0]) for r in rows)
     for name, size, val in rows:
         print(f"  {name:<{w}}  {size:>12}  {val}")
-    if "forward_speedup" in results:
-        print(f"  forward speed-up sdpa vs dense: {results['forward_speedup']:.2f}x")
-    if "forward_speedup_bf16" in results:
-        print(f"  forward speed-up sdpa bf16 vs dense fp32: {results['forward_speedup_bf16']:.2f}x")
-    if "train_step_speedup" in results:
-        print(f"  training-step speed-up sdpa vs dense: {results['train_step_speedup']:.2f}x")
+    for name, v in speedups.items():
+        print(f"  speed-up (dense / sdpa) {name}: {v:.2f}x")
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2))
