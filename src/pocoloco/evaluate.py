@@ -79,6 +79,7 @@ class EvalSettings:
     ``pocoloco sample``. baselines: which of ``nearest_frame``, ``posed_body``, ``gt_resample``.
     subjects: restrict to these subjects (None: all). batch_size: clouds sampled together.
     use_ema: EMA (default) or raw weights. clip: x0 clamp of the sampler (``sample_clouds``).
+    bf16: the denoiser under bf16 autocast (``sample_clouds``).
     """
 
     split: str = "test"
@@ -92,6 +93,7 @@ class EvalSettings:
     batch_size: int = 4
     use_ema: bool = True
     clip: float | None = None
+    bf16: bool = False
 
     def __post_init__(self):
         if self.num_frames < 0:
@@ -280,7 +282,7 @@ def evaluate(
             t0 = time.perf_counter()
             sampled = sample_clouds(model, normalisation, config, fr.joints, len(settings.seeds), settings.num_points,
                                     sampler=settings.sampler, steps=settings.steps, seeds=list(settings.seeds),
-                                    batch_size=settings.batch_size, clip=settings.clip)  # fmt: skip
+                                    batch_size=settings.batch_size, clip=settings.clip, bf16=settings.bf16)  # fmt: skip
             per_sample = (time.perf_counter() - t0) / len(settings.seeds)
             scores = [score(sampled.points[k], None if sampled.normals is None else sampled.normals[k])
                       for k in range(len(settings.seeds))]  # fmt: skip
@@ -460,6 +462,7 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
     parser.add_argument("--clip", type=float, default=5.0,
                         help="clamp the sampler's x0 estimates, normalised units (default 5; 0 = off; see pocoloco sample)")  # fmt: skip
+    parser.add_argument("--bf16", action="store_true", help="denoiser under bf16 autocast (see pocoloco sample --bf16)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
     parser.add_argument("--out", required=True, help="output folder (eval.json, eval.md, plots)")
 
@@ -482,7 +485,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             sampler=args.sampler, steps=args.steps,
                             baselines=() if args.no_baselines else EvalSettings.baselines,
                             subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
-                            use_ema=not args.raw_weights, clip=args.clip or None)  # fmt: skip
+                            use_ema=not args.raw_weights, clip=args.clip or None, bf16=args.bf16)  # fmt: skip
     from pocoloco.sample import SAMPLERS
 
     if settings.sampler not in SAMPLERS:

@@ -201,6 +201,7 @@ def sample_clouds(
     batch_size: int = 8,
     progress: Any = None,
     clip: float | None = None,
+    bf16: bool = False,
 ) -> SampledClouds:
     """Draw ``num`` clouds of ``num_points`` points from the denoiser, conditioned on one pose.
 
@@ -223,6 +224,9 @@ def sample_clouds(
         clip: clamp the sampler's x0 estimates to [-clip, clip] in normalised units (None: off).
             The data fill about [-4.5, 4.5] (a 1.2 m reach over the 0.26 m std of ``small``), so
             ``clip=5`` only stops stray points of an undertrained model from flying away.
+        bf16: run the denoiser under bf16 autocast (its matmuls and attention in bfloat16; the
+            sampler's arithmetic and the returned points stay float32). Several times faster on
+            CPUs with AMX / avx512_bf16 and on recent GPUs; slower on CPUs without them.
     Returns:
         :class:`SampledClouds` (points (K, N, 3), normals (K, N, 3) or None).
     """
@@ -261,7 +265,8 @@ def sample_clouds(
             rng = PerSampleRNG(chunk, device=device)
             noise = rng.randn((num_points, C), dtype=dtype, device=device)  # (B, N, C)
             cond = torch.as_tensor(joints_n, dtype=dtype, device=device).expand(len(chunk), J, 3)  # (B, J, 3)
-            x = sample(sampler, model, schedule, noise, cond, rng=rng, **kwargs)  # (B, N, C)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                x = sample(sampler, model, schedule, noise, cond, rng=rng, **kwargs)  # (B, N, C)
             out[b0 : b0 + len(chunk)] = x.float().cpu().numpy()
             if progress is not None:
                 progress(b0 + len(chunk), num)
@@ -342,6 +347,8 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="cloud k uses seed SEED + k (default 0)")
     parser.add_argument("--batch-size", type=int, default=8, help="clouds denoised together (default 8)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
+    parser.add_argument("--bf16", action="store_true",
+                        help="denoiser under bf16 autocast: several times faster on CPUs with AMX / avx512_bf16 and on GPUs")
     parser.add_argument("--clip", type=float, default=DEFAULT_CLIP,
                         help=f"clamp the sampler's x0 estimates to [-CLIP, CLIP] normalised units (default {DEFAULT_CLIP}: "
                              "outside the data, which stay within +-3.5 on small; 0 = off)")  # fmt: skip
@@ -401,14 +408,14 @@ def cmd_sample(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     clouds = sample_clouds(model, normalisation, config, joints, args.num, num_points, sampler=args.sampler,
                            steps=args.steps, seeds=seeds, batch_size=args.batch_size,
-                           clip=args.clip or None)  # fmt: skip
+                           clip=args.clip or None, bf16=args.bf16)  # fmt: skip
     seconds = time.perf_counter() - t0
     settings = {
         "checkpoint": str(ckpt), "step": step, "preset": config.preset, "weights": "raw" if args.raw_weights else "ema",
         "joints": os.fspath(args.joints), "frame_id": args.frame_id, "joints_m": joints.tolist(),
         "sampler": args.sampler, "steps": steps if steps is not None else config.num_timesteps,
         "num": args.num, "points": num_points, "seeds": seeds, "batch_size": args.batch_size, "clip": args.clip or None,
-        "normals": clouds.normals is not None, "device": str(device), "threads": torch.get_num_threads(),
+        "bf16": args.bf16, "normals": clouds.normals is not None, "device": str(device), "threads": torch.get_num_threads(),
         "seconds_total": seconds, "seconds_per_sample": seconds / args.num,
     }  # fmt: skip
     write_samples(out, clouds, settings, render=not args.no_render)
