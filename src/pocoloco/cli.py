@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import sys
 from pathlib import Path
@@ -152,7 +153,8 @@ def cmd_export_model(args: argparse.Namespace) -> None:
 
     out = export_for_sampling(resolve_checkpoint(args.ckpt), args.out, use_ema=not args.raw_weights)
     size = sum(f.stat().st_size for f in out.iterdir())
-    print(f"wrote {out} ({size / 1e6:.1f} MB, {'raw' if args.raw_weights else 'EMA'} weights)")
+    weights = json.loads((out / "meta.json").read_text(encoding="utf-8"))["weights"]  # raw if the model keeps no EMA
+    print(f"wrote {out} ({size / 1e6:.1f} MB, {'EMA' if weights == 'ema' else 'raw'} weights)")
 
 
 def build_parser() -> argparse.ArgumentParser:
