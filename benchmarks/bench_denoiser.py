@@ -21,8 +21,11 @@ Where the time goes (FLOPs per block, B x N tokens, width D): the linear layers 
 N = 2048, D = 512 attention is only ~36% of the FLOPs, so a faster attention kernel alone cannot
 make the whole forward 4x faster on a CPU (Amdahl); the gap grows with N (N = 10K: ~73%), and the
 dense baseline's N x N softmax is what blows up memory (4 x 4 x 10K^2 floats = 6.4 GB per copy).
-bf16 autocast only pays off on CPUs with native bf16 (avx512_bf16 / AMX); without it the
-linear layers get slower.
+bf16 autocast pays off on CPUs with native bf16 (this machine's AMD EPYC has avx512_bf16, no
+AMX: bf16 matmuls on the denoiser's linear shapes run ~2-3x the float32 rate, while PyTorch's
+CPU flash-attention kernel is no faster in bf16 than in float32); without it the linear layers
+get slower. ``--bf16`` reports the speed-ups at equal precision and SDPA-bf16 against the
+dense original in float32 (the precision the original code trains and samples in).
 
     python benchmarks/bench_denoiser.py            # full run (slow on a 2-core CPU: ~30+ min)
     python benchmarks/bench_denoiser.py --quick    # smoke run with small sizes (~1 min)
