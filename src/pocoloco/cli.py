@@ -300,10 +300,11 @@ def run_command(func, args: argparse.Namespace, prog: str = "pocoloco") -> int:
     """Run one command; a user error becomes one line ``PROG: error: ...`` and
     exit code 2 (``POCOLOCO_DEBUG=1`` shows the traceback instead)."""
     try:
-        if isinstance(getattr(args, "ckpt", None), str):  # --ckpt default / default:pop / default:closet
-            from .pretrained import resolve_ckpt_arg
+        from .pretrained import resolve_ckpt_arg
 
-            args.ckpt = str(resolve_ckpt_arg(args.ckpt))
+        for name, value in vars(args).items():  # --ckpt[-pop|...] default / default:pop / default:closet
+            if (name == "ckpt" or name.startswith("ckpt_")) and isinstance(value, str):
+                setattr(args, name, str(resolve_ckpt_arg(value)))
         func(args)
     except USER_ERRORS as e:
         if os.environ.get("POCOLOCO_DEBUG"):
