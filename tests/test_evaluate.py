@@ -31,11 +31,11 @@ def test_nearest_frame_finds_itself_and_follows_the_root(tiny_dataset):
     frames = DatasetLayout(tiny_dataset).iter_frames("train")
     k = len(frames) // 2
     fr = read_frame(frames[k][2], ["joints", "points"])
-    i, rms = base.nearest(fr.joints)
-    assert rms == 0.0 and base.joints[i].tolist() == base.joints[k].tolist()
+    i, rms, yaw = base.nearest(fr.joints)
+    assert rms == 0.0 and yaw == 0.0 and base.joints[i].tolist() == base.joints[k].tolist()
     # a translated pose finds the same frame; its points move with the root (exactly)
     shift = np.array([1.5, -0.25, 0.1])
-    i2, rms2 = base.nearest(fr.joints + shift)
+    i2, rms2, _ = base.nearest(fr.joints + shift)
     assert i2 == i and rms2 < 1e-6
     a = base.predict(fr.joints, 50, (1, 0))
     b = base.predict(fr.joints + shift, 50, (1, 0))
@@ -53,6 +53,45 @@ def test_nearest_frame_finds_itself_and_follows_the_root(tiny_dataset):
     assert brute[j] == min(own)
     with pytest.raises(ValueError, match="no training frames of subject"):
         base.nearest(fr.joints, subject="nobody")
+
+
+def _turn(x: np.ndarray, deg: float, about: np.ndarray) -> np.ndarray:
+    """x (..., 3) turned by deg about the vertical (y) axis through ``about``, via a rotation matrix."""
+    t = np.radians(deg)
+    rot = np.array([[np.cos(t), 0.0, np.sin(t)], [0.0, 1.0, 0.0], [-np.sin(t), 0.0, np.cos(t)]])
+    return (x - about) @ rot.T + about
+
+
+def test_nearest_frame_yaw_alignment_against_a_grid_search(tiny_dataset):
+    """``align="yaw"``: a training pose turned about the vertical axis and moved is found again with
+    the turn recovered, its scan turned onto the query; the closed-form yaw matches a 0.1-degree
+    grid search; root alignment alone misses the turned pose."""
+    frames = DatasetLayout(tiny_dataset).iter_frames("train")
+    k = len(frames) // 3
+    fr = read_frame(frames[k][2], ["joints", "points", "normals"])
+    shift = np.array([0.3, 0.0, -0.2])
+    q = _turn(fr.joints.astype(np.float64), 150.0, fr.joints[0]) + shift
+    yaw = NearestFrameBaseline(tiny_dataset, align="yaw")
+    i, rms, theta = yaw.nearest(q)
+    assert yaw.joints[i].tolist() == yaw.joints[k].tolist() and rms < 1e-6
+    assert abs(np.degrees(theta) - 150.0) < 1e-6
+    pred = yaw.predict(q, 40, (1, 0))
+    plain = NearestFrameBaseline(tiny_dataset).predict(fr.joints, 40, (1, 0))  # same subset, unturned
+    np.testing.assert_allclose(pred["points"], _turn(plain["points"], 150.0, fr.joints[0]) + shift, atol=1e-4)
+    np.testing.assert_allclose(pred["normals"], _turn(plain["normals"], 150.0, np.zeros(3)), atol=1e-5)
+    assert NearestFrameBaseline(tiny_dataset).nearest(q)[1] > 10 * rms + 0.05  # root-only: a far pose
+    # closed form vs grid search over the angle, for a noisy query against every frame
+    noisy = q + np.random.default_rng(1).normal(scale=0.03, size=q.shape)
+    i, rms, theta = yaw.nearest(noisy)
+    qa = noisy - noisy[0]
+    best = []
+    for f in range(len(frames)):
+        src = yaw.joints[f] - yaw.joints[f, 0]
+        errs = [((_turn(src, d, np.zeros(3)) - qa) ** 2).sum(-1).mean() for d in np.arange(-180, 180, 0.1)]
+        best.append(min(errs))
+    assert i == int(np.argmin(best)) and abs(rms - np.sqrt(min(best))) < 1e-3
+    with pytest.raises(ValueError, match="must be one of root, yaw"):
+        NearestFrameBaseline(tiny_dataset, align="pitch")
 
 
 def test_evaluate_rows_match_the_metrics(run, tiny_dataset):

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pocoloco.evaluate import TABLE_COLUMNS, EvalSettings, evaluate, markdown_table
+from pocoloco.evaluate import TABLE_COLUMNS, EvalSettings, add_nearest_align_argument, evaluate, markdown_table
 from pocoloco.utils.atomic import output_folder
 
 __all__ = ["QUALITY_ROWS", "add_bench_quality_arguments", "bench_quality", "cmd_bench_quality", "quality_markdown"]
@@ -293,6 +293,7 @@ def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="PocoLoco samples per frame")
     parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco sampler (default dpm++sde, 25 steps)")
     parser.add_argument("--steps", type=int, help="PocoLoco sampler steps")
+    add_nearest_align_argument(parser)
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", required=True, help="output folder (quality.json, quality.md, quality.png)")
@@ -305,7 +306,7 @@ def cmd_bench_quality(args: argparse.Namespace) -> None:
     if args.threads is not None:
         torch.set_num_threads(max(1, args.threads))
     settings = EvalSettings(num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
-                            sampler=args.sampler, steps=args.steps, clip=5.0)  # fmt: skip
+                            sampler=args.sampler, steps=args.steps, clip=5.0, nearest_align=args.nearest_align)  # fmt: skip
     console = Console(stderr=True)
     ckpts = {key: getattr(args, f"ckpt_{key}") for key in QUALITY_ROWS}
     report = bench_quality(args.data, ckpts, args.out, settings, train_steps=args.train_steps, work=args.work,

@@ -79,7 +79,8 @@ class EvalSettings:
     ``pocoloco sample``. baselines: which of ``nearest_frame``, ``posed_body``, ``gt_resample``.
     subjects: restrict to these subjects (None: all). batch_size: clouds sampled together.
     use_ema: EMA (default) or raw weights. clip: x0 clamp of the sampler (``sample_clouds``).
-    bf16: the denoiser under bf16 autocast (``sample_clouds``).
+    bf16: the denoiser under bf16 autocast (``sample_clouds``). nearest_align: ``root`` or ``yaw``
+    (``NearestFrameBaseline``).
     """
 
     split: str = "test"
@@ -94,6 +95,7 @@ class EvalSettings:
     use_ema: bool = True
     clip: float | None = None
     bf16: bool = False
+    nearest_align: str = "root"
 
     def __post_init__(self):
         if self.num_frames < 0:
@@ -111,6 +113,8 @@ class EvalSettings:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.clip is not None and not self.clip > 0:
             raise ValueError(f"clip must be > 0, got {self.clip}")
+        if self.nearest_align not in NEAREST_ALIGNS:
+            raise ValueError(f"nearest_align must be one of {', '.join(NEAREST_ALIGNS)}, got {self.nearest_align!r}")
 
 
 # ------------------------------------------------------------------------------------- frames
@@ -127,16 +131,48 @@ def _subset(n: int, k: int, seed: Sequence[int]) -> np.ndarray:
     return np.sort(np.random.default_rng(list(seed)).choice(n, size=min(k, n), replace=False))
 
 
+#: how ``NearestFrameBaseline`` aligns a training pose to the query before comparing
+NEAREST_ALIGNS = ("root", "yaw")
+
+
+def _yaw_to_match(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Angles theta (F,) of the rotations R_y(theta) about the vertical (y) axis minimising
+    sum_j |R_y(theta) src_fj - dst_j|^2 (2-D Procrustes in the x-z plane; closed form).
+
+    src: (F, J, 3) root-aligned joints; dst: (J, 3). R_y(theta) maps (x, z) to
+    (cos x + sin z, -sin x + cos z)."""
+    a = (dst[None, :, 0] * src[..., 0] + dst[None, :, 2] * src[..., 2]).sum(-1)
+    b = (dst[None, :, 0] * src[..., 2] - dst[None, :, 2] * src[..., 0]).sum(-1)
+    return np.arctan2(b, a)
+
+
+def _rotate_y(x: np.ndarray, theta: float | np.ndarray) -> np.ndarray:
+    """x: (..., 3) rotated by R_y(theta) (see ``_yaw_to_match``); theta broadcasts over x[..., 0]."""
+    c, s = np.cos(theta), np.sin(theta)
+    out = np.array(x, dtype=np.float64, copy=True)
+    out[..., 0] = c * x[..., 0] + s * x[..., 2]
+    out[..., 2] = -s * x[..., 0] + c * x[..., 2]
+    return out
+
+
 class NearestFrameBaseline:
-    """The training frame nearest in pose: argmin_f sum_j |(k_j - k_root) - (k'_fj - k'_f,root)|^2,
+    """The training frame nearest in pose: argmin_f sum_j |(k_j - k_root) - A_f(k'_fj - k'_f,root)|^2,
     over the frames of one subject (``subject=``) or of all.
 
+    ``align="root"`` (default): A_f = identity, the poses compared after moving the roots together.
+    ``align="yaw"``: A_f = the rotation about the vertical axis that best fits frame f to the query
+    (closed form), so a query facing a direction no training frame faces still finds its pose.
     Reads only the joints of every training frame at construction (fast); the chosen frame's
-    points are read on demand and translated by the root offset so they sit on the query pose.
+    points are read on demand and moved by the same rigid motion onto the query pose.
     """
 
-    def __init__(self, root: str | os.PathLike, subjects: Sequence[str] | None = None, root_joint: int = 0):
+    def __init__(self, root: str | os.PathLike, subjects: Sequence[str] | None = None, root_joint: int = 0,
+                 align: str = "root"):  # fmt: skip
         from pocoloco.data import format as fmt
+
+        if align not in NEAREST_ALIGNS:
+            raise ValueError(f"nearest-frame alignment must be one of {', '.join(NEAREST_ALIGNS)}, got {align!r}")
+        self.align = align
 
         layout = fmt.DatasetLayout(root)
         chosen = sorted(subjects) if subjects else layout.subjects()
@@ -149,30 +185,37 @@ class NearestFrameBaseline:
         self.aligned = joints - joints[:, root_joint : root_joint + 1]  # (F, J, 3)
         self.subject_of = np.array([s for s, _, _ in self.frames])  # (F,)
 
-    def nearest(self, joints: np.ndarray, subject: str | None = None) -> tuple[int, float]:
-        """(index into ``frames``, RMS joint distance in metres) of the nearest training pose
-        (among ``subject``'s frames if given)."""
+    def nearest(self, joints: np.ndarray, subject: str | None = None) -> tuple[int, float, float]:
+        """(index into ``frames``, RMS joint distance in metres, yaw angle in radians applied to
+        that frame: 0 unless ``align="yaw"``) of the nearest training pose (among ``subject``'s
+        frames if given)."""
         q = np.asarray(joints, np.float64)
         q = q - q[self.root_joint]
-        d2 = ((self.aligned - q[None]) ** 2).sum(-1).mean(-1)  # (F,)
+        theta = _yaw_to_match(self.aligned, q) if self.align == "yaw" else np.zeros(len(self.aligned))
+        cand = _rotate_y(self.aligned, theta[:, None]) if self.align == "yaw" else self.aligned
+        d2 = ((cand - q[None]) ** 2).sum(-1).mean(-1)  # (F,)
         if subject is not None:
             if not (self.subject_of == subject).any():
                 raise ValueError(f"no training frames of subject {subject!r} for the nearest-frame baseline")
             d2 = np.where(self.subject_of == subject, d2, np.inf)
         i = int(np.argmin(d2))
-        return i, float(math.sqrt(d2[i]))
+        return i, float(math.sqrt(d2[i])), float(theta[i])
 
     def predict(self, joints: np.ndarray, num_points: int, seed: Sequence[int],
                 subject: str | None = None) -> dict[str, Any]:  # fmt: skip
         """N points (+ normals, labels) of the nearest training frame, moved onto the query root."""
         from pocoloco.data import format as fmt
 
-        i, rms = self.nearest(joints, subject)
+        i, rms, theta = self.nearest(joints, subject)
         fr = fmt.read_frame(self.frames[i][2], ["points", "normals", "joints", "labels"], allow_missing=True)
         sel = _subset(fr.points.shape[0], num_points, seed)
-        shift = np.asarray(joints, np.float64)[self.root_joint] - fr.joints[self.root_joint]
-        return {"points": fr.points[sel] + shift, "normals": fr.normals[sel], "source": str(self.frames[i][2]),
-                "labels": None if fr.labels is None else fr.labels[sel], "pose_rms_m": rms}  # fmt: skip
+        src_root = fr.joints[self.root_joint].astype(np.float64)
+        dst_root = np.asarray(joints, np.float64)[self.root_joint]
+        points = _rotate_y(fr.points[sel] - src_root, theta) + dst_root
+        normals = _rotate_y(fr.normals[sel], theta)
+        return {"points": points.astype(fr.points.dtype), "normals": normals.astype(fr.normals.dtype),
+                "source": str(self.frames[i][2]), "labels": None if fr.labels is None else fr.labels[sel],
+                "pose_rms_m": rms, "yaw_deg": math.degrees(theta)}  # fmt: skip
 
 
 def _posed_body(frame, faces: np.ndarray, num_points: int, seed: int) -> dict[str, Any]:
@@ -252,7 +295,8 @@ def evaluate(
                     model_title="PocoLoco", num_parameters=int(sum(p.numel() for p in model.parameters())),
                     deterministic=False)  # fmt: skip
         _check_normalisation(normalisation, card, path, data)
-    nearest_frame = NearestFrameBaseline(data, subjects) if "nearest_frame" in settings.baselines else None
+    nearest_frame = (NearestFrameBaseline(data, subjects, align=settings.nearest_align)
+                     if "nearest_frame" in settings.baselines else None)  # fmt: skip
     faces: dict[str, np.ndarray] = {}
     mean_cache = None
     if peer is not None:
@@ -310,7 +354,8 @@ def evaluate(
             clouds["model"] = pred.points
         if nearest_frame is not None:
             pred = nearest_frame.predict(fr.joints, settings.num_points, (1, n_done), subject=subject)
-            row["nearest_frame"] = {**score(pred["points"], pred["normals"]), "pose_rms_cm": 100 * pred["pose_rms_m"]}
+            row["nearest_frame"] = {**score(pred["points"], pred["normals"]), "pose_rms_cm": 100 * pred["pose_rms_m"],
+                                    "yaw_deg": pred["yaw_deg"]}  # fmt: skip
             row["nearest_frame_source"] = pred["source"]
             clouds["nearest_frame"] = (pred["points"], pred["labels"])
         if "posed_body" in settings.baselines:
@@ -444,6 +489,13 @@ def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dic
 
 
 # -------------------------------------------------------------------------------------- the CLI
+def add_nearest_align_argument(parser: argparse.ArgumentParser) -> None:
+    """``--nearest-align root|yaw`` (shared by ``eval`` and ``bench quality``)."""
+    parser.add_argument("--nearest-align", choices=NEAREST_ALIGNS, default="root",
+                        help="nearest-frame baseline: compare poses after moving the roots together (root, default) "
+                             "or also turning about the vertical axis (yaw)")  # fmt: skip
+
+
 def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco eval`` options (handler: :func:`cmd_eval`)."""
     parser.add_argument("--ckpt", help="checkpoint / run folder; 'default' = the model shipped with pocoloco; "
@@ -458,6 +510,7 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--subjects", nargs="+", help="only these subjects")
     parser.add_argument("--no-baselines", action="store_true", help="skip the nearest-frame / posed-body / GT rows")
     parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
+    add_nearest_align_argument(parser)
     parser.add_argument("--batch-size", type=int, default=4, help="clouds sampled together (default 4)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
     parser.add_argument("--clip", type=float, default=5.0,
@@ -485,7 +538,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             sampler=args.sampler, steps=args.steps,
                             baselines=() if args.no_baselines else EvalSettings.baselines,
                             subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
-                            use_ema=not args.raw_weights, clip=args.clip or None, bf16=args.bf16)  # fmt: skip
+                            use_ema=not args.raw_weights, clip=args.clip or None, bf16=args.bf16,
+                            nearest_align=args.nearest_align)  # fmt: skip
     from pocoloco.sample import SAMPLERS
 
     if settings.sampler not in SAMPLERS:
