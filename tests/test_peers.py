@@ -342,3 +342,14 @@ def test_shipped_peer_samples_a_dataset_frame(test_frame, tmp_path, capsys, mode
     assert np.median(dist) < 0.05 and np.quantile(dist, 0.95) < 0.25, (np.median(dist), np.quantile(dist, 0.95))
     err = _one_line_error(capsys, main([*argv[:2], "default:nope", *argv[3:-1], str(tmp_path / "x")]))
     assert "default:pop" in err and "default:closet" in err
+
+
+def test_describe_checkpoint_names_shipped_and_relative_paths(tmp_path, monkeypatch):
+    from pocoloco.pretrained import ASSETS_DIR, describe_checkpoint
+
+    assert describe_checkpoint(ASSETS_DIR / "pop_small") == "default:pop"
+    assert describe_checkpoint(ASSETS_DIR / "pocoloco_small") == "default"
+    (tmp_path / "runs" / "a").mkdir(parents=True)
+    monkeypatch.chdir(tmp_path)
+    assert describe_checkpoint(tmp_path / "runs" / "a") == "runs/a"
+    assert describe_checkpoint("/elsewhere/ckpt") == "/elsewhere/ckpt"

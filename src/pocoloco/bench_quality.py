@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from pocoloco.evaluate import TABLE_COLUMNS, EvalSettings, add_nearest_align_argument, evaluate, markdown_table
+from pocoloco.pretrained import describe_checkpoint
 from pocoloco.utils.atomic import output_folder
 
 __all__ = ["QUALITY_ROWS", "add_bench_quality_arguments", "bench_quality", "cmd_bench_quality", "quality_markdown"]
@@ -171,7 +172,7 @@ def bench_quality(
     report = {
         "settings": {**base.settings, "rows": {k: QUALITY_ROWS[k][0] for k in results}, "trained_here": trained,
                      "train_steps": train_steps, "train_preset": preset if trained else None},
-        "checkpoints": {k: {"path": str(p), "step": results[k][0].settings["step"],
+        "checkpoints": {k: {"path": describe_checkpoint(p), "step": results[k][0].settings["step"],
                             "preset": results[k][0].settings["preset"], "eval_seconds": results[k][1]}
                         for k, p in paths.items()},
         "means": table,

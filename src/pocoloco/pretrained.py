@@ -9,6 +9,7 @@ their raw weights: they keep no EMA). How each was trained and its evaluation ar
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 ASSETS_DIR = Path(__file__).resolve().parent / "assets"
@@ -43,6 +44,19 @@ def default_checkpoint(kind: str = "pocoloco") -> Path:
     if not (path / "meta.json").is_file():
         raise ValueError(f"{path}: the default model is not installed with this copy of pocoloco ({kind})")
     return path
+
+
+def describe_checkpoint(path: str | os.PathLike) -> str:
+    """How to name a checkpoint folder in reports: ``default:pop`` etc. for a shipped model, else
+    the path relative to the working directory when it lies below it, else the path as given."""
+    p = Path(path).resolve()
+    for kind, folder in SHIPPED_MODELS.items():
+        if p == (ASSETS_DIR / folder).resolve():
+            return "default" if kind == "pocoloco" else f"default:{kind}"
+    try:
+        return str(p.relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
 
 
 def resolve_ckpt_arg(ckpt: str | None) -> str | Path | None:
