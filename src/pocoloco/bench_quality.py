@@ -285,7 +285,8 @@ def render_comparison(base_examples: list[dict[str, Any]], examples: dict[str, l
 def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="pocoloco dataset (its test split is evaluated)")
     for key, (title, _, _) in QUALITY_ROWS.items():
-        parser.add_argument(f"--ckpt-{key.replace('_', '-')}", dest=f"ckpt_{key}", help=f"{title} checkpoint / run folder, or 'default[:pop|:closet]' (shipped)")
+        parser.add_argument(f"--ckpt-{key.replace('_', '-')}", dest=f"ckpt_{key}",
+                            help=f"{title} checkpoint / run folder, or 'default[:pop|:closet]' (shipped)")  # fmt: skip
     parser.add_argument("--train-steps", type=int, help="train missing models for K steps into --work")
     parser.add_argument("--work", help="folder for the runs trained by --train-steps (reused / resumed)")
     parser.add_argument("--preset", default="small", help="training preset of the missing models (default small)")

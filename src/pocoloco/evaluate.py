@@ -191,8 +191,11 @@ class NearestFrameBaseline:
         frames if given)."""
         q = np.asarray(joints, np.float64)
         q = q - q[self.root_joint]
-        theta = _yaw_to_match(self.aligned, q) if self.align == "yaw" else np.zeros(len(self.aligned))
-        cand = _rotate_y(self.aligned, theta[:, None]) if self.align == "yaw" else self.aligned
+        if self.align == "yaw":
+            theta = _yaw_to_match(self.aligned, q)  # (F,)
+            cand = _rotate_y(self.aligned, theta[:, None])
+        else:
+            theta, cand = np.zeros(len(self.aligned)), self.aligned
         d2 = ((cand - q[None]) ** 2).sum(-1).mean(-1)  # (F,)
         if subject is not None:
             if not (self.subject_of == subject).any():
@@ -213,7 +216,7 @@ class NearestFrameBaseline:
         dst_root = np.asarray(joints, np.float64)[self.root_joint]
         points = _rotate_y(fr.points[sel] - src_root, theta) + dst_root
         normals = _rotate_y(fr.normals[sel], theta)
-        return {"points": points.astype(fr.points.dtype), "normals": normals.astype(fr.normals.dtype),
+        return {"points": points, "normals": normals.astype(fr.normals.dtype),
                 "source": str(self.frames[i][2]), "labels": None if fr.labels is None else fr.labels[sel],
                 "pose_rms_m": rms, "yaw_deg": math.degrees(theta)}  # fmt: skip
 
