@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from pocoloco.body.anny_body import AnnyBody
-from pocoloco.config import DEFAULT_SUBJECTS
+from pocoloco.data.config import DEFAULT_SUBJECTS
 from pocoloco.data.cloth_sim import ClothSimSettings, simulate_garment
 from pocoloco.data.garments import make_garment
 

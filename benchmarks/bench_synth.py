@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from pocoloco.config import synth_preset
+from pocoloco.data.config import synth_preset
 from pocoloco.data.synth import synthesize
 
 

@@ -22,7 +22,7 @@ def torch_single_thread():
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory) -> Path:
     """A dataset generated once per test session with the ``tiny`` preset."""
-    from pocoloco.config import synth_preset
+    from pocoloco.data.config import synth_preset
     from pocoloco.data.synth import synthesize
 
     out = tmp_path_factory.mktemp("tiny") / "data"

@@ -10,6 +10,7 @@ import pytest
 
 from pocoloco.body.skeleton import JOINT_NAMES
 from pocoloco.data import format as fmt
+from pocoloco.data import published
 from pocoloco.data.published import read_ply, read_pop_npz
 from pocoloco.utils import atomic_write, save_npz_atomic, write_json_atomic
 from pocoloco.utils.atomic import output_folder
@@ -311,12 +312,12 @@ def test_export_frame_ply_and_pop(tmp_path):
     frame = random_frame(np.random.default_rng(11))
     fp = lay.frame_path("subj", "train", "seq", 3)
     fmt.write_frame(fp, frame)
-    fmt.export_frame(fp, tmp_path / "out.ply", "ply")
+    published.export_frame(fp, tmp_path / "out.ply", "ply")
     ply = read_ply(tmp_path / "out.ply", require_normals=True)
     np.testing.assert_array_equal(ply.points, frame.points)
     np.testing.assert_array_equal(ply.normals, frame.normals)
     np.testing.assert_array_equal(ply.labels, frame.labels)
-    fmt.export_frame(fp, tmp_path / "out.npz", "npz")
+    published.export_frame(fp, tmp_path / "out.npz", "npz")
     pop = read_pop_npz(tmp_path / "out.npz")
     np.testing.assert_array_equal(pop["scan_pc"], frame.points)
     np.testing.assert_array_equal(pop["vtransf"], frame.vtransf)
@@ -324,9 +325,9 @@ def test_export_frame_ply_and_pop(tmp_path):
     bare = fmt.Frame(points=frame.points, normals=frame.normals, joints=frame.joints, frame_index=0)
     fmt.write_frame(tmp_path / "bare.npz", bare)
     with pytest.raises(ValueError, match="bare.npz: frame has no body_vertices"):
-        fmt.export_frame(tmp_path / "bare.npz", tmp_path / "o2.npz", "npz")
+        published.export_frame(tmp_path / "bare.npz", tmp_path / "o2.npz", "npz")
     with pytest.raises(ValueError, match="fmt must be"):
-        fmt.export_frame(fp, tmp_path / "o.obj", "obj")
+        published.export_frame(fp, tmp_path / "o.obj", "obj")
 
 
 def test_atomic_files_get_normal_permissions(tmp_path):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from pocoloco.config import SYNTH_PRESETS, synth_preset
+from pocoloco.data.config import SYNTH_PRESETS, synth_preset
 from pocoloco.data.format import DatasetLayout, read_card, read_frame
 from pocoloco.data.synth import list_jobs, prepare_output
 

@@ -27,7 +27,7 @@ def _console():
 def cmd_data_synth(args: argparse.Namespace) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from .config import synth_preset
+    from .data.config import synth_preset
     from .data.synth import synthesize
 
     config = synth_preset(args.preset)
@@ -120,7 +120,8 @@ def cmd_data_preview(args: argparse.Namespace) -> None:
 
 
 def cmd_data_export(args: argparse.Namespace) -> None:
-    from .data.format import DatasetLayout, export_frame, read_card
+    from .data.format import DatasetLayout, read_card
+    from .data.published import export_frame
 
     root = Path(args.path)
     read_card(root)
@@ -158,7 +159,7 @@ def cmd_export_model(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .config import SYNTH_PRESETS
+    from .data.config import SYNTH_PRESETS
 
     p = argparse.ArgumentParser(prog="pocoloco", description="Point-cloud models of humans in loose clothing.")
     sub = p.add_subparsers(dest="command", required=True)

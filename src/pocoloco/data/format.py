@@ -591,29 +591,3 @@ def refresh_card(root: str | os.PathLike, normalise_on: str = "train") -> dict[s
                                  "std": stats["std"], "computed_on": normalise_on}  # fmt: skip
     write_card(root, card)
     return card
-
-
-# --------------------------------------------------------------------------- export
-def export_frame(frame_path: str | os.PathLike, out_path: str | os.PathLike, fmt: str = "ply") -> None:
-    """Export one frame to a published format.
-
-    fmt="ply": binary PLY with points, normals and (if present) the label per vertex.
-    fmt="npz": POP-style packed npz with scan_pc, scan_n, body_verts, vtransf,
-    scan_name (no posmaps; see ``published.write_pop_npz``). Needs a frame with
-    body_vertices and vtransf (synthetic data). Coordinates are left as stored
-    (world frame, not pelvis-centred).
-    """
-    from .published import write_pop_npz, write_ply  # published imports this module
-
-    frame = read_frame(frame_path)
-    if fmt == "ply":
-        write_ply(out_path, frame.points, normals=frame.normals, labels=frame.labels)
-    elif fmt == "npz":
-        if frame.body_vertices is None or frame.vtransf is None:
-            raise ValueError(f"{os.fspath(frame_path)}: frame has no body_vertices/vtransf; POP export needs them")
-        parts = os.path.normpath(os.fspath(frame_path)).split(os.sep)
-        scan_name = "_".join(parts[-5:-2] + [parts[-1][:-4]]) if len(parts) >= 5 else parts[-1][:-4]
-        write_pop_npz(out_path, scan_pc=frame.points, scan_n=frame.normals, body_verts=frame.body_vertices,
-                      vtransf=frame.vtransf, scan_name=scan_name)  # fmt: skip
-    else:
-        raise ValueError(f"export_frame: fmt must be 'ply' or 'npz', got {fmt!r}")

@@ -140,7 +140,7 @@ def _push_outside(
 ) -> np.ndarray:
     """Move vertices closer than ``clearance`` to the full body mesh (or inside
     it) outwards along their horizontal ray from ``center``."""
-    from .cloth_sim import signed_distance_fn  # lazy: open3d
+    from .sdf import signed_distance_fn  # lazy: open3d
 
     sdf = signed_distance_fn(body.template, body.faces)
     verts = verts.copy()

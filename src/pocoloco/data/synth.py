@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS
-from ..config import SubjectSpec, SynthConfig
+from .config import SubjectSpec, SynthConfig
 from ..utils.atomic import save_npz_atomic
 from .capture import LABEL_GARMENT, LABEL_NAMES
 from .format import DatasetLayout, Frame, SubjectAsset, make_card, read_frame, refresh_card, write_card, write_frame
