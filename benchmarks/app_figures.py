@@ -28,14 +28,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pocoloco.apps._common import subset
-from pocoloco.apps.animation import animate, render_gif
+from pocoloco.apps.animation import animate
+from pocoloco.apps.common import subset
 from pocoloco.apps.completion import complete, region_mask
 from pocoloco.apps.editing import edit
-from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
 from pocoloco.data import format as fmt
-from pocoloco.pretrained import resolve_ckpt_arg
-from pocoloco.render import LABEL_COLORS, render_grid, render_meshes, turntable_gif
+from pocoloco.engine.checkpoint import resolve_checkpoint
+from pocoloco.engine.shipped import resolve_ckpt_arg
+from pocoloco.methods.pocoloco import load_denoiser
+from pocoloco.viz.render import (
+    LABEL_COLORS,
+    render_gif,
+    render_grid,
+    render_meshes,
+    turntable_gif,
+)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -25,12 +25,12 @@ import time
 import numpy as np
 import torch
 
-from pocoloco.apps._common import jsonable
 from pocoloco.apps.animation import animate, evaluate_animation
-from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
 from pocoloco.data import format as fmt
-from pocoloco.pretrained import resolve_ckpt_arg
-from pocoloco.utils.atomic import write_json_atomic
+from pocoloco.engine.checkpoint import resolve_checkpoint
+from pocoloco.engine.shipped import resolve_ckpt_arg
+from pocoloco.methods.pocoloco import load_denoiser
+from pocoloco.utils.atomic import jsonable, write_json_atomic
 
 METHODS = ("independent", "shared-noise", "chain", "chain-world")
 

@@ -60,7 +60,7 @@ def _inputs(batch: int, points: int, gt_points: int, seed: int = 0):
     """anny posed bodies -> (template, faces, CloSETBatch)."""
     from pocoloco.body import NUM_JOINTS, AnnyBody
     from pocoloco.data.format import Frame
-    from pocoloco.models.closet import make_closet_batch
+    from pocoloco.methods.closet import make_closet_batch
     from pocoloco.ops import sample_surface
 
     body = AnnyBody()
@@ -78,7 +78,12 @@ def _inputs(batch: int, points: int, gt_points: int, seed: int = 0):
 
 def _child(args) -> None:
     """Fresh process: build, time forward or train steps, print one JSON line."""
-    from pocoloco.models.closet import CloSET, closet_preset, closet_train_step, make_closet_batch, make_closet_optimizer
+    from pocoloco.methods.closet import (
+        closet_train_step,
+        make_closet_batch,
+        make_closet_optimizer,
+    )
+    from pocoloco.models.closet import CloSET, closet_preset
 
     template, faces, frames = _inputs(args.batch, args.points, args.gt_points)
     torch.manual_seed(0)

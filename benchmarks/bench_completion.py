@@ -31,13 +31,13 @@ import time
 import numpy as np
 import torch
 
-from pocoloco.apps._common import jsonable
 from pocoloco.apps.completion import DEFAULT_RADIUS_M, REGIONS, evaluate_completion
-from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
 from pocoloco.data import format as fmt
-from pocoloco.evaluate import select_frames
-from pocoloco.pretrained import resolve_ckpt_arg
-from pocoloco.utils.atomic import write_json_atomic
+from pocoloco.engine.checkpoint import resolve_checkpoint
+from pocoloco.engine.shipped import resolve_ckpt_arg
+from pocoloco.evaluation.baselines import select_frames
+from pocoloco.methods.pocoloco import load_denoiser
+from pocoloco.utils.atomic import jsonable, write_json_atomic
 
 KEYS = ("inpaint_chamfer_cm", "noise_chamfer_cm", "fresh_hole_chamfer_cm", "fresh_chamfer_cm",
         "inpaint_full_chamfer_cm", "noise_full_chamfer_cm", "fresh_full_chamfer_cm", "coverage_estimated",

@@ -84,7 +84,7 @@ def time_train_step(model, inputs, repeats: int, bf16: bool = False) -> list[flo
     times = []
     for i in range(repeats + 1):
         t0 = time.perf_counter()
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):  # as train.py's --bf16
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):  # as `pocoloco train --bf16`
             pred = model(x, t, joints)
         loss = ((pred.float() - noise) ** 2).mean()
         opt.zero_grad(set_to_none=True)

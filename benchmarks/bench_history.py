@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from pocoloco.body import AnnyBody
-from pocoloco.data.config import DEFAULT_SUBJECTS
 from pocoloco.data.cloth_sim import simulate_garment
+from pocoloco.data.config import DEFAULT_SUBJECTS
 from pocoloco.data.garments import make_garment
 from pocoloco.data.motion import generate_motion, rest_to_motion
 

@@ -76,7 +76,8 @@ def _prepare(path: str, batch: int, scan_points: int, seed: int) -> dict:
 def _worker(args) -> None:
     """Measure one (implementation, mode) in this fresh process; print one JSON line."""
     from pocoloco.body.surface import BodySurface
-    from pocoloco.models.pop import POP, POPBatch, make_optimizer, pop_preset, train_step
+    from pocoloco.methods.pop import make_optimizer, train_step
+    from pocoloco.models.pop import POP, POPBatch, pop_preset
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)

@@ -24,14 +24,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pocoloco.checkpoint import load_denoiser, resolve_checkpoint
 from pocoloco.data import format as fmt
-from pocoloco.evaluate import _subset, select_frames
-from pocoloco.metrics import chamfer_cm
-from pocoloco.pretrained import resolve_ckpt_arg
-from pocoloco.render import plot_curves
-from pocoloco.sample import sample_clouds
+from pocoloco.engine.checkpoint import resolve_checkpoint
+from pocoloco.engine.shipped import resolve_ckpt_arg
+from pocoloco.evaluation.baselines import select_frames
+from pocoloco.evaluation.baselines import subset as _subset
+from pocoloco.evaluation.metrics import chamfer_cm
+from pocoloco.methods.pocoloco import load_denoiser, sample_clouds
 from pocoloco.utils.atomic import write_json_atomic
+from pocoloco.viz.render import plot_curves
 
 DEFAULT_CONFIGS = ("ddpm:1000", "ddpm:25", "ddpm:50", "ddpm:100", "ddim:10", "ddim:25", "ddim:50", "ddim:100", "dpm++:5", "dpm++:10", "dpm++:20",
                    "dpm++:50")  # fmt: skip

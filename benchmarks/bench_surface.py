@@ -23,7 +23,12 @@ import numpy as np
 import torch
 
 from pocoloco.body import NUM_JOINTS, AnnyBody
-from pocoloco.body.surface import largest_component_faces, position_map, rasterize_uv, rasterize_uv_reference
+from pocoloco.body.surface import (
+    largest_component_faces,
+    position_map,
+    rasterize_uv,
+    rasterize_uv_reference,
+)
 from pocoloco.utils.atomic import write_json_atomic
 
 

@@ -2,7 +2,7 @@
 
 For every checkpoint ``step_XXXXXX`` of RUN whose step is a multiple of ``--every`` (and not yet
 in the JSON), samples are drawn from the EMA weights and the raw weights for ``--frames`` test
-frames (``pocoloco.evaluate.evaluate``, ``--seeds`` one sample per seed, ``--points`` points)
+frames (``pocoloco.evaluation.evaluate.evaluate``, ``--seeds`` one sample per seed, ``--points`` points)
 and scored; the nearest-frame, posed-body and GT-resample baselines are computed once with the
 same frames and points. Writes ``--out`` (JSON) and a plot next to it: Chamfer (cm) vs. step
 for EMA and raw weights, with the baselines as horizontal lines, next to the training loss.
@@ -23,10 +23,10 @@ from pathlib import Path
 
 import torch
 
-from pocoloco.checkpoint import _step_dirs
-from pocoloco.evaluate import EvalSettings, evaluate
-from pocoloco.render import plot_curves
+from pocoloco.engine.checkpoint import _step_dirs
+from pocoloco.evaluation.evaluate import EvalSettings, evaluate
 from pocoloco.utils.atomic import write_json_atomic
+from pocoloco.viz.render import plot_curves
 
 
 def _settings(args, baselines=()) -> EvalSettings:

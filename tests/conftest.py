@@ -33,7 +33,8 @@ def tiny_dataset(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_run(tiny_dataset, tmp_path_factory) -> Path:
     """A tiny model trained for 2 steps on ``tiny_dataset`` (its run folder), shared by the test modules."""
-    from pocoloco.train import train, train_preset
+    from pocoloco.methods import train
+    from pocoloco.methods.pocoloco import train_preset
 
     out = tmp_path_factory.mktemp("tiny_run") / "run"
     cfg = train_preset("tiny", steps=2, batch_size=2, num_points=128, ckpt_every=0, sample_every=0, log_every=1)

@@ -6,17 +6,21 @@ import json
 import numpy as np
 import pytest
 
-from pocoloco.apps._common import chain_timesteps, denoise_from, subset, to_normalised
 from pocoloco.apps.animation import animate, flicker_cm, load_motion, warp_by_body
-from pocoloco.apps.completion import complete, estimate_coverage, hole_points, region_mask
+from pocoloco.apps.common import chain_timesteps, denoise_from, subset, to_normalised
+from pocoloco.apps.completion import (
+    complete,
+    estimate_coverage,
+    hole_points,
+    region_mask,
+)
 from pocoloco.apps.editing import _bones, edit, moving_region, nearest_bone
-from pocoloco.checkpoint import load_denoiser
 from pocoloco.cli import main
 from pocoloco.data.format import DatasetLayout, read_frame
 from pocoloco.data.published import read_ply, write_ply
 from pocoloco.diffusion.samplers import make_timesteps
-from pocoloco.sample import sample_clouds
-from pocoloco.train import train, train_preset
+from pocoloco.methods import train
+from pocoloco.methods.pocoloco import load_denoiser, sample_clouds, train_preset
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 

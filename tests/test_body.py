@@ -99,9 +99,8 @@ def test_batched_pose_equals_single_poses(body):
 
 
 def test_rotvec_to_matrix_matches_scipy():
-    from scipy.spatial.transform import Rotation
-
     import torch
+    from scipy.spatial.transform import Rotation
 
     rv = np.random.default_rng(1).normal(size=(20, 3))
     rv[0] = 0

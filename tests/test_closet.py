@@ -12,17 +12,19 @@ import pytest
 import torch
 
 from pocoloco.data.format import Frame
-from pocoloco.models.closet import (
-    CloSET,
-    CloSETConfig,
-    CloSETLossWeights,
+from pocoloco.methods.closet import (
     closet_loss,
     closet_predict,
-    closet_preset,
     closet_train_step,
     make_closet_batch,
     make_closet_optimizer,
     nearest_sq,
+)
+from pocoloco.models.closet import (
+    CloSET,
+    CloSETConfig,
+    CloSETLossWeights,
+    closet_preset,
 )
 from pocoloco.models.pointnet2 import (
     FeaturePropagation,

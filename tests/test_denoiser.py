@@ -11,16 +11,14 @@ from pocoloco.models import (
     PocoLocoDenoiser,
     PocoLocoDenoiserConfig,
     attention,
-    dense_attention,
     denoiser_preset,
+    dense_attention,
     nerf_encoding,
     positional_encoding,
     positional_encoding_dim,
     timestep_embedding,
     transformer_encoding,
 )
-
-
 
 # tiny models run fastest on one thread, and bit-exact comparisons need a fixed thread count
 pytestmark = pytest.mark.usefixtures("torch_single_thread")

@@ -4,11 +4,12 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import run_cli
+
 from pocoloco.data.format import DatasetLayout, read_frame
-from pocoloco.evaluate import EvalSettings, NearestFrameBaseline, evaluate, markdown_tables, select_frames
-from pocoloco.metrics import evaluate_frame
+from pocoloco.evaluation.baselines import NearestFrameBaseline, select_frames
+from pocoloco.evaluation.evaluate import EvalSettings, evaluate, markdown_tables
+from pocoloco.evaluation.metrics import evaluate_frame
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 

@@ -1,4 +1,4 @@
-"""Tests of ``pocoloco mesh`` (pocoloco.meshing): screened Poisson reconstruction of clouds.
+"""Tests of ``pocoloco mesh`` (pocoloco.apps.meshing): screened Poisson reconstruction of clouds.
 
 Shapes with a known surface: a sphere (radius 0.5) and a "dress" (an ellipsoid torso above an
 open cone skirt), sampled uniformly; mesh vertices are compared with the analytic surface or
@@ -15,9 +15,7 @@ import trimesh
 
 pytest.importorskip("open3d")
 
-from pocoloco.cli import main  # noqa: E402
-from pocoloco.data.published import read_ply, write_ply  # noqa: E402
-from pocoloco.meshing import (  # noqa: E402
+from pocoloco.apps.meshing import (  # noqa: E402
     MIN_POINTS,
     _cancel_face_pairs,
     _drop_small_components,
@@ -25,6 +23,8 @@ from pocoloco.meshing import (  # noqa: E402
     is_watertight,
     mesh_from_points,
 )
+from pocoloco.cli import main  # noqa: E402
+from pocoloco.data.published import read_ply, write_ply  # noqa: E402
 
 R = 0.5
 
@@ -214,7 +214,7 @@ def test_cli_refuses_to_overwrite_the_input(tmp_path, capsys):
 
 # ----------------------------------------------------------------------- body refinement
 def test_replace_parts_takes_part_points_from_the_body():
-    from pocoloco.meshing import replace_parts, sample_faces
+    from pocoloco.apps.meshing import replace_parts, sample_faces
 
     # the "body": an icosphere; its "head" = the vertices above z = 0.3 (a cap)
     ico = trimesh.creation.icosphere(subdivisions=3, radius=R)
@@ -246,8 +246,8 @@ def test_replace_parts_takes_part_points_from_the_body():
 @pytest.fixture(scope="module")
 def posed_anny():
     """A posed anny body with known, non-average shape and a cloud sampled on it."""
+    from pocoloco.apps.meshing import sample_faces
     from pocoloco.body.anny_body import AnnyBody
-    from pocoloco.meshing import sample_faces
 
     rng = np.random.default_rng(0)
     body = AnnyBody({"weight": 0.8, "height": 0.3, "proportions": 0.7})
@@ -314,7 +314,7 @@ def test_cli_refine_body_bad_joints_one_line_nothing_written(tmp_path, capsys, j
 
 
 def test_split_nonmanifold_edges_makes_two_tetrahedra_sharing_an_edge_watertight():
-    from pocoloco.meshing import _split_nonmanifold_edges
+    from pocoloco.apps.meshing import _split_nonmanifold_edges
 
     # two closed tetrahedra touching along the edge (0, 1): that edge is used by four faces
     v = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0.2], [0.5, 0.3, 1], [0.5, -1, 0.2], [0.5, -0.3, -1]], np.float32)

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from pocoloco import metrics as M
+from pocoloco.evaluation import metrics as M
 
 
 def _sphere(n: int, radius: float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,4 @@
-"""POP and CloSET in the shared harness (pocoloco.peers, bench_quality): training + exact resume,
+"""POP and CloSET in the shared harness (pocoloco.methods.pop / closet / skinned, evaluation.quality): training + exact resume,
 checkpoint kinds, sample / eval / fit through the CLI, bench quality end to end. Tiny presets."""
 
 from __future__ import annotations
@@ -9,26 +9,21 @@ import numpy as np
 import pytest
 import torch
 
-from pocoloco import checkpoint as ckpt_io
 from pocoloco.cli import main
 from pocoloco.data.format import DatasetLayout, read_frame
+from pocoloco.data.poses import pose_from_frame
 from pocoloco.data.published import read_ply, write_ply
-from pocoloco.peers import (
-    PEER_PRESETS,
-    PeerTrainConfig,
-    load_peer,
-    peer_pose_from_frame,
-    peer_preset,
-    predict_peer,
-    train_peer,
-)
+from pocoloco.engine import checkpoint as ckpt_io
+from pocoloco.methods import load_method, train
+from pocoloco.methods.pocoloco import load_denoiser
+from pocoloco.methods.skinned import SKINNED_PRESETS, SkinnedTrainConfig, skinned_preset
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
 
-def tiny(model: str, **kw) -> PeerTrainConfig:
+def tiny(model: str, **kw) -> SkinnedTrainConfig:
     base = dict(steps=4, ckpt_every=2, sample_every=0, log_every=1)
-    return peer_preset(model, "tiny", **{**base, **kw})
+    return skinned_preset(model, "tiny", **{**base, **kw})
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +32,7 @@ def runs(tiny_dataset, tmp_path_factory):
     root = tmp_path_factory.mktemp("peers")
     out = {}
     for m in ("pop", "closet"):
-        train_peer(tiny(m), tiny_dataset, root / m, progress=False)
+        train(tiny(m), tiny_dataset, root / m, progress=False)
         out[m] = root / m
     return out
 
@@ -58,25 +53,25 @@ def _one_line_error(capsys, code):
 
 # ---------------------------------------------------------------------------------- config
 def test_presets_roundtrip_and_schedule():
-    for (model, name), cfg in PEER_PRESETS.items():
+    for (model, name), cfg in SKINNED_PRESETS.items():
         assert cfg.model == model and cfg.preset == name
-        assert PeerTrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
-    c = peer_preset("pop", "small", steps=800)
+        assert SkinnedTrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    c = skinned_preset("pop", "small", steps=800)
     assert c.normal_start == 500  # the paper's epoch 250 of 400
     assert c.net_config().normal_start == 500 and c.net_config().lr == c.lr  # the POP config follows the run
-    assert peer_preset("closet", "tiny", decomposition=False).net_config().decomposition is False
+    assert skinned_preset("closet", "tiny", decomposition=False).net_config().decomposition is False
     with pytest.raises(ValueError, match="closet only"):
-        peer_preset("pop", "tiny", decomposition=False)
+        skinned_preset("pop", "tiny", decomposition=False)
     with pytest.raises(ValueError, match="unknown training preset 'huge' for pop"):
-        peer_preset("pop", "huge")
+        skinned_preset("pop", "huge")
 
 
 # -------------------------------------------------------------------------------- training
 @pytest.mark.parametrize("model", ["pop", "closet"])
 def test_resume_equals_uninterrupted(runs, tiny_dataset, tmp_path, model):
     out = tmp_path / "run"
-    train_peer(tiny(model).replace(steps=2), tiny_dataset, out, progress=False)
-    train_peer(tiny(model), tiny_dataset, out, progress=False, resume=True)
+    train(tiny(model).replace(steps=2), tiny_dataset, out, progress=False)
+    train(tiny(model), tiny_dataset, out, progress=False, resume=True)
     a = ckpt_io.load_checkpoint(runs[model], expect_model=model)
     b = ckpt_io.load_checkpoint(out, expect_model=model)
     assert a.step == b.step == 4
@@ -107,17 +102,17 @@ def test_cli_trains_closet_without_decomposition_and_resumes(tiny_dataset, tmp_p
     assert "checkpoint is of model 'closet', expected 'pop'" in err
     err = _one_line_error(capsys, main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "x"),
                                         "--no-decomposition", "--preset", "tiny"]))  # fmt: skip
-    assert "--no-decomposition applies to --model pop / closet only" in err
+    assert "--no-decomposition applies to --model closet only" in err
 
 
 # ------------------------------------------------------------------------------ kinds
 def test_checkpoint_kind_mismatch_is_one_line(runs, tiny_run, tiny_dataset, test_frame, tmp_path, capsys):
     with pytest.raises(ValueError, match="checkpoint is of model 'pop', expected 'closet'"):
-        load_peer(runs["pop"], expect_model="closet")
+        load_method(runs["pop"], expect="closet")
     with pytest.raises(ValueError, match="checkpoint is of model 'pocoloco', expected 'pop' or 'closet'"):
-        load_peer(tiny_run)
+        load_method(tiny_run, expect=("pop", "closet"))
     with pytest.raises(ValueError, match="checkpoint is of model 'closet', expected 'pocoloco'"):
-        ckpt_io.load_denoiser(runs["closet"])
+        load_denoiser(runs["closet"])
     # a CloSET checkpoint where PocoLoco is required, a CloSET checkpoint given to POP's fit
     scan = tmp_path / "scan.ply"
     write_ply(scan, np.zeros((300, 3), np.float32), normals=np.tile([0, 0, 1.0], (300, 1)).astype(np.float32))
@@ -143,9 +138,9 @@ def test_sample_cli_one_deterministic_cloud(runs, test_frame, tmp_path, capsys, 
     ply = read_ply(out / "sample_000.ply")
     assert ply.points.shape == (300, 3) and ply.normals is not None
     # the same as the library call, and in the world frame of the frame (close to the body)
-    loaded = load_peer(runs[model])
-    pose = peer_pose_from_frame(path, subject, loaded.needs_mean_shape)
-    ref = predict_peer(loaded, pose, loaded.outfit_id(subject), 300, seed=0)
+    loaded = load_method(runs[model])
+    pose = pose_from_frame(path, subject, loaded.needs_mean_shape)
+    ref = loaded.predict(pose, 300, (0,), loaded.outfit_id(subject))
     np.testing.assert_allclose(ply.points, ref.points[0], atol=1e-5)
     assert np.abs(ply.points.mean(0) - pose.body_vertices.mean(0)).max() < 0.3
     # by id, into a second folder: identical
@@ -155,14 +150,14 @@ def test_sample_cli_one_deterministic_cloud(runs, test_frame, tmp_path, capsys, 
 
 def test_pop_gives_more_points_than_its_query_map(runs, test_frame):
     spec, subject, path = test_frame
-    loaded = load_peer(runs["pop"])
+    loaded = load_method(runs["pop"])
     P = loaded.model.num_query_points
-    pose = peer_pose_from_frame(path, subject, loaded.needs_mean_shape)
-    pts = predict_peer(loaded, pose, 0, 2 * P + 7, seed=1).points[0]
+    pose = pose_from_frame(path, subject, loaded.needs_mean_shape)
+    pts = loaded.predict(pose, 2 * P + 7, (1,), 0).points[0]
     assert pts.shape == (2 * P + 7, 3) and len(np.unique(pts.round(7), axis=0)) == 2 * P + 7
     # a subset of the training map for N <= P: same points as the full map's prediction
-    full = predict_peer(loaded, pose, 0, P, seed=0).points[0]
-    part = predict_peer(loaded, pose, 0, 50, seed=3).points[0]
+    full = loaded.predict(pose, P, (0,), 0).points[0]
+    part = loaded.predict(pose, 50, (3,), 0).points[0]
     d = np.linalg.norm(part[:, None] - full[None], axis=-1).min(1)
     assert d.max() < 1e-5
 
@@ -189,8 +184,8 @@ def test_sample_cli_bad_input(runs, test_frame, tmp_path, capsys, change, messag
 
 # ------------------------------------------------------------------------------------ eval
 def test_eval_cli_scores_peer_through_evaluate(runs, tiny_dataset, tmp_path, capsys):
-    from pocoloco.evaluate import EvalSettings, evaluate
-    from pocoloco.metrics import evaluate_frame
+    from pocoloco.evaluation.evaluate import EvalSettings, evaluate
+    from pocoloco.evaluation.metrics import evaluate_frame
 
     out = tmp_path / "ev"
     argv = ["eval", "--ckpt", str(runs["closet"]), "--data", str(tiny_dataset), "--frames", "2", "--points", "200",
@@ -207,11 +202,11 @@ def test_eval_cli_scores_peer_through_evaluate(runs, tiny_dataset, tmp_path, cap
     row = res.frames[0]
     subject, seq, path = DatasetLayout(tiny_dataset).iter_frames("test")[0]
     fr = read_frame(path)
-    from pocoloco.evaluate import _subset
+    from pocoloco.evaluation.baselines import subset as _subset
 
     g = _subset(fr.num_points, 200, (0, 0))
-    loaded = load_peer(runs["closet"])
-    pred = predict_peer(loaded, peer_pose_from_frame(path, subject, False), loaded.outfit_id(subject), 200, seed=0)
+    loaded = load_method(runs["closet"])
+    pred = loaded.predict(pose_from_frame(path, subject, False), 200, (0,), loaded.outfit_id(subject))
     ref = evaluate_frame(pred.points[0], pred.normals[0], fr.points[g], fr.normals[g], fr.labels[g])
     assert row["model"]["chamfer_cm"] == pytest.approx(ref["chamfer_cm"], rel=1e-6)
 
@@ -236,8 +231,8 @@ def test_fit_cli_adds_an_outfit_and_sample_animates_it(runs, tiny_dataset, test_
     rep = json.loads((out / "fit.json").read_text())
     assert rep["outfit"] == "dress" and rep["outfit_id"] == 2 and rep["loss_last"] < rep["loss_first"]
     assert rep["after"]["chamfer_cm"] <= rep["before_mean_outfit"]["chamfer_cm"] + 1e-6
-    new = load_peer(out, expect_model="pop")
-    old = load_peer(runs["pop"])
+    new = load_method(out, expect="pop")
+    old = load_method(runs["pop"])
     assert new.outfit_names() == ["skirt", "tight", "dress"]
     for k, v in old.model.state_dict().items():  # only the feature tensor grew; the network is unchanged
         w = new.model.state_dict()[k]
@@ -263,7 +258,7 @@ def test_fit_cli_bad_scans(runs, test_frame, tmp_path, capsys, kind, message):
     out = tmp_path / "fitted"
     if kind == "exists":
         ckpt_io.save_checkpoint(out / "checkpoints", 1, model_kind="pop", preset="tiny", config={},
-                                normalisation=load_peer(runs["pop"]).normalisation, model_state={"x": torch.zeros(1)})  # fmt: skip
+                                normalisation=load_method(runs["pop"]).normalisation, model_state={"x": torch.zeros(1)})  # fmt: skip
     err = _one_line_error(capsys, main(["fit", "--ckpt", str(runs["pop"]), "--scan", str(scan), "--frame", spec,
                                         "--steps", "2", "--out", str(out)]))  # fmt: skip
     assert message in err
@@ -313,13 +308,13 @@ def test_bench_quality_end_to_end(runs, tiny_run, tiny_dataset, tmp_path, capsys
 
 def test_train_on_a_subset_of_subjects(tiny_dataset, tmp_path, capsys):
     out = tmp_path / "run"
-    train_peer(tiny("pop", steps=1, subjects=["tight"]), tiny_dataset, out, progress=False)
-    loaded = load_peer(out, expect_model="pop")
+    train(tiny("pop", steps=1, subjects=["tight"]), tiny_dataset, out, progress=False)
+    loaded = load_method(out, expect="pop")
     assert loaded.outfit_names() == ["tight"] and loaded.model.num_outfits == 1
     with pytest.raises(ValueError, match="outfit 'skirt' was never trained"):
         loaded.outfit_id("skirt")
     with pytest.raises(ValueError, match="unknown subjects"):
-        train_peer(tiny("pop", steps=1, subjects=["nobody"]), tiny_dataset, tmp_path / "x", progress=False)
+        train(tiny("pop", steps=1, subjects=["nobody"]), tiny_dataset, tmp_path / "x", progress=False)
 
 
 @pytest.mark.parametrize("model", ["pop", "closet"])
@@ -335,7 +330,7 @@ def test_shipped_peer_samples_a_dataset_frame(test_frame, tmp_path, capsys, mode
     assert meta["model_kind"] == model and meta["outfit"] == subject
     ply = read_ply(out / "sample_000.ply")
     assert ply.points.shape == (500, 3) and np.isfinite(ply.points).all()
-    pose = peer_pose_from_frame(path, subject, load_peer(meta["checkpoint"]).needs_mean_shape)
+    pose = pose_from_frame(path, subject, load_method(meta["checkpoint"]).needs_mean_shape)
     from scipy.spatial import cKDTree
 
     dist = cKDTree(pose.body_vertices).query(ply.points)[0]  # metres to the nearest posed-body vertex
@@ -345,7 +340,7 @@ def test_shipped_peer_samples_a_dataset_frame(test_frame, tmp_path, capsys, mode
 
 
 def test_describe_checkpoint_names_shipped_and_relative_paths(tmp_path, monkeypatch):
-    from pocoloco.pretrained import ASSETS_DIR, describe_checkpoint
+    from pocoloco.engine.shipped import ASSETS_DIR, describe_checkpoint
 
     assert describe_checkpoint(ASSETS_DIR / "pop_small") == "default:pop"
     assert describe_checkpoint(ASSETS_DIR / "pocoloco_small") == "default"

@@ -12,25 +12,27 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import pocoloco.models.pop as pop_module
-
+import pocoloco.models.pop_decoder as pop_module
 from pocoloco.body.skeleton import NUM_JOINTS
 from pocoloco.body.surface import BodySurface
-from pocoloco.data.format import DatasetLayout, Frame, SubjectAsset, write_frame, write_subject
-from pocoloco.models.pop import (
-    POP,
-    POPBatch,
-    POPConfig,
+from pocoloco.data.format import (
+    DatasetLayout,
+    Frame,
+    SubjectAsset,
+    write_frame,
+    write_subject,
+)
+from pocoloco.methods.pop import (
     POPDataset,
     collate_pop,
     fit_unseen_outfit,
     make_optimizer,
     pop_losses,
     pop_losses_reference,
-    pop_preset,
     pop_sample_from_frame,
     train_step,
 )
+from pocoloco.models.pop import POP, POPBatch, POPConfig, pop_preset
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 

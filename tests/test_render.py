@@ -1,4 +1,4 @@
-"""Tests of the matplotlib point-cloud renderer (pocoloco.render)."""
+"""Tests of the matplotlib point-cloud renderer (pocoloco.viz.render)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from pocoloco.render import (
+from pocoloco.viz.render import (
     LABEL_COLORS,
     VIEWS,
-    _figure,
     colors_for,
+    new_figure,
     plot_curves,
     render_grid,
     render_points,
@@ -86,7 +86,7 @@ def test_painters_order_nearest_point_wins():
     colors = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     for view, winner in (("front", 1), ("back", 0)):
         for order in ([0, 1], [1, 0]):
-            fig = _figure(1.0, 1.0, 50)
+            fig = new_figure(1.0, 1.0, 50)
             ax = fig.add_axes((0, 0, 1, 1))
             render_points(ax, pts[order], colors=colors[order], view=view, point_size=400,
                           extent=(-1, 1, -1, 1), shade=False)
@@ -99,14 +99,14 @@ def test_views_cull_and_shade():
     pts, lab, nrm = _cloud()
     imgs = {}
     for view in VIEWS:
-        fig = _figure(2.0, 2.0, 60)
+        fig = new_figure(2.0, 2.0, 60)
         ax = fig.add_axes((0, 0, 1, 1))
         render_points(ax, pts, labels=lab, normals=nrm, view=view)
         fig.canvas.draw()
         imgs[view] = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(float)
     assert np.abs(imgs["front"] - imgs["top"]).mean() > 5  # top view shows a disc, not a silhouette
     with pytest.raises(ValueError, match="view"):
-        render_points(_figure(1, 1, 10).add_subplot(), pts, view="diagonal")
+        render_points(new_figure(1, 1, 10).add_subplot(), pts, view="diagonal")
 
 
 def test_render_grid_rejects_bad_input(tmp_path):

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from pocoloco.checkpoint import load_denoiser
+from pocoloco.cli import main as cli_main
 from pocoloco.data.format import DatasetLayout, read_frame
+from pocoloco.data.poses import load_joints
 from pocoloco.data.published import read_ply, write_joints_txt
+from pocoloco.methods.pocoloco import load_denoiser, sample_clouds
 from pocoloco.models.pocoloco import PocoLocoDenoiser
-from pocoloco.sample import load_joints, main, sample_clouds
-
 
 # tiny models run fastest on one thread, and bit-exact comparisons need a fixed thread count
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
@@ -133,7 +133,7 @@ def test_cli_writes_plys_png_and_json(run, frame, tmp_path, capsys):
     out = tmp_path / "out"
     argv = ["--ckpt", str(run), "--joints", str(frame[1]), "--num", "3", "--sampler", "dpm++", "--steps", "3",
             "--points", "64", "--seed", "5", "--out", str(out), "--device", "cpu"]  # fmt: skip
-    assert main(argv) == 0, capsys.readouterr().err
+    assert cli_main(["sample", *argv]) == 0, capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["hypotheses.png", "sample.json"] + [
         f"sample_{k:03d}.ply" for k in range(3)
     ]
@@ -144,7 +144,7 @@ def test_cli_writes_plys_png_and_json(run, frame, tmp_path, capsys):
     ref = sample_clouds(model, norm, cfg, _joints(frame), 3, 64, sampler="dpm++", steps=3, seeds=[5, 6, 7], clip=5.0).points
     np.testing.assert_allclose(read_ply(out / "sample_002.ply").points, ref[2], atol=1e-5)
     # rerun into the same folder with fewer samples: stale clouds are removed
-    assert main([*argv[:5], "2", *argv[6:], "--no-render"]) == 0
+    assert cli_main(["sample", *argv[:5], "2", *argv[6:], "--no-render"]) == 0
     assert sorted(p.name for p in out.glob("sample_*.ply")) == ["sample_000.ply", "sample_001.ply"]
 
 
@@ -177,7 +177,7 @@ def test_cli_bad_input_one_line_and_nothing_written(run, frame, tmp_path, capsys
             "--out": str(tmp_path / "out"), "--device": "cpu"}  # fmt: skip
     for k, v in change.items():
         opts[k] = v.replace(v.split(":")[0], subst[v.split(":")[0]]) if v.split(":")[0] in subst else v
-    code = main([x for kv in opts.items() for x in kv])
+    code = cli_main(["sample", *[x for kv in opts.items() for x in kv]])
     err = capsys.readouterr().err.strip()
     assert code == 2 and message in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "out").exists()
@@ -196,7 +196,7 @@ def test_pocoloco_cli_has_sample_and_reports_a_missing_checkpoint(tmp_path):
 
 # ------------------------------------------------------------------------ shipped model + poses
 def test_demo_poses_load_and_unknown_names_fail():
-    from pocoloco.pretrained import demo_pose_names
+    from pocoloco.data.poses import demo_pose_names
 
     assert demo_pose_names() == ["shirt", "skirt", "tight"]
     for name in demo_pose_names():
@@ -208,7 +208,7 @@ def test_demo_poses_load_and_unknown_names_fail():
 
 
 def test_export_for_sampling_keeps_the_ema_weights_and_cannot_resume(run, frame, tmp_path):
-    from pocoloco.checkpoint import export_for_sampling, load_checkpoint
+    from pocoloco.engine.checkpoint import export_for_sampling, load_checkpoint
 
     out = export_for_sampling(run, tmp_path / "shipped")
     files = sorted(p.name for p in out.iterdir())
@@ -225,16 +225,16 @@ def test_export_for_sampling_keeps_the_ema_weights_and_cannot_resume(run, frame,
 
 def test_default_checkpoint_samples_a_demo_pose(tmp_path, capsys):
     """The shipped model (if this copy has it) samples the README's demo pose."""
-    from pocoloco.pretrained import DEFAULT_MODEL_DIR
+    from pocoloco.engine.shipped import DEFAULT_MODEL_DIR
 
     if not (DEFAULT_MODEL_DIR / "meta.json").is_file():
-        r = main(["--joints", "demo:skirt", "--out", str(tmp_path / "o")])
+        r = cli_main(["sample", "--joints", "demo:skirt", "--out", str(tmp_path / "o")])
         assert r == 2 and "default model is not installed" in capsys.readouterr().err
         return
     model, norm, cfg = load_denoiser(DEFAULT_MODEL_DIR)
     assert cfg.preset == "small"
     out = tmp_path / "o"
-    assert main(["--joints", "demo:shirt", "--num", "2", "--points", "256", "--steps", "4", "--out", str(out)]) == 0
+    assert cli_main(["sample", "--joints", "demo:shirt", "--num", "2", "--points", "256", "--steps", "4", "--out", str(out)]) == 0
     assert (out / "hypotheses.png").is_file() and len(list(out.glob("sample_*.ply"))) == 2
 
 
@@ -253,7 +253,8 @@ def test_bf16_sampling_stays_close_to_float32():
     right shape, closer to the float32 sample of the same seed than two seeds are to each other."""
     from scipy.spatial import cKDTree
 
-    from pocoloco.pretrained import DEFAULT_MODEL_DIR, demo_pose_path
+    from pocoloco.data.poses import demo_pose_path
+    from pocoloco.engine.shipped import DEFAULT_MODEL_DIR
 
     model, norm, cfg = load_denoiser(DEFAULT_MODEL_DIR)
     joints = np.load(demo_pose_path("skirt"))

@@ -297,17 +297,11 @@ def test_bad_input_is_rejected(body):
 
 
 def test_uvmap_command_writes_tables_and_rejects_bad_input(body, tmp_path, capsys):
-    import argparse
+    from pocoloco.cli import main
 
-    from pocoloco.body.surface import add_uvmap_arguments, cmd_uvmap
-    from pocoloco.cli import run_command
-
-    parser = argparse.ArgumentParser()
-    add_uvmap_arguments(parser)
     out, png = tmp_path / "uv32.npz", tmp_path / "uv32.png"
-    args = parser.parse_args(["--resolution", "32", "--phenotype", "gender=0.3", "height=0.6",
-                              "--out", str(out), "--png", str(png)])  # fmt: skip
-    assert run_command(cmd_uvmap, args) == 0
+    assert main(["uvmap", "--resolution", "32", "--phenotype", "gender=0.3", "height=0.6", "--out", str(out),
+                 "--png", str(png)]) == 0  # fmt: skip
     d = np.load(out)
     s = BodySurface.from_body(body)
     r = s.raster(32)
@@ -317,6 +311,6 @@ def test_uvmap_command_writes_tables_and_rejects_bad_input(body, tmp_path, capsy
     assert "valid pixels" in capsys.readouterr().out
     for bad in (["--resolution", "0"], ["--phenotype", "gender"], ["--phenotype", "size=0.2"]):
         bad_out = tmp_path / "bad.npz"
-        assert run_command(cmd_uvmap, parser.parse_args([*bad, "--out", str(bad_out)])) == 2
+        assert main(["uvmap", *bad, "--out", str(bad_out)]) == 2
         assert not bad_out.exists()
     assert "error:" in capsys.readouterr().err

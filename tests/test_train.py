@@ -11,20 +11,15 @@ import numpy as np
 import pytest
 import torch
 
-from pocoloco import checkpoint as ckpt_io
+from pocoloco.cli import main as cli_main
+from pocoloco.cli.train import add_train_arguments
 from pocoloco.data.dataset import PointCloudDataset
-from pocoloco.train import (
-    TRAIN_PRESETS,
-    StepBatches,
-    TrainConfig,
-    add_train_arguments,
-    ema_decay_at,
-    lr_at,
-    main,
-    train,
-    train_preset,
-)
-
+from pocoloco.data.step_batches import StepBatches
+from pocoloco.engine import checkpoint as ckpt_io
+from pocoloco.engine.trainer import ema_decay_at, lr_at
+from pocoloco.methods import train
+from pocoloco.methods.pocoloco import TRAIN_PRESETS, load_denoiser, train_preset
+from pocoloco.methods.pocoloco import PocoLocoTrainConfig as TrainConfig
 
 # tiny models run fastest on one thread, and bit-exact comparisons need a fixed thread count
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
@@ -126,10 +121,10 @@ def test_train_writes_run_and_loads(tiny_dataset, tmp_path):
     assert _states_equal(ck.ema_state, res.ema.state_dict()) == 0.0
     assert _states_equal(ck.ema_state, ck.model_state) > 0.0  # the EMA lags the raw weights
 
-    model, norm, config = ckpt_io.load_denoiser(run / "checkpoints" / "step_000003")
+    model, norm, config = load_denoiser(run / "checkpoints" / "step_000003")
     assert config == cfg and norm == ck.normalisation and not model.training
     assert _states_equal(model.state_dict(), res.ema.state_dict()) == 0.0
-    raw, _, _ = ckpt_io.load_denoiser(run, use_ema=False)
+    raw, _, _ = load_denoiser(run, use_ema=False)
     assert _states_equal(raw.state_dict(), res.model.state_dict()) == 0.0
 
 
@@ -180,7 +175,7 @@ def test_resume_with_other_config_or_without_flag_raises(tiny_dataset, tmp_path)
 def test_training_options_run(tiny_dataset, tmp_path, changes):
     res = train(tiny(steps=2, **changes), tiny_dataset, tmp_path / "run", progress=False)
     assert res.step == 2 and math.isfinite(res.final_loss)
-    _, _, config = ckpt_io.load_denoiser(tmp_path / "run")
+    _, _, config = load_denoiser(tmp_path / "run")
     for k, v in changes.items():
         assert getattr(config, k) == v
 
@@ -208,10 +203,10 @@ def test_checkpoint_errors_name_file(tiny_dataset, tmp_path):
     data = (ck / "ema.safetensors").read_bytes()
     (ck / "ema.safetensors").write_bytes(data[: len(data) // 2])
     with pytest.raises(ValueError, match=r"ema\.safetensors: corrupt weights file") as e:
-        ckpt_io.load_denoiser(ck)
+        load_denoiser(ck)
     assert "\n" not in str(e.value)
     (ck / "ema.safetensors").write_bytes(data)
-    assert ckpt_io.load_denoiser(ck).config.preset == "tiny"
+    assert load_denoiser(ck).config.preset == "tiny"
     (ck / "training_state.pt").write_bytes(b"garbage")
     with pytest.raises(ValueError, match=r"training_state\.pt: corrupt training state"):
         ckpt_io.load_checkpoint(ck, expect_model=None)
@@ -247,13 +242,13 @@ def _parse(*argv):
     [(["--num-points", "0"], "num_points must be >= 1"), (["--preset", "huge"], "unknown training preset 'huge'")],
 )  # fmt: skip
 def test_cli_bad_input_one_line(tiny_dataset, tmp_path, capsys, argv, message):
-    code = main(["--data", str(tiny_dataset), "--out", str(tmp_path / "run"), "--no-progress", *argv])
+    code = cli_main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "run"), "--no-progress", *argv])
     err = capsys.readouterr().err.strip()
     assert code == 2 and message in err and len(err.splitlines()) == 1
 
 
 def test_cli_not_a_dataset(tmp_path, capsys):
-    code = main(["--data", str(tmp_path), "--out", str(tmp_path / "run"), "--preset", "tiny", "--no-progress"])
+    code = cli_main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--preset", "tiny", "--no-progress"])
     err = capsys.readouterr().err.strip()
     assert code == 2 and "not a pocoloco dataset" in err and len(err.splitlines()) == 1
 
@@ -261,10 +256,10 @@ def test_cli_not_a_dataset(tmp_path, capsys):
 def test_cli_trains_and_resumes_with_checkpoint_config(tiny_dataset, tmp_path):
     out = str(tmp_path / "run")
     base = ["--data", str(tiny_dataset), "--out", out, "--no-progress", "--device", "cpu", "--threads", "1"]
-    assert main([*base, "--preset", "tiny", "--steps", "2", "--sample-every", "0", "--min-snr", "5"]) == 0
+    assert cli_main(["train", *base, "--preset", "tiny", "--steps", "2", "--sample-every", "0", "--min-snr", "5"]) == 0
     args = _parse(*base, "--resume", "--steps", "3")
     assert args.preset is None
-    assert main([*base, "--resume", "--steps", "3"]) == 0  # preset and options come from the checkpoint
+    assert cli_main(["train", *base, "--resume", "--steps", "3"]) == 0  # preset and options come from the checkpoint
     ck = ckpt_io.load_checkpoint(out)
     assert ck.step == 3 and ck.config["min_snr_gamma"] == 5.0 and ck.config["sample_every"] == 0
 
@@ -304,10 +299,10 @@ def test_ddp_two_cpu_processes_keep_replicas_identical(tiny_dataset, tmp_path):
 
 
 def test_torchrun_entry_point(tiny_dataset, tmp_path):
-    """``torchrun --nproc_per_node=2 -m pocoloco.train`` runs end to end on CPU (gloo)."""
+    """``torchrun --nproc_per_node=2 -m pocoloco train`` runs end to end on CPU (gloo)."""
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port", str(_free_port()),
-           "-m", "pocoloco.train", "--data", str(tiny_dataset), "--out", str(out), "--preset", "tiny",
+           "-m", "pocoloco", "train", "--data", str(tiny_dataset), "--out", str(out), "--preset", "tiny",
            "--steps", "2", "--sample-every", "0", "--no-progress", "--device", "cpu"]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300,
                           env={**os.environ, "OMP_NUM_THREADS": "1"})  # fmt: skip

@@ -1,4 +1,4 @@
-"""Tests of ``pocoloco view`` (pocoloco.viewer): the self-contained WebGL viewer page.
+"""Tests of ``pocoloco view`` (pocoloco.viz.viewer): the self-contained WebGL viewer page.
 
 The page is checked twice: in Python (data round trip, no network references) and, when a
 Chromium is installed, rendered headless with SwiftShader (software WebGL): the screenshot
@@ -19,7 +19,12 @@ from matplotlib.image import imread
 
 from pocoloco.cli import main
 from pocoloco.data.published import write_ply
-from pocoloco.viewer import build_viewer_html, find_clouds, load_clouds, write_viewer
+from pocoloco.viz.viewer import (
+    build_viewer_html,
+    find_clouds,
+    load_clouds,
+    write_viewer,
+)
 
 BACKGROUND = np.array([0xF4, 0xF4, 0xF2]) / 255.0
 

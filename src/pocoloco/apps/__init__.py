@@ -1,4 +1,4 @@
-"""Applications of a trained PocoLoco model beyond sampling (``pocoloco complete / edit / animate``).
+"""Applications of trained models beyond sampling (``pocoloco complete / edit / animate / fit / mesh``).
 
 - :mod:`~pocoloco.apps.completion`: fill the holes of a partial scan (a full sample's hole points,
   harmonised by RePaint-style inpainting; or plain RePaint from noise).
@@ -6,7 +6,10 @@
   parts whose bones moved).
 - :mod:`~pocoloco.apps.animation`: clouds for a motion (independent, shared noise, or a chain of
   renoised frames) and a body-warped flicker metric.
+- :mod:`~pocoloco.apps.fitting`: fit an outfit the model never saw to one scan (POP) and report it.
+- :mod:`~pocoloco.apps.meshing`: watertight Poisson meshes of clouds, optionally with the anny
+  body's head and hands.
 
-All three run the samplers of :mod:`pocoloco.diffusion.samplers` from an intermediate state
-(:func:`pocoloco.apps._common.denoise_from`).
+Completion, editing and animation run PocoLoco's samplers from an intermediate state
+(:func:`pocoloco.apps.common.denoise_from`).
 """

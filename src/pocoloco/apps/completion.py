@@ -30,20 +30,25 @@ CLI pieces :func:`add_complete_arguments` / :func:`cmd_complete` (``pocoloco com
 
 from __future__ import annotations
 
-import argparse
-import os
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pocoloco.apps._common import (add_common_arguments, check_common_args, check_scan, denoise_from, jsonable,
-                                   load_model_from_args, read_cloud, save_npy, subset, to_metres, to_normalised,
-                                   write_folder)  # fmt: skip
+from pocoloco.apps.common import (
+    check_scan,
+    denoise_from,
+    subset,
+    to_metres,
+    to_normalised,
+)
 from pocoloco.data.dataset import Normalisation
+from pocoloco.data.poses import check_joints
+from pocoloco.diffusion.samplers import check_sampler
+from pocoloco.evaluation.metrics import chamfer_cm, nearest
+from pocoloco.methods.pocoloco.sampling import sample_clouds
+from pocoloco.ops.knn import knn_numpy
 
 __all__ = ["Completion", "INITS", "add_complete_arguments", "cmd_complete", "complete", "estimate_coverage",
            "evaluate_completion", "hole_points", "region_mask", "REGIONS"]  # fmt: skip
@@ -90,8 +95,6 @@ def estimate_coverage(model, normalisation: Normalisation, config: Any, partial:
                       num_points: int, radius: float = DEFAULT_RADIUS_M, seed: int = 0,
                       probe_steps: int = 5) -> float:  # fmt: skip
     """Share c in [0, 1] of a quick probe sample's N points within ``radius`` metres of ``partial`` (M, 3)."""
-    from pocoloco.metrics import nearest
-    from pocoloco.sample import sample_clouds
 
     if not radius > 0:
         raise ValueError(f"coverage radius must be > 0, got {radius}")
@@ -111,8 +114,6 @@ def hole_points(sample: np.ndarray, partial: np.ndarray, radius: float = DEFAULT
     the indices are the kept points farther than ``radius`` (``num=None``), or the ``num`` kept
     points farthest from the scan (``num`` given; fewer if fewer are kept), farthest first.
     """
-    from pocoloco.metrics import nearest
-    from pocoloco.ops.knn import knn_numpy
 
     sample = np.asarray(sample, np.float32)
     k = min(STRAY_K, len(sample) - 1)
@@ -161,14 +162,13 @@ def complete(
     Raises one-line ValueErrors for an empty / non-finite scan, a scan in the wrong unit or far
     from the pose, and bad options.
     """
-    from pocoloco.sample import _check_joints, _check_sampler, sample_clouds
 
     C, T = int(config.denoiser.point_channels), int(config.num_timesteps)
-    joints = _check_joints("joints", joints, int(config.denoiser.num_joints))
+    joints = check_joints("joints", joints, int(config.denoiser.num_joints))
     partial = check_scan(name, partial, joints, normalisation.root_joint)
     if num < 1 or num_points < 1:
         raise ValueError(f"num and num_points must be >= 1, got {num} and {num_points}")
-    _check_sampler(sampler, steps, T)
+    check_sampler(sampler, steps, T)
     if init not in INITS:
         raise ValueError(f"unknown completion init {init!r}; choose one of: {', '.join(INITS)}")
     t = (DEFAULT_SAMPLE_T if init == "sample" else T) if t is None else int(t)
@@ -261,8 +261,6 @@ def evaluate_completion(model, normalisation: Normalisation, config: Any, scan: 
     Also the estimated vs. true coverage (share of scan points outside the region) and point
     counts. None if the region holds no scan point (or all of them).
     """
-    from pocoloco.metrics import chamfer_cm, nearest
-    from pocoloco.sample import sample_clouds
 
     inside = region_mask(scan, joints, region)
     gsel = subset(len(scan), num_points, [seed, 2])
@@ -296,86 +294,3 @@ def evaluate_completion(model, normalisation: Normalisation, config: Any, scan: 
         out["noise_full_chamfer_cm"] = chamfer_cm(cn.points[0], gt)
         out["noise_coverage_estimated"] = cn.coverage
     return out
-
-
-# ------------------------------------------------------------------------------------------ CLI
-def add_complete_arguments(parser: argparse.ArgumentParser) -> None:
-    """The ``pocoloco complete`` options (handler :func:`cmd_complete`)."""
-    parser.add_argument("--partial", required=True, help="partial scan: .ply (or a dataset frame .npz / (M, 3) .npy)")
-    parser.add_argument("--joints", required=True, help="the scan's pose, as for `pocoloco sample --joints`")
-    parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
-    parser.add_argument("--points", type=int, default=4096, help="N points per completed cloud (default 4096)")
-    parser.add_argument("--num", type=int, default=1, help="K completions to draw (default 1)")
-    parser.add_argument("--coverage", type=float, help="share of the N points taken from the scan (default: estimated)")
-    parser.add_argument("--coverage-radius", type=float, default=DEFAULT_RADIUS_M,
-                        help=f"sample points within this distance (m) of the scan count as covered "
-                             f"(default {DEFAULT_RADIUS_M})")  # fmt: skip
-    parser.add_argument("--init", default="sample", choices=INITS,
-                        help="generated points start from a full sample's points in the hole, renoised to --t "
-                             "(sample, default) or from pure noise (noise: plain RePaint)")  # fmt: skip
-    parser.add_argument("--t", type=int, help=f"init sample: start step of the harmonising chain in [1, T] "
-                                              f"(default {DEFAULT_SAMPLE_T})")  # fmt: skip
-    add_common_arguments(parser, "output folder (completed_000.ply ..., known.npy, completion.png, completion.json)")
-
-
-def cmd_complete(args: argparse.Namespace) -> None:
-    """``pocoloco complete``: validate, complete, write the output folder (nothing on error)."""
-    from pocoloco.data.published import write_ply
-    from pocoloco.sample import _check_sampler, load_joints
-    from pocoloco.utils.atomic import write_json_atomic
-
-    check_common_args(args)
-    for name in ("points", "num"):
-        if getattr(args, name) < 1:
-            raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
-    if args.coverage is not None and not 0.0 <= args.coverage <= 1.0:
-        raise ValueError(f"--coverage must be in [0, 1], got {args.coverage}")
-    if not args.coverage_radius > 0:
-        raise ValueError(f"--coverage-radius must be > 0, got {args.coverage_radius}")
-    partial, normals = read_cloud(args.partial)
-    model, normalisation, config, ckpt, step = load_model_from_args(args)
-    joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints)
-    _check_sampler(args.sampler, args.steps, config.num_timesteps)
-    seeds = [args.seed + k for k in range(args.num)]
-    t0 = time.perf_counter()
-    comp = complete(model, normalisation, config, partial, joints, args.points, partial_normals=normals,
-                    num=args.num, sampler=args.sampler, steps=args.steps, seeds=seeds, coverage=args.coverage,
-                    radius=args.coverage_radius, init=args.init, t=args.t,
-                    name=os.fspath(args.partial))  # fmt: skip
-    seconds = time.perf_counter() - t0
-    settings = {
-        "checkpoint": str(ckpt), "step": step, "partial": os.fspath(args.partial), "partial_points": len(partial),
-        "joints": os.fspath(args.joints), "points": args.points, "num": args.num, "sampler": args.sampler,
-        "steps": args.steps, "seeds": seeds, "coverage": comp.coverage, "coverage_estimated": comp.coverage_estimated,
-        "coverage_radius_m": args.coverage_radius, "num_known": comp.num_known,
-        "num_generated": args.points - comp.num_known, "init": comp.init, "t": comp.t,
-        "method": ("sample-initialised inpainting (hole points of a full sample renoised to t, RePaint without "
-                   "resampling)" if comp.init == "sample" else "RePaint inpainting without resampling"),
-        "known_flags": "known.npy: (K, N) bool, True = copied from the scan (the first num_known points)",
-        "seconds_total": seconds,
-    }  # fmt: skip
-
-    def fill(folder: Path) -> set[str]:
-        names = set()
-        for k in range(args.num):
-            nrm = None if comp.normals is None else comp.normals[k]
-            write_ply(folder / f"completed_{k:03d}.ply", comp.points[k], normals=nrm)
-            names.add(f"completed_{k:03d}.ply")
-        save_npy(folder / "known.npy", comp.known)
-        names.add("known.npy")
-        if not args.no_render:
-            from pocoloco.render import render_grid
-
-            show = partial[subset(len(partial), 4 * args.points, [0])]
-            panels = [(show, None, None, "partial scan")]
-            panels += [(comp.points[k], np.where(comp.known[k], 0, 2), None, f"completed {k} (orange: generated)")
-                       for k in range(min(args.num, 4))]  # fmt: skip
-            render_grid(panels, folder / "completion.png", views=("front", "side"), ncols=len(panels))
-            names.add("completion.png")
-        write_json_atomic(folder / "completion.json", jsonable(settings))
-        names.add("completion.json")
-        return names
-
-    write_folder(args.out, fill, stale=lambda n: n.startswith("completed_") and n.endswith(".ply"))
-    print(f"wrote {args.num} completions of {args.points} points ({comp.num_known} from the scan, coverage "
-          f"{comp.coverage:.2f}) to {args.out} ({seconds:.1f} s)")  # fmt: skip

@@ -24,21 +24,25 @@ Public API: :func:`edit` -> :class:`Edit`, :func:`moving_region`, :func:`nearest
 
 from __future__ import annotations
 
-import argparse
-import os
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pocoloco.apps._common import (add_common_arguments, check_common_args, check_scan, denoise_from, jsonable,
-                                   load_model_from_args, read_cloud, save_npy, subset, to_metres, to_normalised,
-                                   write_folder)  # fmt: skip
+from pocoloco.apps.common import (
+    check_scan,
+    denoise_from,
+    subset,
+    to_metres,
+    to_normalised,
+)
 from pocoloco.body.skeleton import JOINT_PARENTS
 from pocoloco.data.dataset import Normalisation
+from pocoloco.data.poses import check_joints
+from pocoloco.diffusion.samplers import check_sampler
+from pocoloco.evaluation.metrics import chamfer_cm
+from pocoloco.methods.pocoloco.sampling import sample_clouds
 
 __all__ = ["Edit", "MODES", "add_edit_arguments", "cmd_edit", "edit", "evaluate_edit", "moved_joints", "moving_region",
            "nearest_bone"]  # fmt: skip
@@ -133,19 +137,18 @@ def edit(
     its seed), and must have at least N. t: start step in [1, T] (default: renoise 100, region T).
     Output k depends only on ``seeds[k]`` (default 0..K-1).
     """
-    from pocoloco.sample import _check_joints, _check_sampler
 
     C, J, T = int(config.denoiser.point_channels), int(config.denoiser.num_joints), int(config.num_timesteps)
     if mode not in MODES:
         raise ValueError(f"unknown edit mode {mode!r}; choose one of: {', '.join(MODES)}")
-    target_joints = _check_joints("target joints", target_joints, J)
+    target_joints = check_joints("target joints", target_joints, J)
     if source_joints is not None:
-        source_joints = _check_joints("source joints", source_joints, J)
+        source_joints = check_joints("source joints", source_joints, J)
     elif mode == "region":
         raise ValueError("region mode needs the source pose (--source-joints)")
     src_pose = source_joints if source_joints is not None else target_joints
     source = check_scan(name, source, src_pose, normalisation.root_joint)
-    _check_sampler(sampler, steps, T)
+    check_sampler(sampler, steps, T)
     t = (DEFAULT_T[mode] or T) if t is None else int(t)
     if not 1 <= t <= T:
         raise ValueError(f"t must be in [1, {T}] (the model's training timesteps), got {t}")
@@ -204,8 +207,6 @@ def evaluate_edit(model, normalisation: Normalisation, config: Any, source: np.n
     * ``target_chamfer_cm``: the whole output vs. an N-point subset of the GT target frame.
     Plus ``moved_joints`` (count) and ``static_share`` (share of source points kept static).
     """
-    from pocoloco.metrics import chamfer_cm
-    from pocoloco.sample import sample_clouds
 
     root = normalisation.root_joint
     gsel = subset(len(target), num_points, [seed, 4])
@@ -237,85 +238,3 @@ def evaluate_edit(model, normalisation: Normalisation, config: Any, source: np.n
         m["moved_joints"] = float(moved.sum())
         m["static_share"] = float((~moving_src).mean())
     return out
-
-
-# ------------------------------------------------------------------------------------------ CLI
-def add_edit_arguments(parser: argparse.ArgumentParser) -> None:
-    """The ``pocoloco edit`` options (handler :func:`cmd_edit`)."""
-    parser.add_argument("--source", required=True, help="source cloud: .ply (or a dataset frame .npz / (M, 3) .npy)")
-    parser.add_argument("--joints", required=True, help="TARGET pose, as for `pocoloco sample --joints`")
-    parser.add_argument("--source-joints", help="the source's pose (same forms; needed by --mode region)")
-    parser.add_argument("--mode", default="renoise", help="renoise (SDEdit) or region (inpaint the moving parts)")
-    parser.add_argument("--t", type=int, help="start step in [1, T]: renoise default 100; region default T "
-                                              "(moving points from pure noise)")  # fmt: skip
-    parser.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD_M,
-                        help=f"region: a joint moved if its root-relative position changed more (m; default "
-                             f"{DEFAULT_THRESHOLD_M})")  # fmt: skip
-    parser.add_argument("--points", type=int, help="N points per edited cloud (default min(source points, 4096))")
-    parser.add_argument("--num", type=int, default=1, help="K edits to draw (default 1)")
-    add_common_arguments(parser, "output folder (edited_000.ply ..., regenerated.npy, edit.png, edit.json)")
-
-
-def cmd_edit(args: argparse.Namespace) -> None:
-    """``pocoloco edit``: validate, edit, write the output folder (nothing on error)."""
-    from pocoloco.data.published import write_ply
-    from pocoloco.sample import _check_sampler, load_joints
-    from pocoloco.utils.atomic import write_json_atomic
-
-    check_common_args(args)
-    if args.mode not in MODES:
-        raise ValueError(f"unknown --mode {args.mode!r}; choose one of: {', '.join(MODES)}")
-    if args.mode == "region" and args.source_joints is None:
-        raise ValueError("--mode region needs --source-joints (the source cloud's pose)")
-    for name in ("points", "num"):
-        if getattr(args, name) is not None and getattr(args, name) < 1:
-            raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
-    if not args.threshold > 0:
-        raise ValueError(f"--threshold must be > 0, got {args.threshold}")
-    source, normals = read_cloud(args.source)
-    model, normalisation, config, ckpt, step = load_model_from_args(args)
-    J = config.denoiser.num_joints
-    target = load_joints(args.joints, None, J)
-    src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J)
-    _check_sampler(args.sampler, args.steps, config.num_timesteps)
-    if args.t is not None and not 1 <= args.t <= config.num_timesteps:
-        raise ValueError(f"--t must be in [1, {config.num_timesteps}] (the model's training timesteps), got {args.t}")
-    seeds = [args.seed + k for k in range(args.num)]
-    t0 = time.perf_counter()
-    res = edit(model, normalisation, config, source, target, source_joints=src_joints, source_normals=normals,
-               mode=args.mode, t=args.t, num_points=args.points, num=args.num, sampler=args.sampler, steps=args.steps,
-               seeds=seeds, threshold=args.threshold, name=os.fspath(args.source))  # fmt: skip
-    seconds = time.perf_counter() - t0
-    N = res.points.shape[1]
-    settings = {
-        "checkpoint": str(ckpt), "step": step, "source": os.fspath(args.source), "joints": os.fspath(args.joints),
-        "source_joints": args.source_joints, "mode": args.mode, "t": res.t, "points": N, "num": args.num,
-        "sampler": args.sampler, "steps": args.steps, "seeds": seeds, "threshold_m": args.threshold,
-        "moved_joints": None if res.moved_joints is None else np.flatnonzero(res.moved_joints).tolist(),
-        "regenerated_share": float(res.regenerated.mean()), "seconds_total": seconds,
-        "regenerated_flags": "regenerated.npy: (K, N) bool, True = generated, False = kept from the source",
-    }  # fmt: skip
-
-    def fill(folder: Path) -> set[str]:
-        names = {"regenerated.npy", "edit.json"}
-        for k in range(args.num):
-            nrm = None if res.normals is None else res.normals[k]
-            write_ply(folder / f"edited_{k:03d}.ply", res.points[k], normals=nrm)
-            names.add(f"edited_{k:03d}.ply")
-        save_npy(folder / "regenerated.npy", res.regenerated)
-        if not args.no_render:
-            from pocoloco.render import render_grid
-
-            show = source[subset(len(source), 4 * N, [0])]
-            panels = [(show, None, None, "source")]
-            for k in range(min(args.num, 4)):
-                lab = np.where(res.regenerated[k], 2, 0) if args.mode == "region" else None
-                panels.append((res.points[k], lab, None, f"edit {k}" + (" (orange: new)" if lab is not None else "")))
-            render_grid(panels, folder / "edit.png", views=("front", "side"), ncols=len(panels))
-            names.add("edit.png")
-        write_json_atomic(folder / "edit.json", jsonable(settings))
-        return names
-
-    write_folder(args.out, fill, stale=lambda n: n.startswith("edited_") and n.endswith(".ply"))
-    print(f"wrote {args.num} {args.mode} edits of {N} points (t={res.t}, {100 * res.regenerated.mean():.0f}% "
-          f"regenerated) to {args.out} ({seconds:.1f} s)")  # fmt: skip

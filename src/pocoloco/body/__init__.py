@@ -5,7 +5,13 @@ The skeleton constants import instantly; ``AnnyBody`` and friends load torch
 and are imported on first use.
 """
 
-from .skeleton import ANNY_BONE_OF_JOINT, JOINT_NAMES, JOINT_PARENTS, NUM_JOINTS, joint_index
+from .skeleton import (
+    ANNY_BONE_OF_JOINT,
+    JOINT_NAMES,
+    JOINT_PARENTS,
+    NUM_JOINTS,
+    joint_index,
+)
 
 __all__ = [
     "ANNY_BONE_OF_JOINT", "JOINT_NAMES", "JOINT_PARENTS", "NUM_JOINTS", "PHENOTYPE_KEYS",

@@ -50,8 +50,11 @@ def load_anny_model():
 
 
 def quiet_warp() -> None:
-    """Silence warp's start-up banner and per-kernel load messages (anny and
-    newton both use warp); ``POCOLOCO_VERBOSE_WARP=1`` keeps them."""
+    """Silence warp's start-up banner, its per-kernel load messages (anny and newton both use warp)
+    and, on machines without a GPU, the CUDA-driver warning its native code prints to stderr when
+    it initialises (warp then runs on the CPU, which is all pocoloco asks of it): warp is
+    initialised here with the process's stderr captured, and anything else it printed is passed
+    on. ``POCOLOCO_VERBOSE_WARP=1`` keeps everything."""
     if os.environ.get("POCOLOCO_VERBOSE_WARP"):
         return
     try:
@@ -59,8 +62,25 @@ def quiet_warp() -> None:
     except ImportError:
         return
     import logging
+    import sys
+    import tempfile
 
     warp.config.log_level = logging.WARNING
+    warp.config.quiet = True
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            warp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            captured.seek(0)
+            rest = [ln for ln in captured.read().decode(errors="replace").splitlines()
+                    if ln.strip() and "CUDA driver" not in ln]  # fmt: skip
+    if rest:
+        print("\n".join(rest), file=sys.stderr)
 
 
 def _rotvec_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:

@@ -25,9 +25,14 @@ from typing import Literal
 import numpy as np
 import torch
 
+from pocoloco.body.anny_body import AnnyBody
+from pocoloco.ops import sample_surface
+from pocoloco.utils.atomic import atomic_open, save_npz_atomic
+
 __all__ = [
     "BodySurface",
     "PositionMap",
+    "UVMapReport",
     "SurfacePoints",
     "UVRaster",
     "barycentric_interpolate",
@@ -42,6 +47,7 @@ __all__ = [
     "sample_surface_points",
     "uv_island_labels",
     "uv_to_grid",
+    "write_uv_map",
 ]
 
 #: Barycentric tolerance of the inside test: a pixel centre on a shared edge is inside
@@ -442,8 +448,6 @@ def sample_surface_points(
     on every posed frame with ``barycentric_interpolate``. Note the density is uniform
     on the mesh given (use the template, not a posed frame, for a pose-free draw).
     ``face_mask`` (F,) bool: sample only those faces (returned ids index all F)."""
-    from pocoloco.ops import sample_surface
-
     faces = np.asarray(faces)
     keep = np.flatnonzero(_check_face_mask(face_mask, len(faces)))
     s = sample_surface(np.asarray(vertices, dtype=np.float64), faces[keep], num, seed=seed)
@@ -454,8 +458,6 @@ def sample_surface_points(
 def mean_shape_body():
     """The anny body with default phenotype (every parameter 0.5), built once per
     process. POP feeds the posed mean shape to its pose encoder (Sec. 3.2)."""
-    from .anny_body import AnnyBody
-
     return AnnyBody()
 
 
@@ -531,55 +533,39 @@ class BodySurface:
 
 
 # ---------------------------------------------------------------------------
-# command line: ``pocoloco uvmap`` (registered in cli.py)
+# UV map files (``pocoloco uvmap``)
 # ---------------------------------------------------------------------------
 
 
-def _parse_phenotype(items: list[str]) -> dict[str, float]:
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        try:
-            out[key] = float(value)
-        except ValueError:
-            sep = ""
-        if not sep:
-            raise ValueError(f"--phenotype expects KEY=VALUE with a number, got {item!r}")
-    return out
+@dataclass
+class UVMapReport:
+    """What :func:`write_uv_map` wrote: resolution R, valid pixels, pixels covered by > 1 face."""
+
+    resolution: int
+    num_valid: int
+    num_overlapping: int
 
 
-def add_uvmap_arguments(parser) -> None:
-    """Add the ``pocoloco uvmap`` options to ``parser`` (handler: :func:`cmd_uvmap`)."""
-    parser.add_argument("--resolution", type=int, default=256, help="map size R (default 256)")
-    parser.add_argument("--phenotype", nargs="*", default=[], metavar="KEY=VALUE",
-                        help="anny phenotype, e.g. gender=0.3 height=0.6 (default: all 0.5)")  # fmt: skip
-    parser.add_argument("--all-faces", action="store_true",
-                        help="also rasterise anny's eyeballs and mouth interior (default: body only)")  # fmt: skip
-    parser.add_argument("--out", required=True, help="output .npz (face_idx, barycentric, mask, uv, posmap)")
-    parser.add_argument("--png", help="also save the template's position map as a PNG")
-
-
-def cmd_uvmap(args) -> None:
-    """``pocoloco uvmap``: rasterise anny's UV layout at R x R and write the pixel ->
-    (face, barycentric) tables and the template's position map (R, R, 3)."""
-    from pocoloco.utils.atomic import atomic_open, save_npz_atomic
-
-    if args.resolution < 1 or args.resolution > 4096:
-        raise ValueError(f"--resolution must be in [1, 4096], got {args.resolution}")
-    if not args.out.endswith(".npz"):
-        raise ValueError(f"--out must end with .npz, got {args.out!r}")
-    if args.png and not args.png.endswith(".png"):
-        raise ValueError(f"--png must end with .png, got {args.png!r}")
-    from .anny_body import AnnyBody
-
-    body = AnnyBody(_parse_phenotype(args.phenotype))
-    surface = BodySurface.from_body(body, body_only=not args.all_faces)
-    r = surface.raster(args.resolution)
-    pm = surface.position_map(torch.from_numpy(body.template[None]), args.resolution).maps[0]
+def write_uv_map(out: str, resolution: int = 256, phenotype: dict[str, float] | None = None, all_faces: bool = False,
+                 png: str | None = None) -> UVMapReport:  # fmt: skip
+    """Rasterise anny's UV layout at R x R and write the pixel -> (face, barycentric) tables and the
+    template's position map (R, R, 3) to ``out`` (.npz: face_idx, barycentric, mask, uv, posmap,
+    resolution); ``png``: also the position map as an image. ``all_faces``: also the eyeballs and
+    the mouth interior (default: body only)."""
+    if resolution < 1 or resolution > 4096:
+        raise ValueError(f"--resolution must be in [1, 4096], got {resolution}")
+    if not str(out).endswith(".npz"):
+        raise ValueError(f"--out must end with .npz, got {str(out)!r}")
+    if png and not str(png).endswith(".png"):
+        raise ValueError(f"--png must end with .png, got {str(png)!r}")
+    body = AnnyBody(phenotype or {})
+    surface = BodySurface.from_body(body, body_only=not all_faces)
+    r = surface.raster(resolution)
+    pm = surface.position_map(torch.from_numpy(body.template[None]), resolution).maps[0]
     posmap = pm.permute(1, 2, 0).numpy()  # (R, R, 3) like POP's posmap* arrays
-    save_npz_atomic(args.out, face_idx=r.face_idx, barycentric=r.barycentric, mask=r.mask, uv=r.uv(),
-                    posmap=posmap, resolution=np.int64(args.resolution))  # fmt: skip
-    if args.png:
+    save_npz_atomic(out, face_idx=r.face_idx, barycentric=r.barycentric, mask=r.mask, uv=r.uv(),
+                    posmap=posmap, resolution=np.int64(resolution))  # fmt: skip
+    if png:
         import matplotlib
 
         matplotlib.use("Agg")
@@ -587,8 +573,6 @@ def cmd_uvmap(args) -> None:
 
         lo, hi = posmap[r.mask].min(0), posmap[r.mask].max(0)
         img = np.where(r.mask[..., None], (posmap - lo) / np.maximum(hi - lo, 1e-9), 1.0)
-        with atomic_open(args.png) as f:
+        with atomic_open(png) as f:
             plt.imsave(f, np.clip(img, 0, 1), format="png")
-    print(f"uv map {args.resolution}x{args.resolution}: {r.num_valid} valid pixels "
-          f"({r.num_valid / args.resolution**2:.1%}), {r.num_overlapping} covered by >1 face -> {args.out}"
-          + (f", {args.png}" if args.png else ""))  # fmt: skip
+    return UVMapReport(resolution, int(r.num_valid), int(r.num_overlapping))

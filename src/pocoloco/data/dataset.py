@@ -52,7 +52,9 @@ class Normalisation:
         """Read ``card["normalisation"]``; a clear ValueError if the card has none."""
         norm = card.get("normalisation")
         if not norm:
-            raise ValueError("dataset card has no 'normalisation' (run format.refresh_card on the dataset)")
+            raise ValueError("dataset card has no 'normalisation' (no complete train split yet): finish the dataset by "
+                             "rerunning the same `pocoloco data synth` command, or add train frames with "
+                             "`pocoloco data import ... --split train`")  # fmt: skip
         return cls(mean=tuple(float(x) for x in norm["mean"]), std=float(norm["std"]),
                    root_joint=int(norm.get("root_joint", 0)))  # fmt: skip
 

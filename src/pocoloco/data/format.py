@@ -37,13 +37,14 @@ from typing import Any
 
 import numpy as np
 
+from .. import __version__
 from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS, NUM_JOINTS
 from ..utils.atomic import save_npz_atomic, write_json_atomic
 
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "SPLITS", "LABEL_UNKNOWN", "FRAME_KEYS", "REQUIRED_FRAME_KEYS",
     "OPTIONAL_FRAME_KEYS", "Frame", "write_frame", "read_frame", "DatasetLayout", "make_card",
-    "read_card", "write_card", "compute_normalisation", "refresh_card", "export_frame",
+    "read_card", "write_card", "compute_normalisation", "refresh_card",
     "SubjectAsset", "write_subject", "read_subject", "Motion", "write_motion", "read_motion",
     "write_sequence_meta", "read_sequence_meta",
 ]  # fmt: skip
@@ -439,8 +440,6 @@ def _check_split(split: str) -> None:
 
 
 def _pocoloco_version() -> str:
-    from .. import __version__
-
     return __version__
 
 

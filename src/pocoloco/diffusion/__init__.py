@@ -11,9 +11,11 @@
 from pocoloco.diffusion.loss import diffusion_loss, min_snr_weight
 from pocoloco.diffusion.samplers import (
     ALPHA_BAR_MIN,
+    SAMPLER_STEPS,
     Denoiser,
     PerSampleRNG,
     StepInfo,
+    check_sampler,
     make_noise,
     make_timesteps,
     sample,
@@ -26,10 +28,12 @@ from pocoloco.diffusion.schedules import PREDICTION_TYPES, NoiseSchedule, make_b
 __all__ = [
     "ALPHA_BAR_MIN",
     "PREDICTION_TYPES",
+    "SAMPLER_STEPS",
     "Denoiser",
     "NoiseSchedule",
     "PerSampleRNG",
     "StepInfo",
+    "check_sampler",
     "diffusion_loss",
     "make_betas",
     "make_noise",

@@ -24,7 +24,8 @@ Per subject (one body template, V vertices, faces F):
 Widths, radii and loss weights are not in the paper (they are in its unavailable
 Supp. Mat.): the ``paper`` preset follows the paper's statements (L = 6, encoders of
 POP's size, 50K query points at evaluation) with our choices documented in
-``CLOSET_PRESETS``; loss weights default to POP's (REFERENCE.md "POP").
+``CLOSET_PRESETS``. The loss (its weights default to POP's, REFERENCE.md "POP"), batches and
+training step are the method's: :mod:`pocoloco.methods.closet`.
 
 Shapes: B frames, V vertices, F faces, P query points, N ground-truth points.
 """
@@ -32,7 +33,6 @@ Shapes: B frames, V vertices, F faces, P query points, N ground-truth points.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,24 +48,8 @@ from pocoloco.body.surface import (
     sample_surface_points,
 )
 from pocoloco.models.pointnet2 import PointNet2Config, PointNet2Encoder
-from pocoloco.ops import knn, knn_numpy
-from pocoloco.ops.knn import chunk_size
 
-__all__ = [
-    "CLOSET_PRESETS",
-    "CloSET",
-    "CloSETBatch",
-    "CloSETConfig",
-    "CloSETLossWeights",
-    "CloSETOutput",
-    "closet_loss",
-    "closet_predict",
-    "closet_preset",
-    "closet_train_step",
-    "make_closet_batch",
-    "make_closet_optimizer",
-    "nearest_sq",
-]
+__all__ = ["CLOSET_PRESETS", "CloSET", "CloSETConfig", "CloSETLossWeights", "CloSETOutput", "closet_preset"]
 
 
 # ---------------------------------------------------------------------------
@@ -412,149 +396,3 @@ class CloSET(nn.Module):
         x = (T @ r[..., None])[..., 0] + p_u
         n = F.normalize((T @ n_local[..., None])[..., 0], dim=-1)
         return CloSETOutput(x, n, r, r_g, r_p, p_u, codes)
-
-
-# ---------------------------------------------------------------------------
-# loss, batches, training step
-# ---------------------------------------------------------------------------
-
-
-def nearest_sq(query: torch.Tensor, ref: torch.Tensor, backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
-    """Squared distance (B, N) from each query (B, N, 3) to its nearest ref (B, M, 3) and
-    that neighbour's index (B, N), differentiable in both point sets.
-
-    CPU: neighbours from scipy's cKDTree (``knn_numpy``; at 50K x 40K points per frame
-    ~100x faster than brute force); other devices: the chunked brute-force ``knn`` with
-    64 MiB blocks (glibc serves blocks > 32 MiB by mmap, so freed blocks go back to the
-    OS; the default 8 MiB blocks fragment the heap and grew a 4 x 50K x 40K loss to >20 GB).
-    The distance is recomputed in torch for the chosen pairs (exact, with gradients).
-    backend: "auto" (kdtree on CPU, else torch), "kdtree" or "torch"."""
-    if backend not in ("auto", "kdtree", "torch"):
-        raise ValueError(f"backend must be 'auto', 'kdtree' or 'torch', got {backend!r}")
-    B = query.shape[0]
-    if backend == "kdtree" or (backend == "auto" and query.device.type == "cpu"):
-        q, r = query.detach().double().numpy(), ref.detach().double().numpy()
-        idx = torch.from_numpy(np.stack([knn_numpy(q[b], r[b], 1).idx[:, 0] for b in range(B)])).to(query.device)
-    else:
-        idx = knn(query, ref, 1, chunk=chunk_size(B, ref.shape[1], 4, 64 * 2**20)).idx[..., 0]
-    nn_pts = torch.gather(ref, 1, idx[..., None].expand(-1, -1, 3))
-    return ((query - nn_pts) ** 2).sum(-1), idx
-
-
-def closet_loss(out: CloSETOutput, points: torch.Tensor, normals: torch.Tensor,
-                weights: CloSETLossWeights = CloSETLossWeights()) -> dict[str, torch.Tensor]:  # fmt: skip
-    """CloSET Eqs. (4)-(6) on a batch: points / normals (B, N, 3) ground truth.
-
-    Returns scalar tensors: ``chamfer`` (Eq. 4, squared, batch mean, m^2), ``normal``
-    (Eq. 5, L1 = sum over xyz of |n - n_nn|, mean over predicted points), ``reg_r``
-    mean |r|^2, ``reg_pd`` mean |r_p|^2 (0 without decomposition), ``reg_gc`` mean
-    over vertices of |phi_gc|^2, and ``total`` = w_p chamfer + w_n normal + w_rgl
-    (reg_r + w_pd reg_pd + w_gc reg_gc)."""
-    if points.ndim != 3 or points.shape[-1] != 3 or normals.shape != points.shape:
-        raise ValueError(f"GT points and normals must both be (B, N, 3), got {tuple(points.shape)}, {tuple(normals.shape)}")
-    if points.shape[0] != out.points.shape[0]:
-        raise ValueError(f"GT batch {points.shape[0]} != prediction batch {out.points.shape[0]}")
-    d_xy, idx_xy = nearest_sq(out.points, points)  # prediction -> GT
-    d_yx, _ = nearest_sq(points, out.points)  # GT -> prediction
-    chamfer = (d_xy.mean(-1) + d_yx.mean(-1)).mean()
-    nn_normals = torch.gather(normals, 1, idx_xy[..., None].expand(-1, -1, 3))  # (B, P, 3)
-    normal = (out.normals - nn_normals).abs().sum(-1).mean()
-    reg_r = out.r.pow(2).sum(-1).mean()
-    reg_pd = out.r_p.pow(2).sum(-1).mean() if out.r_p is not None else out.r.new_zeros(())
-    reg_gc = out.codes.pow(2).sum(-1).mean()
-    w = weights
-    total = w.chamfer * chamfer + w.normal * normal + w.rgl * (reg_r + w.pd * reg_pd + w.gc * reg_gc)
-    return {"total": total, "chamfer": chamfer, "normal": normal, "reg_r": reg_r, "reg_pd": reg_pd, "reg_gc": reg_gc}
-
-
-@dataclass
-class CloSETBatch:
-    """Model inputs and targets for B frames of one subject (pelvis-centred).
-
-    vertices (B, V, 3), vtransf (B, V, 3, 3), outfit (B,) int64, points / normals
-    (B, N, 3) GT, face_idx (P,) int64 and barycentric (P, 3) query points,
-    pelvis (B, 3) the subtracted joints[0] (add back to place predictions in the world)."""
-
-    vertices: torch.Tensor
-    vtransf: torch.Tensor
-    outfit: torch.Tensor
-    points: torch.Tensor
-    normals: torch.Tensor
-    face_idx: torch.Tensor
-    barycentric: torch.Tensor
-    pelvis: torch.Tensor
-
-    def to(self, device) -> CloSETBatch:
-        return CloSETBatch(*(getattr(self, f.name).to(device) for f in dataclasses.fields(self)))
-
-
-def make_closet_batch(frames: Sequence, outfit, query: SurfacePoints, num_gt_points: int | None = None,
-                      seed: int = 0) -> CloSETBatch:  # fmt: skip
-    """Batch from dataset frames (``pocoloco.data.format.Frame``; need ``points``,
-    ``normals``, ``joints``, ``body_vertices``, ``vtransf``). Everything is pelvis-centred
-    (joints[0] subtracted). ``num_gt_points``: subsample each frame's GT cloud to this many
-    points (without replacement, numpy seed ``seed``); None = all points (then every frame
-    needs the same count). ``outfit``: one id or one per frame."""
-    if len(frames) == 0:
-        raise ValueError("make_closet_batch needs at least one frame")
-    rng = np.random.default_rng(seed)
-    verts, tf, pts, nrm, pelvis = [], [], [], [], []
-    for i, fr in enumerate(frames):
-        for k in ("points", "normals", "joints", "body_vertices", "vtransf"):
-            if getattr(fr, k, None) is None:
-                raise ValueError(f"frame {i} has no {k!r} (CloSET needs the posed body: synthetic or fitted data)")
-        p0 = np.asarray(fr.joints[0], np.float32)
-        P, N = np.asarray(fr.points, np.float32), np.asarray(fr.normals, np.float32)
-        if num_gt_points is not None:
-            if num_gt_points > len(P):
-                raise ValueError(f"frame {i} has {len(P)} points, fewer than num_gt_points={num_gt_points}")
-            sel = rng.choice(len(P), num_gt_points, replace=False)
-            P, N = P[sel], N[sel]
-        verts.append(np.asarray(fr.body_vertices, np.float32) - p0)
-        tf.append(np.asarray(fr.vtransf, np.float32))
-        pts.append(P - p0)
-        nrm.append(N)
-        pelvis.append(p0)
-    if len({v.shape for v in verts}) != 1 or len({v.shape for v in tf}) != 1:
-        raise ValueError("frames have different body vertex counts; one CloSET batch holds one subject")
-    if len({p.shape for p in pts}) != 1:
-        raise ValueError("frames have different point counts; pass num_gt_points to subsample them")
-    outfit_t = torch.as_tensor(outfit, dtype=torch.long)
-    if outfit_t.ndim == 0:
-        outfit_t = outfit_t.expand(len(frames)).clone()
-    if outfit_t.shape != (len(frames),):
-        raise ValueError(f"outfit must be one id or one per frame ({len(frames)}), got shape {tuple(outfit_t.shape)}")
-    t = lambda xs: torch.from_numpy(np.stack(xs))  # noqa: E731
-    return CloSETBatch(t(verts), t(tf), outfit_t, t(pts), t(nrm), torch.as_tensor(query.face_idx, dtype=torch.long),
-                       torch.as_tensor(query.barycentric, dtype=torch.float32), t(pelvis))  # fmt: skip
-
-
-def make_closet_optimizer(model: CloSET, lr: float = 3e-4, code_lr: float = 5e-4) -> torch.optim.Adam:
-    """Adam with POP's rates: networks ``lr``, auto-decoded garment codes ``code_lr``."""
-    codes = [model.garment_codes]
-    rest = [p for n, p in model.named_parameters() if n != "garment_codes"]
-    return torch.optim.Adam([{"params": rest, "lr": lr}, {"params": codes, "lr": code_lr}])
-
-
-def closet_train_step(model: CloSET, optimizer: torch.optim.Optimizer, batch: CloSETBatch,
-                      weights: CloSETLossWeights = CloSETLossWeights()) -> dict[str, float]:  # fmt: skip
-    """One optimisation step on ``batch``: forward, Eqs. (4)-(6), backward, step.
-    Returns the loss terms as floats. (POP switches the normal term on after the shape
-    settles: pass ``weights=dataclasses.replace(w, normal=0.0)`` for the early epochs.)"""
-    model.train()
-    out = model(batch.vertices, batch.vtransf, batch.outfit, batch.face_idx, batch.barycentric)
-    losses = closet_loss(out, batch.points, batch.normals, weights)
-    optimizer.zero_grad(set_to_none=True)
-    losses["total"].backward()
-    optimizer.step()
-    return {k: float(v.detach()) for k, v in losses.items()}
-
-
-@torch.no_grad()
-def closet_predict(model: CloSET, batch: CloSETBatch) -> tuple[np.ndarray, np.ndarray]:
-    """Eval-mode prediction in world coordinates: (B, P, 3) points (pelvis added back)
-    and (B, P, 3) unit normals, float32 numpy (e.g. for ``pocoloco sample``/``eval``)."""
-    model.eval()
-    out = model(batch.vertices, batch.vtransf, batch.outfit, batch.face_idx, batch.barycentric)
-    pts = out.points + batch.pelvis[:, None, :].to(out.points)
-    return pts.cpu().numpy().astype(np.float32), out.normals.cpu().numpy().astype(np.float32)

@@ -8,7 +8,12 @@ sampling.py: ``farthest_point_sampling``, ``sample_surface`` (uniform by area).
 
 from .chamfer import Chamfer, chamfer_distance, chamfer_distance_reference, safe_sqrt
 from .knn import KNN, ball_query, ball_query_reference, knn, knn_numpy, knn_reference
-from .sampling import SurfaceSample, farthest_point_sampling, farthest_point_sampling_reference, sample_surface
+from .sampling import (
+    SurfaceSample,
+    farthest_point_sampling,
+    farthest_point_sampling_reference,
+    sample_surface,
+)
 
 __all__ = [
     "KNN",

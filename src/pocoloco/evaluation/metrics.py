@@ -33,8 +33,8 @@ from itertools import combinations
 
 import numpy as np
 
-from .data.capture import LABEL_GARMENT
-from .ops.knn import knn_numpy
+from pocoloco.data.capture import LABEL_GARMENT
+from pocoloco.ops.knn import knn_numpy
 
 #: Default F-score threshold in metres (1 cm).
 FSCORE_THRESHOLD_M = 0.01

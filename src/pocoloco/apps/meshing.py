@@ -1,6 +1,5 @@
-"""Watertight meshes from point clouds: screened Poisson surface reconstruction.
-
-Implements ``pocoloco mesh``. The surface is the level set of an indicator
+"""Watertight meshes from point clouds: screened Poisson surface reconstruction (``pocoloco mesh``).
+ The surface is the level set of an indicator
 function chi whose gradient best matches the oriented normal field V of the
 samples, with a screening term pulling chi's level set through the samples
 (Kazhdan & Hoppe, "Screened Poisson Surface Reconstruction", ToG 2013, eq. 3
@@ -37,16 +36,19 @@ watertight), while where Poisson filled a real opening the filling is cut away
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["PoissonMesh", "MeshReport", "estimate_normals", "mesh_from_points", "mesh_report", "is_watertight",
-           "mesh_ply", "replace_parts", "refine_body_ply", "add_mesh_arguments", "cmd_mesh"]  # fmt: skip
+from pocoloco.apps.common import check_scan
+from pocoloco.body.anny_body import fit_body_to_cloud
+from pocoloco.data.published import read_ply, write_ply
+from pocoloco.viz.render import render_mesh, render_meshes
+
+__all__ = ["PoissonMesh", "MeshReport", "RefineReport", "estimate_normals", "mesh_from_points", "mesh_report",
+           "is_watertight", "mesh_ply", "replace_parts", "refine_body_ply"]  # fmt: skip
 
 #: Fewer points than this cannot describe a surface worth reconstructing.
 MIN_POINTS = 100
@@ -338,7 +340,6 @@ def mesh_ply(
     With ``render`` also write a PNG (front and side views, Lambert-shaded). ``kwargs`` go to
     :func:`mesh_from_points`. Nothing is written when anything fails.
     """
-    from .data.published import read_ply, write_ply
 
     src = os.fspath(src)
     if os.path.isdir(src):
@@ -352,7 +353,6 @@ def mesh_ply(
         raise ValueError(f"{src}: {e}") from None
     report = mesh_report(mesh, seconds)
     if render is not None:
-        from .render import render_mesh
 
         render_mesh(mesh.vertices, mesh.faces, render)
     write_ply(out, mesh.vertices, normals=_vertex_normals(mesh.vertices, mesh.faces), faces=mesh.faces)
@@ -435,9 +435,6 @@ def refine_body_ply(src: str | os.PathLike, out: str | os.PathLike, joints: np.n
     hands by the fitted body's, Poisson-mesh the result to ``out`` and write the fitted body
     mesh to ``body_out`` (both PLYs with vertex normals; written only when everything
     succeeded). joints: (24, 3) metres, the cloud's pose. fit_steps: Adam steps per stage."""
-    from .apps._common import check_scan
-    from .body.anny_body import fit_body_to_cloud
-    from .data.published import read_ply, write_ply
 
     src = os.fspath(src)
     if os.path.isdir(src):
@@ -460,82 +457,9 @@ def refine_body_ply(src: str | os.PathLike, out: str | os.PathLike, joints: np.n
         raise ValueError(f"{src}: {e}") from None
     report = mesh_report(mesh, seconds)
     if render is not None:
-        from .render import render_meshes
 
         render_meshes([(mesh.vertices, mesh.faces, "refined mesh"), (fit.vertices, fit.faces, "fitted body")], render)
     body_faces = np.asarray(fit.faces, np.int64)
     write_ply(body_out, fit.vertices, normals=_vertex_normals(fit.vertices, body_faces), faces=body_faces)
     write_ply(out, mesh.vertices, normals=_vertex_normals(mesh.vertices, mesh.faces), faces=mesh.faces)
     return RefineReport(report, fit, int(len(pts) - (~from_body).sum()), int(from_body.sum()))
-
-
-# -------------------------------------------------------------------------------- entry points
-def add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``pocoloco mesh`` options to ``parser`` (its handler is :func:`cmd_mesh`)."""
-    parser.add_argument("input", help="point cloud .ply (normals used when present, estimated otherwise)")
-    parser.add_argument("--out", help="mesh .ply to write (default: INPUT_mesh.ply next to the input)")
-    parser.add_argument("--depth", type=int, default=8, help="Poisson octree depth (default 8; +1 ~ 4x the faces)")
-    parser.add_argument("--density-quantile", type=float, default=0.0,
-                        help="trim at most this fraction of lowest-density vertices, those also > 4 sample "
-                             "spacings from any point (Poisson's filling of holes in the cloud); 0 = keep all, "
-                             "watertight (the default); e.g. 0.02 trims a skirt hem's bridging surface")  # fmt: skip
-    parser.add_argument("--knn", type=int, default=30, help="neighbours for normal estimation (default 30)")
-    parser.add_argument("--render", help="also write a PNG of the mesh (front and side views)")
-    parser.add_argument("--refine-body", action="store_true",
-                        help="fit the anny body to the cloud and replace its head and hands by the body's "
-                             "before meshing (PocoLoco appendix A.2); needs --joints")  # fmt: skip
-    parser.add_argument("--joints", help="--refine-body: the cloud's pose, as for `pocoloco sample --joints`")
-    parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
-    parser.add_argument("--body-out", help="--refine-body: fitted body mesh .ply (default: OUT_body.ply)")
-    parser.add_argument("--fit-steps", type=int, default=150, help="--refine-body: Adam steps per stage (default 150)")
-
-
-def cmd_mesh(args: argparse.Namespace) -> None:
-    """``pocoloco mesh``: reconstruct, write, print sizes and watertightness."""
-    src = Path(args.input)
-    out = Path(args.out) if args.out else src.with_name(src.stem + "_mesh.ply")
-    if out.resolve() == src.resolve():
-        raise ValueError(f"--out {out}: would overwrite the input")
-    if out.is_dir():
-        raise ValueError(f"--out {out}: is a folder")
-    if args.joints is not None and not args.refine_body:
-        raise ValueError("--joints is only used with --refine-body")
-    if args.refine_body:
-        _cmd_refine(args, src, out)
-        return
-    r = mesh_ply(src, out, depth=args.depth, density_quantile=args.density_quantile, render=args.render,
-                 knn=args.knn)  # fmt: skip
-    closed = "watertight" if r.watertight else (
-        "NOT watertight (trimmed where the cloud has holes; --density-quantile 0 keeps it closed)")
-    print(f"wrote {out}: {r.num_vertices} vertices, {r.num_faces} faces, {closed}, {r.seconds:.1f} s"
-          + (f"; render {args.render}" if args.render else ""))  # fmt: skip
-
-
-def _cmd_refine(args: argparse.Namespace, src: Path, out: Path) -> None:
-    """``pocoloco mesh --refine-body``: validate, fit + replace + mesh with a progress bar, report."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from .sample import load_joints
-
-    if args.joints is None:
-        raise ValueError("--refine-body needs --joints (the pose the cloud was generated for)")
-    if args.fit_steps < 1:
-        raise ValueError(f"--fit-steps must be >= 1, got {args.fit_steps}")
-    body_out = Path(args.body_out) if args.body_out else out.with_name(out.stem + "_body.ply")
-    if body_out.resolve() in (src.resolve(), out.resolve()):
-        raise ValueError(f"--body-out {body_out}: would overwrite the input or the mesh")
-    if not src.is_file():
-        raise ValueError(f"{src}: no such file")
-    joints = load_joints(args.joints, args.frame_id)
-    with Progress(TextColumn("fitting the body"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  transient=True) as bar:  # fmt: skip
-        task = bar.add_task("fit", total=2 * args.fit_steps)
-        r = refine_body_ply(src, out, joints, body_out, depth=args.depth, density_quantile=args.density_quantile,
-                            render=args.render, fit_steps=args.fit_steps, knn=args.knn,
-                            progress=lambda done, total: bar.update(task, completed=done))  # fmt: skip
-    m, f = r.mesh, r.fit
-    closed = "watertight" if m.watertight else "NOT watertight"
-    print(f"fitted anny: joints {f.joint_error_cm:.2f} cm off, head/hands Chamfer {f.part_error_cm_initial:.2f} -> "
-          f"{f.part_error_cm:.2f} cm; replaced {r.removed} head/hand points by {r.added} body points")  # fmt: skip
-    print(f"wrote {out}: {m.num_vertices} vertices, {m.num_faces} faces, {closed}, {m.seconds:.1f} s; body {body_out}"
-          + (f"; render {args.render}" if args.render else ""))  # fmt: skip

@@ -15,7 +15,6 @@ on ``<div id="status" data-...>`` (for tests: ``chromium --dump-dom``).
 
 from __future__ import annotations
 
-import argparse
 import base64
 import json
 import os
@@ -26,8 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ViewerCloud", "find_clouds", "load_clouds", "build_viewer_html", "write_viewer", "serve_file",
-           "add_view_arguments", "cmd_view"]  # fmt: skip
+from pocoloco.data.published import read_ply
+from pocoloco.utils.atomic import write_text_atomic
+
+__all__ = ["ViewerCloud", "find_clouds", "load_clouds", "build_viewer_html", "write_viewer", "serve_file"]
 
 _NUMBER = re.compile(r"(\d+)")
 _FRAME = re.compile(r"^frame_\d+\.ply$", re.IGNORECASE)
@@ -67,8 +68,6 @@ def find_clouds(result_dir: str | os.PathLike) -> list[Path]:
 def load_clouds(files: list[Path], max_points: int = 20000, seed: int = 0) -> list[ViewerCloud]:
     """Read PLY files; clouds with more than ``max_points`` points are subsampled uniformly at
     random (fixed ``seed``, file order kept) so the page stays small and fast."""
-    from .data.published import read_ply
-
     if max_points < 1:
         raise ValueError(f"--max-points must be >= 1, got {max_points}")
     clouds = []
@@ -135,8 +134,6 @@ def write_viewer(
 ) -> tuple[Path, list[ViewerCloud]]:
     """Build the viewer for ``result_dir`` and write it atomically to ``out``
     (default ``RESULT_DIR/viewer.html``). Returns (path, clouds shown)."""
-    from .utils.atomic import write_text_atomic
-
     files = find_clouds(result_dir)
     clouds = load_clouds(files, max_points=max_points)
     html = build_viewer_html(clouds, title=f"pocoloco: {Path(result_dir).resolve().name}", fps=fps)
@@ -167,25 +164,3 @@ def serve_file(path: str | os.PathLike, open_browser: bool = True, port: int = 0
             httpd.serve_forever()
         except KeyboardInterrupt:
             print("stopped")
-
-
-# -------------------------------------------------------------------------------- entry points
-def add_view_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``pocoloco view`` options to ``parser`` (its handler is :func:`cmd_view`)."""
-    parser.add_argument("result_dir", help="folder of .ply clouds (sample_000.ply ... or frame_0000.ply ...)")
-    parser.add_argument("--out", help="HTML file to write (default: RESULT_DIR/viewer.html)")
-    parser.add_argument("--max-points", type=int, default=20000,
-                        help="subsample each cloud to at most this many points (default 20000)")  # fmt: skip
-    parser.add_argument("--fps", type=float, default=10.0, help="animation playback rate (default 10)")
-    parser.add_argument("--serve", action="store_true",
-                        help="serve the page on a local port, print the URL and open a browser")  # fmt: skip
-    parser.add_argument("--no-browser", action="store_true", help="with --serve: do not open a browser")
-
-
-def cmd_view(args: argparse.Namespace) -> None:
-    """``pocoloco view``: write the viewer page (and optionally serve it)."""
-    path, clouds = write_viewer(args.result_dir, args.out, max_points=args.max_points, fps=args.fps)
-    shown = sum(len(c.points) for c in clouds)
-    print(f"wrote {path} ({len(clouds)} clouds, {shown} points, {path.stat().st_size / 1e6:.2f} MB)")
-    if args.serve:
-        serve_file(path, open_browser=not args.no_browser)

@@ -13,10 +13,13 @@ left; it faces left in the image), ``top`` from +Z (front at the bottom).
 
 from __future__ import annotations
 
+import io
 import os
 from collections.abc import Sequence
 
 import numpy as np
+
+from pocoloco.utils.atomic import atomic_open
 
 #: Per-view (right, up, towards-viewer) unit axes in world coordinates.
 VIEWS: dict[str, tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]] = {
@@ -30,7 +33,7 @@ VIEWS: dict[str, tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]]
 LABEL_COLORS = np.array([[0.87, 0.72, 0.62], [0.25, 0.47, 0.82], [0.95, 0.6, 0.2]], dtype=np.float32)
 
 
-def _figure(width: float, height: float, dpi: int):
+def new_figure(width: float, height: float, dpi: int):
     """A matplotlib Figure on the Agg canvas, independent of pyplot's global state."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -42,8 +45,6 @@ def _figure(width: float, height: float, dpi: int):
 
 def _save_atomic(fig, path: str | os.PathLike) -> str:
     """Write ``fig`` as a PNG to ``path`` atomically (temporary file + os.replace)."""
-    from .utils.atomic import atomic_open
-
     with atomic_open(path, "wb") as fh:
         fig.savefig(fh, format="png", facecolor=fig.get_facecolor())
     return os.fspath(path)
@@ -92,7 +93,7 @@ def colors_for(
     raise ValueError(f"mode must be 'label', 'normal' or 'height', got {mode!r}")
 
 
-def _project(points: np.ndarray, view: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def project(points: np.ndarray, view: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N, 3) -> screen u (N,), v (N,), depth towards the viewer (N,)."""
     if view not in VIEWS:
         raise ValueError(f"view must be one of {sorted(VIEWS)}, got {view!r}")
@@ -148,7 +149,7 @@ def render_points(
     colors = np.asarray(colors, dtype=np.float32)
     if colors.shape != (n, 3):
         raise ValueError(f"colors must have shape ({n}, 3), got {colors.shape}")
-    u, v, depth = _project(points, view)
+    u, v, depth = project(points, view)
     if extent is None and n:
         pad = 0.03 * max(float(np.ptp(u)), float(np.ptp(v)), 1e-6)
         extent = (u.min() - pad, u.max() + pad, v.min() - pad, v.max() + pad)
@@ -216,11 +217,11 @@ def render_grid(
     for pts, *_ in items:
         for v in views:
             if len(pts):
-                u, w, _ = _project(pts, v)
+                u, w, _ = project(pts, v)
                 half = max(half, float(np.ptp(u)) / 2, float(np.ptp(w)) / 2)
     half *= 1.04
     cols = ncols * len(views)
-    fig = _figure(panel_size * cols, panel_size * nrows + 0.35 * nrows, dpi)
+    fig = new_figure(panel_size * cols, panel_size * nrows + 0.35 * nrows, dpi)
     fig.patch.set_facecolor("white")
     for k, (pts, lab, nrm, title) in enumerate(items):
         colors = colors_for(pts, normals=nrm, labels=lab, mode=mode)
@@ -228,7 +229,7 @@ def render_grid(
         for j, v in enumerate(views):
             ax = fig.add_subplot(nrows, cols, r * cols + c0 * len(views) + j + 1)
             if len(pts):
-                u, w, _ = _project(pts, v)
+                u, w, _ = project(pts, v)
                 cu, cw = (u.min() + u.max()) / 2, (w.min() + w.max()) / 2
             else:
                 cu = cw = 0.0
@@ -262,7 +263,7 @@ def render_turntable_frames(
         rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
         p = (points - centre) @ rot.T
         nrm = None if normals is None else np.asarray(normals, dtype=np.float64) @ rot.T
-        fig = _figure(size, size, dpi)
+        fig = new_figure(size, size, dpi)
         ax = fig.add_axes((0, 0, 1, 1))
         render_points(ax, p, colors=colors, normals=nrm, view="front", extent=(-half, half, -half, half))
         paths.append(_save_atomic(fig, os.path.join(os.fspath(folder), f"frame_{i:04d}.png")))
@@ -283,7 +284,7 @@ def plot_curves(
     """
     if not curves:
         raise ValueError("curves is empty: nothing to plot")
-    fig = _figure(6.0, 4.0, 100)
+    fig = new_figure(6.0, 4.0, 100)
     ax = fig.add_subplot(1, 1, 1)
     for name, (x, y) in curves.items():
         x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
@@ -337,7 +338,7 @@ def draw_mesh(
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-20)
     base = _face_colors(tri, fn, mode, color)
-    u, v, depth = _project(tri.reshape(-1, 3), view)
+    u, v, depth = project(tri.reshape(-1, 3), view)
     u, v, depth = u.reshape(-1, 3), v.reshape(-1, 3), depth.reshape(-1, 3).mean(1)
     facing = fn @ np.asarray(VIEWS[view][2], dtype=np.float64)
     keep = facing > 0
@@ -348,7 +349,7 @@ def draw_mesh(
     ax.add_collection(PolyCollection(polys, facecolors=colors, edgecolors="face", linewidths=0.1,
                                      rasterized=True))  # fmt: skip
     if extent is None:
-        uu, vv, _ = _project(vertices, view)
+        uu, vv, _ = project(vertices, view)
         pad = 0.03 * max(float(np.ptp(uu)), float(np.ptp(vv)), 1e-6)
         extent = (uu.min() - pad, uu.max() + pad, vv.min() - pad, vv.max() + pad)
     ax.set_xlim(extent[0], extent[1])
@@ -384,7 +385,7 @@ def render_meshes(
         if v not in VIEWS:
             raise ValueError(f"view must be one of {sorted(VIEWS)}, got {v!r}")
     rows, cols = len(meshes), len(views)
-    fig = _figure(panel_size * cols, panel_size * rows, dpi)
+    fig = new_figure(panel_size * cols, panel_size * rows, dpi)
     fig.patch.set_facecolor("white")
     for r, (verts, faces, title) in enumerate(meshes):
         for j, view in enumerate(views):
@@ -401,8 +402,6 @@ def frames_to_gif(images: Sequence[np.ndarray], path: str | os.PathLike, fps: fl
     import io
 
     from PIL import Image
-
-    from .utils.atomic import atomic_open
 
     if len(images) == 0:
         raise ValueError("no frames to write")
@@ -443,7 +442,7 @@ def turntable_gif(
         a = 2 * np.pi * i / num_frames
         rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
         p = (points - centre) @ rot.T
-        fig = _figure(size, size, dpi)
+        fig = new_figure(size, size, dpi)
         fig.patch.set_facecolor("white")
         ax = fig.add_axes((0, 0, 1, 1))
         if faces is None:
@@ -455,117 +454,32 @@ def turntable_gif(
     return frames_to_gif(images, path, fps)
 
 
-# ------------------------------------------------------------------------------- pocoloco render
-#: at most this many clouds of a folder go into one PNG
-MAX_PANELS = 16
+# ----------------------------------------------------------------------------- animation GIF
+def render_gif(clouds: np.ndarray, path: str | os.PathLike, fps: float = 10.0, view: str = "front",
+               size: float = 3.0, dpi: int = 80, colors: np.ndarray | None = None) -> str:  # fmt: skip
+    """Render clouds (T, N, 3) as an animated GIF (one shared window, so motion is visible);
+    written atomically. colors: (T, N, 3) RGB or None (skin colour, depth-shaded)."""
+    from PIL import Image
 
-
-def add_render_arguments(parser) -> None:
-    """The ``pocoloco render`` options (handler :func:`cmd_render`)."""
-    parser.add_argument("input", help="a .ply (point cloud or mesh) or a folder of .ply files (one panel row each)")
-    parser.add_argument("--out", required=True, help="PNG to write")
-    parser.add_argument("--views", nargs="+", default=["front", "side", "back"],
-                        help=f"views per input, from {', '.join(VIEWS)} (default front side back)")  # fmt: skip
-    parser.add_argument("--color", default="label", choices=("label", "normal", "height"),
-                        help="colour by label (skin / garment), normal (estimated when the PLY has none) or "
-                             "height (default label)")  # fmt: skip
-    parser.add_argument("--mesh", action="store_true",
-                        help="draw surfaces: the PLY's faces, or a Poisson mesh of a cloud (pocoloco mesh)")
-    parser.add_argument("--depth", type=int, default=8, help="--mesh of a cloud: Poisson octree depth (default 8)")
-    parser.add_argument("--turntable", help="also write a turntable GIF of the (first) input")
-    parser.add_argument("--animate", help="folder input: also write its clouds as an animation GIF, in file order")
-    parser.add_argument("--frames", type=int, default=24, help="turntable frames (default 24)")
-    parser.add_argument("--fps", type=float, default=10.0, help="GIF frames per second (default 10)")
-    parser.add_argument("--max-points", type=int, default=20000,
-                        help="subsample larger clouds to this many points (default 20000)")  # fmt: skip
-
-
-def _read_for_render(path, max_points: int, need_normals: bool, as_mesh: bool, seed: int = 0, depth: int = 8) -> dict:
-    """A PLY as {points, labels, normals, faces} ready to draw (one-line ValueErrors)."""
-    from .data.published import read_ply
-
-    ply = read_ply(path)
-    n = len(ply.points)
-    if n == 0:
-        raise ValueError(f"{path}: has no points")
-    item = {"points": ply.points, "labels": ply.labels, "normals": ply.normals, "faces": ply.faces}
-    if as_mesh:
-        if item["faces"] is None or len(item["faces"]) == 0:
-            from .meshing import mesh_from_points
-
-            try:
-                m = mesh_from_points(ply.points, ply.normals, depth=depth)
-            except ValueError as e:
-                raise ValueError(f"{path}: {e}") from None
-            item.update(points=m.vertices, faces=m.faces, labels=None, normals=None)
-        return item
-    item["faces"] = None
-    if n > max_points:
-        keep = np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
-        item.update({k: None if item[k] is None else item[k][keep] for k in ("points", "labels", "normals")})
-    if need_normals and item["normals"] is None:
-        from .meshing import estimate_normals
-
-        if len(item["points"]) < 10:
-            raise ValueError(f"{path}: {len(item['points'])} points are too few to estimate normals "
-                             f"(--color normal needs normals)")  # fmt: skip
-        item["normals"] = estimate_normals(item["points"])
-    return item
-
-
-def cmd_render(args) -> None:
-    """``pocoloco render``: PNG (and GIFs) of a cloud / mesh PLY or a folder of them."""
-    from pathlib import Path
-
-    src = Path(args.input)
-    for flag, value, ext in (("--out", args.out, ".png"), ("--turntable", args.turntable, ".gif"),
-                             ("--animate", args.animate, ".gif")):  # fmt: skip
-        if value is not None and not value.lower().endswith(ext):
-            raise ValueError(f"{flag} {value}: must end with {ext}")
-        if value is not None and Path(value).is_dir():
-            raise ValueError(f"{flag} {value}: is a folder")
-    bad = [v for v in args.views if v not in VIEWS]
-    if bad:
-        raise ValueError(f"unknown view(s) {', '.join(bad)}; choose from {', '.join(VIEWS)}")
-    if args.frames < 1 or not args.fps > 0 or args.max_points < 1:
-        raise ValueError("--frames and --max-points must be >= 1 and --fps > 0")
-    if src.is_dir():
-        from .viewer import find_clouds
-
-        files = find_clouds(src)
-    elif src.exists():
-        files = [src]
-    else:
-        raise ValueError(f"{src}: no such file or folder")
-    if args.animate and not src.is_dir():
-        raise ValueError("--animate needs a folder of clouds (frame_0000.ply ...)")
-    panels = files[:MAX_PANELS]
-    items = [_read_for_render(f, args.max_points, args.color == "normal", args.mesh, depth=args.depth) for f in panels]
-    anim = None
-    if args.animate:
-        clouds = items if len(files) <= MAX_PANELS and not args.mesh else [
-            _read_for_render(f, args.max_points, False, False) for f in files]  # fmt: skip
-        n = min(len(c["points"]) for c in clouds)
-        anim = np.stack([c["points"][np.sort(np.random.default_rng(0).choice(len(c["points"]), n, replace=False))]
-                         for c in clouds])  # fmt: skip
-    # everything read and checked: now write
-    if args.mesh:
-        render_meshes([(c["points"], c["faces"], f.name) for c, f in zip(items, panels, strict=True)], args.out,
-                      views=args.views, mode=args.color, panel_size=3.0)  # fmt: skip
-    else:
-        render_grid([(c["points"], c["labels"], c["normals"], f.name) for c, f in zip(items, panels, strict=True)],
-                    args.out, views=args.views, ncols=1 if len(items) > 1 else None, mode=args.color)  # fmt: skip
-    written = [args.out]
-    if args.turntable:
-        c = items[0]
-        turntable_gif(args.turntable, c["points"], c["labels"], c["normals"], c["faces"], num_frames=args.frames,
-                      mode=args.color, fps=args.fps)  # fmt: skip
-        written.append(args.turntable)
-    if anim is not None:
-        from .apps.animation import render_gif
-
-        render_gif(anim, args.animate, fps=args.fps)
-        written.append(args.animate)
-    more = f" (first {MAX_PANELS} of {len(files)} files)" if len(files) > MAX_PANELS else ""
-    print(f"rendered {len(panels)} {'mesh' if args.mesh else 'cloud'}{'es' if args.mesh and len(panels) > 1 else ''}"
-          f"{'' if args.mesh or len(panels) == 1 else 's'}{more}: wrote {', '.join(written)}")  # fmt: skip
+    clouds = np.asarray(clouds, np.float64)
+    if clouds.ndim != 3 or clouds.shape[-1] != 3 or len(clouds) == 0:
+        raise ValueError(f"clouds must have shape (T, N, 3), got {clouds.shape}")
+    u, v, _ = project(clouds.reshape(-1, 3), view)
+    half = 0.52 * max(float(np.ptp(u)), float(np.ptp(v)), 1e-6)
+    cu, cv = (u.min() + u.max()) / 2, (v.min() + v.max()) / 2
+    images = []
+    for k, pts in enumerate(clouds):
+        fig = new_figure(size, size, dpi)
+        fig.patch.set_facecolor("white")
+        ax = fig.add_axes((0, 0, 1, 1))
+        render_points(ax, pts, colors=None if colors is None else colors[k], view=view,
+                      extent=(cu - half, cu + half, cv - half, cv + half))  # fmt: skip
+        ax.text(0.02, 0.97, f"{k}", transform=ax.transAxes, fontsize=8, va="top")
+        fig.canvas.draw()
+        rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]  # (H, W, 3) uint8
+        images.append(Image.fromarray(rgb).convert("P", palette=Image.ADAPTIVE))
+    buf = io.BytesIO()
+    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+    with atomic_open(path, "wb") as f:
+        f.write(buf.getvalue())
+    return os.fspath(path)

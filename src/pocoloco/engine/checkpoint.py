@@ -1,6 +1,6 @@
 """Training checkpoints: one folder per checkpoint, written atomically.
 
-Layout of a run folder (see :mod:`pocoloco.train`)::
+Layout of a run folder (see :mod:`pocoloco.engine.trainer`)::
 
     RUN_DIR/checkpoints/
         latest                  text file naming the newest complete checkpoint folder
@@ -17,23 +17,29 @@ A checkpoint folder is written under a hidden temporary name, every file fsynced
 renamed to ``step_XXXXXX`` (an atomic ``rename`` on POSIX), so a reader never sees a partial
 checkpoint; ``latest`` is updated last, atomically (:func:`pocoloco.utils.atomic.atomic_open`).
 
+A run killed while writing leaves a ``.tmp-step_*`` folder behind: :func:`clean_stale_temporaries`
+(called when training starts) removes it. A checkpoint damaged after it was written (a truncated
+weights file, a lost disk block) is skipped by :func:`load_checkpoint` when it is given a run or
+checkpoints folder: it falls back to the newest intact checkpoint with a one-line
+:class:`CheckpointFallbackWarning` naming the skipped one.
+
 Public API: :func:`save_checkpoint`, :func:`load_checkpoint` -> :class:`Checkpoint`,
-:func:`load_denoiser` -> :class:`LoadedDenoiser` (model, normalisation, config),
-:func:`resolve_checkpoint`, :func:`capture_rng_state`, :func:`restore_rng_state`.
+:func:`resolve_checkpoint`, :func:`read_meta`, :func:`export_for_sampling`,
+:func:`capture_rng_state`, :func:`restore_rng_state`, :func:`clean_stale_temporaries`.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import random
 import re
 import shutil
 import uuid
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import torch
@@ -45,11 +51,16 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "CHECKPOINT_VERSION",
     "Checkpoint",
-    "LoadedDenoiser",
+    "CheckpointFallbackWarning",
+    "CorruptCheckpointError",
     "capture_rng_state",
     "latest_checkpoint",
+    "clean_stale_temporaries",
+    "checkpoint_candidates",
+    "export_for_sampling",
     "load_checkpoint",
-    "load_denoiser",
+    "one_line",
+    "read_meta",
     "resolve_checkpoint",
     "restore_rng_state",
     "save_checkpoint",
@@ -63,6 +74,15 @@ EMA_FILE = "ema.safetensors"
 STATE_FILE = "training_state.pt"
 LATEST_FILE = "latest"
 _STEP_DIR = re.compile(r"^step_(\d+)$")
+
+
+class CorruptCheckpointError(ValueError):
+    """A checkpoint folder whose files are missing, truncated or unreadable (a ValueError: one line,
+    naming the file)."""
+
+
+class CheckpointFallbackWarning(UserWarning):
+    """A damaged checkpoint was skipped in favour of an older intact one."""
 
 
 def checkpoint_dir_name(step: int) -> str:
@@ -267,14 +287,15 @@ class Checkpoint:
     meta: dict[str, Any] = field(default_factory=dict)
 
 
-def _read_meta(path: Path) -> dict[str, Any]:
-    f = path / META_FILE
+def read_meta(path: str | os.PathLike) -> dict[str, Any]:
+    """The ``meta.json`` of a checkpoint folder, checked (format, version, required keys)."""
+    f = Path(path) / META_FILE
     try:
         meta = json.loads(f.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise ValueError(f"{f}: missing (not a pocoloco checkpoint)") from None
+        raise CorruptCheckpointError(f"{f}: missing (not a pocoloco checkpoint)") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"{f}: corrupt checkpoint metadata ({type(e).__name__}: {e})") from None
+        raise CorruptCheckpointError(f"{f}: corrupt checkpoint metadata ({type(e).__name__}: {e})") from None
     if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
         kind = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
         raise ValueError(f"{f}: not a pocoloco checkpoint (format is {kind!r})")
@@ -282,11 +303,11 @@ def _read_meta(path: Path) -> dict[str, Any]:
         raise ValueError(f"{f}: unsupported checkpoint version {meta.get('version')!r} (expected {CHECKPOINT_VERSION})")
     for key in ("model_kind", "preset", "step", "config", "normalisation"):
         if key not in meta:
-            raise ValueError(f"{f}: corrupt checkpoint metadata (no {key!r})")
+            raise CorruptCheckpointError(f"{f}: corrupt checkpoint metadata (no {key!r})")
     return meta
 
 
-def _one_line(e: BaseException) -> str:
+def one_line(e: BaseException) -> str:
     """``Type: first line of the message`` of an exception."""
     lines = str(e).strip().splitlines()
     return f"{type(e).__name__}: {lines[0]}" if lines else type(e).__name__
@@ -296,11 +317,11 @@ def _load_safetensors(f: Path, device: str | torch.device) -> dict[str, torch.Te
     from safetensors.torch import load_file
 
     if not f.is_file():
-        raise ValueError(f"{f}: missing from the checkpoint")
+        raise CorruptCheckpointError(f"{f}: missing from the checkpoint")
     try:
         return load_file(str(f), device=str(device))
     except Exception as e:  # safetensors raises its own error types for truncated / garbage files
-        raise ValueError(f"{f}: corrupt weights file ({_one_line(e)})") from None
+        raise CorruptCheckpointError(f"{f}: corrupt weights file ({one_line(e)})") from None
 
 
 def load_checkpoint(
@@ -313,7 +334,8 @@ def load_checkpoint(
     """Load a checkpoint written by :func:`save_checkpoint`.
 
     Args:
-        path: a checkpoint folder, a checkpoints folder or a run folder (newest checkpoint).
+        path: a checkpoint folder, or a checkpoints folder or run folder: then the newest intact
+            checkpoint (a damaged newer one is skipped with a :class:`CheckpointFallbackWarning`).
         expect_model / expect_preset: raise if the checkpoint is of another model / preset
             (None: accept any).
         map_location: device for the tensors.
@@ -321,8 +343,56 @@ def load_checkpoint(
     Raises:
         ValueError (one line, naming the file): missing or corrupt files, wrong model or preset.
     """
-    ckpt = resolve_checkpoint(path)
-    meta = _read_meta(ckpt)
+    p = Path(path)
+    if (p / META_FILE).is_file() or not p.exists():  # one checkpoint asked for by name: no fallback
+        return _load_one(resolve_checkpoint(p), expect_model, expect_preset, map_location, training_state)
+    candidates = checkpoint_candidates(p)
+    if not candidates:
+        resolve_checkpoint(p)  # raises the one-line "no checkpoint found"
+    skipped: list[str] = []
+    for ckpt in candidates:
+        try:
+            loaded = _load_one(ckpt, expect_model, expect_preset, map_location, training_state)
+        except CorruptCheckpointError as e:
+            skipped.append(f"{ckpt.name} ({e})")
+            continue
+        if skipped:
+            warnings.warn(f"skipped damaged checkpoint {skipped[0]}" + (f" and {len(skipped) - 1} more" if len(skipped) > 1
+                          else "") + f"; using {ckpt}", CheckpointFallbackWarning, stacklevel=2)  # fmt: skip
+        return loaded
+    raise CorruptCheckpointError(f"{p}: every checkpoint is damaged; the newest: {skipped[0]}")
+
+
+def checkpoint_candidates(path: str | os.PathLike) -> list[Path]:
+    """Checkpoint folders of a run or checkpoints folder, newest first (the one ``latest`` names first)."""
+    p = Path(path)
+    for root in (p, p / "checkpoints"):
+        if not root.is_dir():
+            continue
+        dirs = [d for d in reversed(_step_dirs(root)) if (d / META_FILE).is_file()]
+        first = latest_checkpoint(root)
+        if first is not None:
+            dirs = [first] + [d for d in dirs if d != first]
+        if dirs:
+            return dirs
+    return []
+
+
+def clean_stale_temporaries(root: str | os.PathLike) -> list[Path]:
+    """Remove the ``.tmp-step_*`` / ``.old-step_*`` folders an interrupted :func:`save_checkpoint`
+    left in the checkpoints folder ``root``; returns what was removed."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    stale = [d for d in root.iterdir() if d.is_dir() and d.name.startswith((".tmp-step_", ".old-step_"))]
+    for d in stale:
+        shutil.rmtree(d, ignore_errors=True)
+    return stale
+
+
+def _load_one(ckpt: Path, expect_model: str | None, expect_preset: str | None, map_location,
+              training_state: bool) -> Checkpoint:  # fmt: skip
+    meta = read_meta(ckpt)
     if expect_model is not None and meta["model_kind"] != expect_model:
         raise ValueError(
             f"{ckpt / META_FILE}: checkpoint is of model {meta['model_kind']!r}, expected {expect_model!r}"
@@ -334,64 +404,27 @@ def load_checkpoint(
         normalisation = Normalisation(mean=tuple(float(x) for x in norm["mean"]), std=float(norm["std"]),
                                       root_joint=int(norm.get("root_joint", 0)))  # fmt: skip
     except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"{ckpt / META_FILE}: corrupt normalisation stats ({e})") from None
+        raise CorruptCheckpointError(f"{ckpt / META_FILE}: corrupt normalisation stats ({e})") from None
     model_state = _load_safetensors(ckpt / MODEL_FILE, map_location)
     ema_state = _load_safetensors(ckpt / EMA_FILE, map_location) if meta.get("has_ema", False) else None
     optimizer_state = rng_state = None
     if training_state and meta.get("has_training_state", False):
         f = ckpt / STATE_FILE
         if not f.is_file():
-            raise ValueError(f"{f}: missing from the checkpoint")
+            raise CorruptCheckpointError(f"{f}: missing from the checkpoint")
         try:
             state = torch.load(f, map_location=map_location, weights_only=True)
         except Exception as e:
-            raise ValueError(f"{f}: corrupt training state ({_one_line(e)})") from None
+            raise CorruptCheckpointError(f"{f}: corrupt training state ({one_line(e)})") from None
         if not isinstance(state, dict) or int(state.get("step", -1)) != int(meta["step"]):
             got = state.get("step") if isinstance(state, dict) else None
-            raise ValueError(f"{f}: training state does not match {META_FILE} (step {got} vs {meta['step']})")
+            raise CorruptCheckpointError(f"{f}: training state does not match {META_FILE} (step {got} vs {meta['step']})")
         optimizer_state, rng_state = state.get("optimizer"), state.get("rng")
     return Checkpoint(
         path=ckpt, step=int(meta["step"]), model_kind=meta["model_kind"], preset=meta["preset"],
         config=meta["config"], normalisation=normalisation, model_state=model_state, ema_state=ema_state,
         optimizer_state=optimizer_state, rng_state=rng_state, meta=meta,
     )  # fmt: skip
-
-
-class LoadedDenoiser(NamedTuple):
-    """What :func:`load_denoiser` returns; unpacks as ``model, normalisation, config``.
-
-    model: the ``PocoLocoDenoiser`` in eval mode. normalisation: to map samples to metres.
-    config: the ``TrainConfig`` (``config.denoiser`` the architecture, ``config.schedule`` and
-    ``config.prediction_type`` what the sampler needs).
-    """
-
-    model: torch.nn.Module
-    normalisation: Normalisation
-    config: Any
-
-
-def load_denoiser(
-    path: str | os.PathLike, use_ema: bool = True, device: str | torch.device = "cpu", expect_preset: str | None = None
-) -> LoadedDenoiser:
-    """Build the trained PocoLoco denoiser from a checkpoint (EMA weights by default) for sampling."""
-    from pocoloco.models.pocoloco import PocoLocoDenoiser
-    from pocoloco.train import TrainConfig
-
-    ck = load_checkpoint(path, expect_model="pocoloco", expect_preset=expect_preset, map_location="cpu",
-                         training_state=False)  # fmt: skip
-    try:
-        config = TrainConfig.from_dict(ck.config)
-    except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"{ck.path / META_FILE}: corrupt train config ({e})") from None
-    model = PocoLocoDenoiser(config.denoiser)
-    state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:
-        raise ValueError(f"{ck.path}: weights do not match the stored config ({_one_line(e)})") from None
-    with contextlib.suppress(AttributeError):
-        model.prediction_type = config.prediction_type
-    return LoadedDenoiser(model.to(device).eval(), ck.normalisation, config)
 
 
 def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema: bool = True) -> Path:

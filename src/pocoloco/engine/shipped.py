@@ -1,10 +1,12 @@
-"""The models shipped with the package (``--ckpt default``, ``default:pop``, ``default:closet``).
+"""The registry of models shipped with the package (``--ckpt default``, ``default:pop``,
+``default:closet``): where each lives under ``assets/`` and how to name it in reports.
 
 ``assets/pocoloco_small/`` holds a sampling-only checkpoint (``meta.json`` + the EMA weights as
 ``model.safetensors``) of PocoLoco's ``small`` preset trained on the ``small`` synthetic dataset;
 ``assets/pop_small/`` and ``assets/closet_small/`` the same for the two peers (``small`` presets,
 their raw weights: they keep no EMA). How each was trained and its evaluation are in README.md
-("The default model", "POP and CloSET"). Written by :func:`pocoloco.checkpoint.export_for_sampling`.
+("The default model", "POP and CloSET"). Written by
+:func:`pocoloco.engine.checkpoint.export_for_sampling` (``pocoloco export-model``).
 """
 
 from __future__ import annotations
@@ -12,26 +14,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-ASSETS_DIR = Path(__file__).resolve().parent / "assets"
+__all__ = ["ASSETS_DIR", "SHIPPED_MODELS", "default_checkpoint", "describe_checkpoint", "resolve_ckpt_arg"]
+
+ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
 DEFAULT_MODEL_DIR = ASSETS_DIR / "pocoloco_small"
 #: ``--ckpt default:KIND`` -> folder under assets/ (``default`` alone is PocoLoco's)
 SHIPPED_MODELS = {"pocoloco": "pocoloco_small", "pop": "pop_small", "closet": "closet_small"}
-#: (24, 3) joints in metres of one test frame per subject of the ``small`` dataset (frame 40 of
-#: its test sequence), usable as ``--joints demo:NAME``
-DEMO_POSES_DIR = Path(__file__).resolve().parent / "assets" / "poses"
-
-
-def demo_pose_names() -> list[str]:
-    """Names of the shipped demo poses (``skirt``, ``shirt``, ``tight``)."""
-    return sorted(p.stem for p in DEMO_POSES_DIR.glob("*.npy"))
-
-
-def demo_pose_path(name: str) -> Path:
-    """The .npy of a shipped demo pose; a one-line error naming the known ones otherwise."""
-    path = DEMO_POSES_DIR / f"{name}.npy"
-    if not path.is_file():
-        raise ValueError(f"demo:{name}: no such demo pose; choose one of: {', '.join(demo_pose_names())}")
-    return path
 
 
 def default_checkpoint(kind: str = "pocoloco") -> Path:

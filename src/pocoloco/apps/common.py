@@ -8,14 +8,13 @@ Lugmayr et al. 2022, via the samplers' ``known=``), and denoise under one pose.
 Step convention (``t`` everywhere in :mod:`pocoloco.apps`): ``t`` is the 1-based step of the
 paper, ``1 <= t <= T``. The chain starts at timestep index ``t - 1`` (the samplers' 0-based
 index): ``t = 1`` is the least noisy step (one denoiser call at abar_0 = 1 - beta_0), ``t = T``
-means *pure noise*, exactly what :func:`pocoloco.sample.sample_clouds` does (the samplers treat
+means *pure noise*, exactly what :func:`pocoloco.methods.pocoloco.sampling.sample_clouds` does (the samplers treat
 N(0, I) as x at index T - 1, although abar_{T-1} = 0.004 > 0 for the "four" schedule), so
 ``t = T`` forgets the source entirely.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import shutil
@@ -28,9 +27,16 @@ import numpy as np
 import torch
 
 from pocoloco.data.dataset import Normalisation
-from pocoloco.sample import load_model_from_args  # noqa: F401  (re-exported for the apps)
-from pocoloco.utils.atomic import jsonable  # noqa: F401  (re-exported for the apps and benchmarks)
-from pocoloco.utils.atomic import output_folder
+from pocoloco.data.format import read_frame
+from pocoloco.data.published import read_ply
+from pocoloco.diffusion.samplers import (
+    SAMPLER_STEPS,
+    PerSampleRNG,
+    check_sampler,
+    sample,
+)
+from pocoloco.diffusion.schedules import NoiseSchedule
+from pocoloco.utils.atomic import atomic_write, output_folder
 
 #: a scan whose bounding box is larger than this (metres) is taken to be in the wrong unit
 MAX_EXTENT_M = 5.0
@@ -47,13 +53,12 @@ def chain_timesteps(t: int, num_timesteps: int, sampler: str, steps: int | None 
 
     ``steps=None``: every index for ddpm, else ``min(t, default)`` (dpm++ 20, ddim 50).
     """
-    from pocoloco.sample import SAMPLERS, _check_sampler
 
-    _check_sampler(sampler, None, num_timesteps)
+    check_sampler(sampler, None, num_timesteps)
     if not 1 <= t <= num_timesteps:
         raise ValueError(f"t must be in [1, {num_timesteps}] (the model's training timesteps), got {t}")
     if steps is None:
-        default = SAMPLERS[sampler]
+        default = SAMPLER_STEPS[sampler]
         steps = t if default is None else min(t, default)
     if not 1 <= steps <= t:
         raise ValueError(f"steps must be in [1, t={t}] for a chain starting at step t, got {steps}")
@@ -93,8 +98,6 @@ def denoise_from(
     Returns:
         (B, N, C) float32 normalised clouds (``normalisation.denormalise(out[..., :3], root)``).
     """
-    from pocoloco.diffusion.samplers import PerSampleRNG, sample
-    from pocoloco.diffusion.schedules import NoiseSchedule
 
     den = config.denoiser
     C, J, T = int(den.point_channels), int(den.num_joints), int(config.num_timesteps)
@@ -190,13 +193,11 @@ def check_scan(name: str, points: np.ndarray, joints: np.ndarray, root_joint: in
 
 def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (N, 3) and normals (N, 3) or None of a .ply, or of a dataset frame .npz / .npy (N, 3)."""
-    from pocoloco.data.published import read_ply
 
     src = os.fspath(path)
     if not os.path.isfile(src):
         raise ValueError(f"{src}: no such file")
     if src.endswith(".npz"):
-        from pocoloco.data.format import read_frame
 
         fr = read_frame(src, ["points", "normals"], allow_missing=True)
         return fr.points, fr.normals
@@ -208,30 +209,6 @@ def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
         return arr, None
     ply = read_ply(src)
     return ply.points, ply.normals
-
-
-def add_common_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
-    """--ckpt, --sampler, --steps, --seed, --raw-weights, --device, --no-render, --out."""
-    parser.add_argument("--ckpt", default="default",
-                        help="checkpoint / run folder; 'default' = the model shipped with pocoloco")  # fmt: skip
-    parser.add_argument("--sampler", default="dpm++sde", help="dpm++sde, ddpm, dpm++ or ddim (default dpm++sde)")
-    parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50; at most t)")
-    parser.add_argument("--seed", type=int, default=0, help="output k uses seed SEED + k (default 0)")
-    parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
-    parser.add_argument("--device", default=None, help="cuda, cpu (default: cuda if available)")
-    parser.add_argument("--no-render", action="store_true", help="skip the PNG / GIF")
-    parser.add_argument("--out", required=True, help=out_help)
-
-
-def check_common_args(args: argparse.Namespace) -> None:
-    """One-line errors for the options of :func:`add_common_arguments` (before any work)."""
-    from pocoloco.sample import SAMPLERS
-
-    if args.sampler not in SAMPLERS:
-        raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLERS)}")
-    if args.steps is not None and args.steps < 1:
-        raise ValueError(f"--steps must be >= 1, got {args.steps}")
-    out = output_folder(args.out)
 
 
 # ------------------------------------------------------------------------------------- output
@@ -262,6 +239,5 @@ def write_folder(out: str | os.PathLike, fill: Callable[[Path], set[str]],
 
 def save_npy(path: str | os.PathLike, arr: np.ndarray) -> None:
     """``np.save`` to ``path`` atomically."""
-    from pocoloco.utils.atomic import atomic_write
 
     atomic_write(path, lambda f: np.save(f, np.asarray(arr)))

@@ -1,7 +1,7 @@
-"""``pocoloco bench quality``: PocoLoco, POP, CloSET and CloSET without decomposition on the same
-test frames, with the nearest-frame and posed-body baselines, in one table.
+"""The quality bench (``pocoloco bench quality``): PocoLoco, POP, CloSET and CloSET without
+decomposition on the same test frames, with the nearest-frame and posed-body baselines, in one table.
 
-Every model goes through :func:`pocoloco.evaluate.evaluate` with the same :class:`EvalSettings`,
+Every model goes through :func:`pocoloco.evaluation.evaluate.evaluate` with the same :class:`EvalSettings`,
 so the frames, the GT subsets (fixed seeds per frame) and the metrics are identical across rows;
 the baselines are computed once (a baselines-only pass over the same frames). Checkpoints are given
 (``--ckpt-pocoloco`` ...) or, with ``--train-steps K``, trained into ``--work DIR/<row>`` (a run there
@@ -10,21 +10,42 @@ is resumed up to K steps, or reused if it is already there); a model with neithe
 Output (``--out``): ``quality.json`` (settings, checkpoints, the mean table, per-subject tables,
 per-frame rows of every model), ``quality.md`` (the tables and the papers' two claims checked on
 these numbers) and ``quality.png`` (one test pose per subject, every model side by side, points
-coloured by the label of their nearest GT point, rendered by :mod:`pocoloco.render`).
+coloured by the label of their nearest GT point, rendered by :mod:`pocoloco.viz.render`).
 """
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 from typing import Any
 
-from pocoloco.evaluate import TABLE_COLUMNS, EvalSettings, add_nearest_align_argument, evaluate, markdown_table
-from pocoloco.pretrained import describe_checkpoint
-from pocoloco.utils.atomic import output_folder
+from pocoloco.data.format import read_card
+from pocoloco.engine.checkpoint import (
+    META_FILE,
+    latest_checkpoint,
+    read_meta,
+    resolve_checkpoint,
+)
+from pocoloco.engine.shipped import describe_checkpoint, resolve_ckpt_arg
+from pocoloco.evaluation.evaluate import (
+    TABLE_COLUMNS,
+    EvalSettings,
+    evaluate,
+    markdown_table,
+)
+from pocoloco.evaluation.metrics import nearest
+from pocoloco.methods import train, train_preset
+from pocoloco.methods.registry import config_from_checkpoint
+from pocoloco.utils.atomic import (
+    jsonable,
+    output_folder,
+    write_json_atomic,
+    write_text_atomic,
+)
+from pocoloco.viz.render import render_grid
 
-__all__ = ["QUALITY_ROWS", "add_bench_quality_arguments", "bench_quality", "cmd_bench_quality", "quality_markdown"]
+__all__ = ["BASELINE_ROWS", "COLUMNS", "QUALITY_ROWS", "bench_quality", "check_claims", "quality_markdown",
+           "table_markdown"]
 
 #: model rows: key -> (title, model kind, decomposition)
 QUALITY_ROWS: dict[str, tuple[str, str, bool | None]] = {
@@ -47,11 +68,8 @@ COLUMNS = (
 
 def _check_kind(key: str, ckpt) -> Path:
     """The checkpoint folder of ``ckpt`` after checking it is the model ``key`` expects (one-line errors)."""
-    from pocoloco.checkpoint import META_FILE, _read_meta, resolve_checkpoint
-    from pocoloco.pretrained import resolve_ckpt_arg
-
     path = resolve_checkpoint(resolve_ckpt_arg(ckpt))  # "default" = the shipped PocoLoco model
-    meta = _read_meta(path)
+    meta = read_meta(path)
     title, kind, decomposition = QUALITY_ROWS[key]
     if meta["model_kind"] != kind:
         raise ValueError(f"{path / META_FILE}: checkpoint is of model {meta['model_kind']!r}, expected {kind!r} "
@@ -67,32 +85,18 @@ def _check_kind(key: str, ckpt) -> Path:
 
 def _train_missing(key: str, data, work: Path, steps: int, preset: str, progress: bool) -> Path:
     """Train (or resume / reuse) row ``key`` for ``steps`` steps in ``work/key``; its newest checkpoint."""
-    from pocoloco import checkpoint as ckpt_io
-
     run = work / key
-    existing = ckpt_io.latest_checkpoint(run / "checkpoints")
-    if existing is not None and ckpt_io._read_meta(existing)["step"] >= steps:
+    existing = latest_checkpoint(run / "checkpoints")
+    if existing is not None and read_meta(existing)["step"] >= steps:
         return _check_kind(key, existing)
     resume = existing is not None
     _, kind, decomposition = QUALITY_ROWS[key]
-    if kind == "pocoloco":
-        from pocoloco.train import TrainConfig, train, train_preset
-
-        if resume:
-            cfg = TrainConfig.from_dict(ckpt_io.load_checkpoint(existing, training_state=False).config).replace(steps=steps)
-        else:
-            cfg = train_preset(preset, steps=steps, sample_every=0, ckpt_every=max(steps // 4, 1))
-        train(cfg, data, run, resume=resume, progress=progress)
+    if resume:
+        cfg = config_from_checkpoint(existing, kind, steps=steps)
     else:
-        from pocoloco.peers import PeerTrainConfig, peer_preset, train_peer
-
-        if resume:
-            meta = ckpt_io.load_checkpoint(existing, expect_model=kind, training_state=False)
-            cfg = PeerTrainConfig.from_dict(meta.config).replace(steps=steps)
-        else:
-            cfg = peer_preset(kind, preset, decomposition=False if decomposition is False else None, steps=steps,
-                              sample_every=0, ckpt_every=max(steps // 4, 1))  # fmt: skip
-        train_peer(cfg, data, run, resume=resume, progress=progress)
+        extra = {"decomposition": False} if decomposition is False else {}
+        cfg = train_preset(kind, preset, steps=steps, sample_every=0, ckpt_every=max(steps // 4, 1), **extra)
+    train(cfg, data, run, resume=resume, progress=progress)
     return _check_kind(key, run)
 
 
@@ -115,9 +119,6 @@ def bench_quality(
     rows are trained with ``preset`` into ``work``. progress: ``callable(message)``.
     Returns the quality.json dict.
     """
-    from pocoloco.data.format import read_card
-    from pocoloco.utils.atomic import jsonable, write_json_atomic, write_text_atomic
-
     read_card(data)
     unknown = sorted(set(ckpts) - set(QUALITY_ROWS))
     if unknown:
@@ -250,9 +251,6 @@ def render_comparison(base_examples: list[dict[str, Any]], examples: dict[str, l
                       path: Path) -> Path | None:  # fmt: skip
     """One row per subject (its first evaluated frame): GT, every model, nearest frame, posed body;
     points coloured by the label of their nearest GT point."""
-    from pocoloco.metrics import nearest
-    from pocoloco.render import render_grid
-
     by_key = {ex["key"]: ex for ex in base_examples}
     model_by_key = {k: {ex["key"]: ex for ex in exs} for k, exs in examples.items()}
     seen, panels, ncols = set(), [], 0
@@ -279,43 +277,3 @@ def render_comparison(base_examples: list[dict[str, Any]], examples: dict[str, l
     for row in panels:  # pad rows to a common width
         flat += row + [(row[0][0][:1], None, None, "")] * (ncols - len(row))
     return Path(render_grid(flat, path, views=("front",), ncols=ncols))
-
-
-# ----------------------------------------------------------------------------------------- CLI
-def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, help="pocoloco dataset (its test split is evaluated)")
-    for key, (title, _, _) in QUALITY_ROWS.items():
-        parser.add_argument(f"--ckpt-{key.replace('_', '-')}", dest=f"ckpt_{key}",
-                            help=f"{title} checkpoint / run folder, or 'default[:pop|:closet]' (shipped)")  # fmt: skip
-    parser.add_argument("--train-steps", type=int, help="train missing models for K steps into --work")
-    parser.add_argument("--work", help="folder for the runs trained by --train-steps (reused / resumed)")
-    parser.add_argument("--preset", default="small", help="training preset of the missing models (default small)")
-    parser.add_argument("--frames", type=int, default=24, help="test frames, evenly spaced (0 = all; default 24)")
-    parser.add_argument("--points", type=int, default=10_000, help="points per cloud (default 10000)")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="PocoLoco samples per frame")
-    parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco sampler (default dpm++sde, 25 steps)")
-    parser.add_argument("--steps", type=int, help="PocoLoco sampler steps")
-    add_nearest_align_argument(parser)
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--out", required=True, help="output folder (quality.json, quality.md, quality.png)")
-
-
-def cmd_bench_quality(args: argparse.Namespace) -> None:
-    import torch
-    from rich.console import Console
-
-    if args.threads is not None:
-        torch.set_num_threads(max(1, args.threads))
-    settings = EvalSettings(num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
-                            sampler=args.sampler, steps=args.steps, clip=5.0, nearest_align=args.nearest_align)  # fmt: skip
-    console = Console(stderr=True)
-    ckpts = {key: getattr(args, f"ckpt_{key}") for key in QUALITY_ROWS}
-    report = bench_quality(args.data, ckpts, args.out, settings, train_steps=args.train_steps, work=args.work,
-                           preset=args.preset, device=args.device, progress=lambda m: console.print(f"[bold]{m}"),
-                           train_progress=True)  # fmt: skip
-    print(table_markdown(report["means"]))
-    for c in report["claims"]:
-        print(f"- {c['claim']}: {'holds' if c['holds'] else 'does not hold'}")
-    out = Path(args.out)
-    print(f"wrote {out / 'quality.json'}, {out / 'quality.md'}, {out / 'quality.png'}")

@@ -1,4 +1,4 @@
-"""``pocoloco data preview``: a PNG grid of rendered frames, coloured by label."""
+"""A dataset preview (``pocoloco data preview``): a PNG grid of rendered frames, coloured by label."""
 
 from __future__ import annotations
 
@@ -6,14 +6,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .format import DatasetLayout, read_card, read_frame
+from pocoloco.data.format import DatasetLayout, read_card, read_frame
+from pocoloco.viz.render import render_grid
 
 
 def preview_dataset(root: Path, out: str | None = None, num: int = 4, split: str = "train", seed: int = 0) -> Path:
     """Render ``num`` frames per subject of ``split`` (evenly spaced over the
     split's frames) from the front and the side; returns the PNG path."""
-    from ..render import render_grid
-
     if num < 1:
         raise ValueError(f"--num must be >= 1, got {num}")
     card = read_card(root)

@@ -1,0 +1,415 @@
+"""``pocoloco complete | edit | animate | fit | mesh``: the applications of trained models."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pocoloco.apps.animation import (
+    ANCHORS,
+    METHODS,
+    animate,
+    evaluate_animation,
+    load_motion,
+)
+from pocoloco.apps.common import read_cloud, save_npy, subset, write_folder
+from pocoloco.apps.completion import DEFAULT_RADIUS_M, DEFAULT_SAMPLE_T, INITS, complete
+from pocoloco.apps.editing import DEFAULT_THRESHOLD_M, MODES, edit
+from pocoloco.apps.fitting import fit_outfit
+from pocoloco.apps.meshing import mesh_ply, refine_body_ply
+from pocoloco.cli.common import (
+    add_app_arguments,
+    add_threads_argument,
+    check_app_args,
+    load_method_from_args,
+    progress_bar,
+)
+from pocoloco.data.poses import load_joints
+from pocoloco.data.published import write_ply
+from pocoloco.diffusion.samplers import check_sampler
+from pocoloco.utils.atomic import jsonable, write_json_atomic
+from pocoloco.viz.render import render_gif, render_grid
+
+__all__ = ["register"]
+
+#: ``--method`` names that stand for a method with an anchor
+METHOD_ALIASES = {"chain-world": ("chain", "world"), "chain-root": ("chain", "root")}
+
+
+# ------------------------------------------------------------------------------------ completion
+def add_complete_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``pocoloco complete`` options."""
+    parser.add_argument("--partial", required=True, help="partial scan: .ply (or a dataset frame .npz / (M, 3) .npy)")
+    parser.add_argument("--joints", required=True, help="the scan's pose, as for `pocoloco sample --joints`")
+    parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
+    parser.add_argument("--points", type=int, default=4096, help="N points per completed cloud (default 4096)")
+    parser.add_argument("--num", type=int, default=1, help="K completions to draw (default 1)")
+    parser.add_argument("--coverage", type=float, help="share of the N points taken from the scan (default: estimated)")
+    parser.add_argument("--coverage-radius", type=float, default=DEFAULT_RADIUS_M,
+                        help=f"sample points within this distance (m) of the scan count as covered "
+                             f"(default {DEFAULT_RADIUS_M})")  # fmt: skip
+    parser.add_argument("--init", default="sample", choices=INITS,
+                        help="generated points start from a full sample's points in the hole, renoised to --t "
+                             "(sample, default) or from pure noise (noise: plain RePaint)")  # fmt: skip
+    parser.add_argument("--t", type=int, help=f"init sample: start step of the harmonising chain in [1, T] "
+                                              f"(default {DEFAULT_SAMPLE_T})")  # fmt: skip
+    add_app_arguments(parser, "output folder (completed_000.ply ..., known.npy, completion.png, completion.json)")
+
+
+def cmd_complete(args: argparse.Namespace) -> None:
+    """``pocoloco complete``: validate, complete, write the output folder (nothing on error)."""
+
+    check_app_args(args)
+    for name in ("points", "num"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.coverage is not None and not 0.0 <= args.coverage <= 1.0:
+        raise ValueError(f"--coverage must be in [0, 1], got {args.coverage}")
+    if not args.coverage_radius > 0:
+        raise ValueError(f"--coverage-radius must be > 0, got {args.coverage_radius}")
+    partial, normals = read_cloud(args.partial)
+    method = load_method_from_args(args, expect="pocoloco")
+    model, normalisation, config, ckpt, step = method.model, method.normalisation, method.config, method.path, method.step
+    joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints)
+    check_sampler(args.sampler, args.steps, config.num_timesteps)
+    seeds = [args.seed + k for k in range(args.num)]
+    t0 = time.perf_counter()
+    comp = complete(model, normalisation, config, partial, joints, args.points, partial_normals=normals,
+                    num=args.num, sampler=args.sampler, steps=args.steps, seeds=seeds, coverage=args.coverage,
+                    radius=args.coverage_radius, init=args.init, t=args.t,
+                    name=os.fspath(args.partial))  # fmt: skip
+    seconds = time.perf_counter() - t0
+    settings = {
+        "checkpoint": str(ckpt), "step": step, "partial": os.fspath(args.partial), "partial_points": len(partial),
+        "joints": os.fspath(args.joints), "points": args.points, "num": args.num, "sampler": args.sampler,
+        "steps": args.steps, "seeds": seeds, "coverage": comp.coverage, "coverage_estimated": comp.coverage_estimated,
+        "coverage_radius_m": args.coverage_radius, "num_known": comp.num_known,
+        "num_generated": args.points - comp.num_known, "init": comp.init, "t": comp.t,
+        "method": ("sample-initialised inpainting (hole points of a full sample renoised to t, RePaint without "
+                   "resampling)" if comp.init == "sample" else "RePaint inpainting without resampling"),
+        "known_flags": "known.npy: (K, N) bool, True = copied from the scan (the first num_known points)",
+        "seconds_total": seconds,
+    }  # fmt: skip
+
+    def fill(folder: Path) -> set[str]:
+        names = set()
+        for k in range(args.num):
+            nrm = None if comp.normals is None else comp.normals[k]
+            write_ply(folder / f"completed_{k:03d}.ply", comp.points[k], normals=nrm)
+            names.add(f"completed_{k:03d}.ply")
+        save_npy(folder / "known.npy", comp.known)
+        names.add("known.npy")
+        if not args.no_render:
+
+            show = partial[subset(len(partial), 4 * args.points, [0])]
+            panels = [(show, None, None, "partial scan")]
+            panels += [(comp.points[k], np.where(comp.known[k], 0, 2), None, f"completed {k} (orange: generated)")
+                       for k in range(min(args.num, 4))]  # fmt: skip
+            render_grid(panels, folder / "completion.png", views=("front", "side"), ncols=len(panels))
+            names.add("completion.png")
+        write_json_atomic(folder / "completion.json", jsonable(settings))
+        names.add("completion.json")
+        return names
+
+    write_folder(args.out, fill, stale=lambda n: n.startswith("completed_") and n.endswith(".ply"))
+    print(f"wrote {args.num} completions of {args.points} points ({comp.num_known} from the scan, coverage "
+          f"{comp.coverage:.2f}) to {args.out} ({seconds:.1f} s)")  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------ editing
+def add_edit_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``pocoloco edit`` options."""
+    parser.add_argument("--source", required=True, help="source cloud: .ply (or a dataset frame .npz / (M, 3) .npy)")
+    parser.add_argument("--joints", required=True, help="TARGET pose, as for `pocoloco sample --joints`")
+    parser.add_argument("--source-joints", help="the source's pose (same forms; needed by --mode region)")
+    parser.add_argument("--mode", default="renoise", help="renoise (SDEdit) or region (inpaint the moving parts)")
+    parser.add_argument("--t", type=int, help="start step in [1, T]: renoise default 100; region default T "
+                                              "(moving points from pure noise)")  # fmt: skip
+    parser.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD_M,
+                        help=f"region: a joint moved if its root-relative position changed more (m; default "
+                             f"{DEFAULT_THRESHOLD_M})")  # fmt: skip
+    parser.add_argument("--points", type=int, help="N points per edited cloud (default min(source points, 4096))")
+    parser.add_argument("--num", type=int, default=1, help="K edits to draw (default 1)")
+    add_app_arguments(parser, "output folder (edited_000.ply ..., regenerated.npy, edit.png, edit.json)")
+
+
+def cmd_edit(args: argparse.Namespace) -> None:
+    """``pocoloco edit``: validate, edit, write the output folder (nothing on error)."""
+
+    check_app_args(args)
+    if args.mode not in MODES:
+        raise ValueError(f"unknown --mode {args.mode!r}; choose one of: {', '.join(MODES)}")
+    if args.mode == "region" and args.source_joints is None:
+        raise ValueError("--mode region needs --source-joints (the source cloud's pose)")
+    for name in ("points", "num"):
+        if getattr(args, name) is not None and getattr(args, name) < 1:
+            raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if not args.threshold > 0:
+        raise ValueError(f"--threshold must be > 0, got {args.threshold}")
+    source, normals = read_cloud(args.source)
+    method = load_method_from_args(args, expect="pocoloco")
+    model, normalisation, config, ckpt, step = method.model, method.normalisation, method.config, method.path, method.step
+    J = config.denoiser.num_joints
+    target = load_joints(args.joints, None, J)
+    src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J)
+    check_sampler(args.sampler, args.steps, config.num_timesteps)
+    if args.t is not None and not 1 <= args.t <= config.num_timesteps:
+        raise ValueError(f"--t must be in [1, {config.num_timesteps}] (the model's training timesteps), got {args.t}")
+    seeds = [args.seed + k for k in range(args.num)]
+    t0 = time.perf_counter()
+    res = edit(model, normalisation, config, source, target, source_joints=src_joints, source_normals=normals,
+               mode=args.mode, t=args.t, num_points=args.points, num=args.num, sampler=args.sampler, steps=args.steps,
+               seeds=seeds, threshold=args.threshold, name=os.fspath(args.source))  # fmt: skip
+    seconds = time.perf_counter() - t0
+    N = res.points.shape[1]
+    settings = {
+        "checkpoint": str(ckpt), "step": step, "source": os.fspath(args.source), "joints": os.fspath(args.joints),
+        "source_joints": args.source_joints, "mode": args.mode, "t": res.t, "points": N, "num": args.num,
+        "sampler": args.sampler, "steps": args.steps, "seeds": seeds, "threshold_m": args.threshold,
+        "moved_joints": None if res.moved_joints is None else np.flatnonzero(res.moved_joints).tolist(),
+        "regenerated_share": float(res.regenerated.mean()), "seconds_total": seconds,
+        "regenerated_flags": "regenerated.npy: (K, N) bool, True = generated, False = kept from the source",
+    }  # fmt: skip
+
+    def fill(folder: Path) -> set[str]:
+        names = {"regenerated.npy", "edit.json"}
+        for k in range(args.num):
+            nrm = None if res.normals is None else res.normals[k]
+            write_ply(folder / f"edited_{k:03d}.ply", res.points[k], normals=nrm)
+            names.add(f"edited_{k:03d}.ply")
+        save_npy(folder / "regenerated.npy", res.regenerated)
+        if not args.no_render:
+
+            show = source[subset(len(source), 4 * N, [0])]
+            panels = [(show, None, None, "source")]
+            for k in range(min(args.num, 4)):
+                lab = np.where(res.regenerated[k], 2, 0) if args.mode == "region" else None
+                panels.append((res.points[k], lab, None, f"edit {k}" + (" (orange: new)" if lab is not None else "")))
+            render_grid(panels, folder / "edit.png", views=("front", "side"), ncols=len(panels))
+            names.add("edit.png")
+        write_json_atomic(folder / "edit.json", jsonable(settings))
+        return names
+
+    write_folder(args.out, fill, stale=lambda n: n.startswith("edited_") and n.endswith(".ply"))
+    print(f"wrote {args.num} {args.mode} edits of {N} points (t={res.t}, {100 * res.regenerated.mean():.0f}% "
+          f"regenerated) to {args.out} ({seconds:.1f} s)")  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------ animation
+def _parse_frames(text: str | None, total: int) -> list[int]:
+    """``START:STOP[:STEP]`` (Python slice syntax, any part optional) -> frame indices."""
+    if text is None:
+        return list(range(total))
+    parts = text.split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        vals = [int(p) if p.strip() else None for p in parts]
+    except ValueError:
+        raise ValueError(f"--frames {text!r}: expected START:STOP[:STEP], e.g. 0:40:2") from None
+    if len(vals) == 3 and vals[2] is not None and vals[2] < 1:
+        raise ValueError(f"--frames {text!r}: STEP must be >= 1")
+    idx = list(range(total))[slice(*vals)]
+    if not idx:
+        raise ValueError(f"--frames {text!r} selects no frame of the {total}")
+    return idx
+
+
+def add_animate_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``pocoloco animate`` options."""
+    parser.add_argument("--motion", required=True,
+                        help="(T, 24, 3) joints .npy / .npz, or a dataset sequence "
+                             "DATASET:subject/split/sequence")  # fmt: skip
+    parser.add_argument("--method", default="chain",
+                        help="independent, shared-noise, chain (default) or chain-world (= chain --anchor world, "
+                             "the recommended one: least flicker at equal accuracy, BENCHMARKS.md)")  # fmt: skip
+    parser.add_argument("--t", type=int, default=200, help="chain: renoising step of each new frame (default 200)")
+    parser.add_argument("--anchor", default=None, help="chain: carry the previous frame root-relative (root, "
+                                                       "default) or in world coordinates (world)")  # fmt: skip
+    parser.add_argument("--points", type=int, default=2048, help="N points per frame (default 2048)")
+    parser.add_argument("--frames", help="frames to animate, START:STOP[:STEP] (default: all)")
+    parser.add_argument("--fps", type=float, default=10.0, help="GIF frame rate (default 10)")
+    add_app_arguments(parser, "output folder (frame_0000.ply ..., animation.gif, animation.json)")
+
+
+def cmd_animate(args: argparse.Namespace) -> None:
+    """``pocoloco animate``: validate, animate, write the output folder (nothing on error)."""
+
+    check_app_args(args)
+    if args.method in METHOD_ALIASES:  # chain-world = chain --anchor world
+        method_name, anchor = METHOD_ALIASES[args.method]
+        if args.anchor not in (None, anchor):
+            raise ValueError(f"--method {args.method} means --anchor {anchor}; got --anchor {args.anchor}")
+        args.method, args.anchor = method_name, anchor
+    if args.anchor is None:
+        args.anchor = "root"
+    if args.method not in METHODS:
+        raise ValueError(f"unknown --method {args.method!r}; choose one of: {', '.join([*METHODS, *METHOD_ALIASES])}")
+    if args.anchor not in ANCHORS:
+        raise ValueError(f"unknown --anchor {args.anchor!r}; choose one of: {', '.join(ANCHORS)}")
+    if args.points < 1:
+        raise ValueError(f"--points must be >= 1, got {args.points}")
+    if not args.fps > 0:
+        raise ValueError(f"--fps must be > 0, got {args.fps}")
+    method = load_method_from_args(args, expect="pocoloco")
+    model, normalisation, config, ckpt, step = method.model, method.normalisation, method.config, method.path, method.step
+    motion = load_motion(args.motion, config.denoiser.num_joints)
+    chosen = _parse_frames(args.frames, len(motion.joints))
+    check_sampler(args.sampler, args.steps, config.num_timesteps)
+    if not 1 <= args.t <= config.num_timesteps:
+        raise ValueError(f"--t must be in [1, {config.num_timesteps}] (the model's training timesteps), got {args.t}")
+    joints = motion.joints[chosen]
+    t0 = time.perf_counter()
+    with progress_bar("animate", total=len(chosen)) as update:
+        anim = animate(model, normalisation, config, joints, args.points, method=args.method, t=args.t,
+                       sampler=args.sampler, steps=args.steps, seed=args.seed, anchor=args.anchor,
+                       progress=update)  # fmt: skip
+    seconds = time.perf_counter() - t0
+    info: dict[str, Any] = {
+        "checkpoint": str(ckpt), "step": step, "motion": motion.name, "frames": chosen, "method": args.method,
+        "t": args.t if args.method == "chain" else None, "anchor": args.anchor if args.method == "chain" else None,
+        "points": args.points, "sampler": args.sampler, "steps": args.steps, "seeds": anim.seeds,
+        "seconds_total": seconds, "seconds_per_frame": seconds / len(chosen),
+    }  # fmt: skip
+    if motion.frames is not None:
+        info["metrics"] = evaluate_animation(anim.points, [motion.frames[i] for i in chosen], args.points)
+
+    def fill(folder: Path) -> set[str]:
+        names = {"animation.json"}
+        for k in range(len(chosen)):
+            write_ply(folder / f"frame_{k:04d}.ply", anim.points[k],
+                      normals=None if anim.normals is None else anim.normals[k])  # fmt: skip
+            names.add(f"frame_{k:04d}.ply")
+        if not args.no_render:
+            render_gif(anim.points, folder / "animation.gif", fps=args.fps)
+            names.add("animation.gif")
+        write_json_atomic(folder / "animation.json", jsonable(info))
+        return names
+
+    write_folder(args.out, fill, stale=lambda n: n.startswith("frame_") and n.endswith(".ply"))
+    msg = f"wrote {len(chosen)} frames ({args.method}) of {args.points} points to {args.out} ({seconds:.1f} s)"
+    if "metrics" in info:
+        m = info["metrics"]
+        msg += (f"; flicker {m['flicker_mean_cm']:.2f} cm (GT {m['gt_flicker_mean_cm']:.2f}), Chamfer to GT "
+                f"{m['chamfer_to_gt_mean_cm']:.2f} cm")  # fmt: skip
+    print(msg)
+
+
+# ----------------------------------------------------------------------------------------- fit
+def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``pocoloco fit`` options."""
+    parser.add_argument("--model", default="pop", choices=("pop",),
+                        help="the kind of --ckpt (only POP fits unseen outfits so far, paper Sec. 3.3)")  # fmt: skip
+    parser.add_argument("--ckpt", required=True, help="trained POP checkpoint / run folder")
+    parser.add_argument("--scan", required=True, help="PLY of the unseen outfit with normals (world frame of --frame)")
+    parser.add_argument("--frame", required=True,
+                        help="DATASET:subject/split/sequence/index: the body and pose the scan was taken in")  # fmt: skip
+    parser.add_argument("--name", help="name of the new outfit (default: the scan file's stem)")
+    parser.add_argument("--steps", type=int, default=400, help="Adam steps (default 400, as the paper)")
+    parser.add_argument("--lr", type=float, help="learning rate (default: the model's feature lr)")
+    parser.add_argument("--points", type=int, help="scan points used by the loss (default: the model's)")
+    parser.add_argument("--seed", type=int, default=0)
+    add_threads_argument(parser)
+    parser.add_argument("--out", required=True, help="new folder: the checkpoint with the added outfit + fit.json")
+
+
+def cmd_fit(args: argparse.Namespace) -> None:
+    with progress_bar("fit", total=args.steps, loss=True) as update:
+        rep = fit_outfit(args.ckpt, args.scan, args.frame, args.out, name=args.name, steps=args.steps, lr=args.lr,
+                         num_points=args.points, seed=args.seed,
+                         progress=lambda d, n, loss: update(d, loss=f"{loss:.3f}"))  # fmt: skip
+    b, nb, a = rep.before_mean, rep.before_nearest, rep.after
+    print(f"outfit {rep.outfit!r} (id {rep.outfit_id}) fitted in {rep.seconds:.1f} s: Chamfer {b['chamfer_cm']:.2f} cm "
+          f"(mean outfit) / {nb['chamfer_cm']:.2f} cm (nearest trained outfit {rep.nearest_outfit!r}) -> "
+          f"{a['chamfer_cm']:.2f} cm; CD {b['pop_chamfer_e-4m2']:.2f} -> {a['pop_chamfer_e-4m2']:.2f} 1e-4 m^2")  # fmt: skip
+    print(f"wrote {rep.checkpoint} and {Path(args.out) / 'fit.json'}; animate it with "
+          f"`pocoloco sample --ckpt {args.out} --outfit {rep.outfit} --joints DATASET:subject/split/sequence/index`")
+
+
+# ---------------------------------------------------------------------------------------- mesh
+def add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``pocoloco mesh`` options."""
+    parser.add_argument("input", help="point cloud .ply (normals used when present, estimated otherwise)")
+    parser.add_argument("--out", help="mesh .ply to write (default: INPUT_mesh.ply next to the input)")
+    parser.add_argument("--depth", type=int, default=8, help="Poisson octree depth (default 8; +1 ~ 4x the faces)")
+    parser.add_argument("--density-quantile", type=float, default=0.0,
+                        help="trim at most this fraction of lowest-density vertices, those also > 4 sample "
+                             "spacings from any point (Poisson's filling of holes in the cloud); 0 = keep all, "
+                             "watertight (the default); e.g. 0.02 trims a skirt hem's bridging surface")  # fmt: skip
+    parser.add_argument("--knn", type=int, default=30, help="neighbours for normal estimation (default 30)")
+    parser.add_argument("--render", help="also write a PNG of the mesh (front and side views)")
+    parser.add_argument("--refine-body", action="store_true",
+                        help="fit the anny body to the cloud and replace its head and hands by the body's "
+                             "before meshing (PocoLoco appendix A.2); needs --joints")  # fmt: skip
+    parser.add_argument("--joints", help="--refine-body: the cloud's pose, as for `pocoloco sample --joints`")
+    parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
+    parser.add_argument("--body-out", help="--refine-body: fitted body mesh .ply (default: OUT_body.ply)")
+    parser.add_argument("--fit-steps", type=int, default=150, help="--refine-body: Adam steps per stage (default 150)")
+
+
+def cmd_mesh(args: argparse.Namespace) -> None:
+    """``pocoloco mesh``: reconstruct, write, print sizes and watertightness."""
+    src = Path(args.input)
+    out = Path(args.out) if args.out else src.with_name(src.stem + "_mesh.ply")
+    if out.resolve() == src.resolve():
+        raise ValueError(f"--out {out}: would overwrite the input")
+    if out.is_dir():
+        raise ValueError(f"--out {out}: is a folder")
+    if args.joints is not None and not args.refine_body:
+        raise ValueError("--joints is only used with --refine-body")
+    if args.refine_body:
+        _cmd_refine(args, src, out)
+        return
+    r = mesh_ply(src, out, depth=args.depth, density_quantile=args.density_quantile, render=args.render,
+                 knn=args.knn)  # fmt: skip
+    closed = "watertight" if r.watertight else (
+        "NOT watertight (trimmed where the cloud has holes; --density-quantile 0 keeps it closed)")
+    print(f"wrote {out}: {r.num_vertices} vertices, {r.num_faces} faces, {closed}, {r.seconds:.1f} s"
+          + (f"; render {args.render}" if args.render else ""))  # fmt: skip
+
+
+def _cmd_refine(args: argparse.Namespace, src: Path, out: Path) -> None:
+    """``pocoloco mesh --refine-body``: validate, fit + replace + mesh with a progress bar, report."""
+    if args.joints is None:
+        raise ValueError("--refine-body needs --joints (the pose the cloud was generated for)")
+    if args.fit_steps < 1:
+        raise ValueError(f"--fit-steps must be >= 1, got {args.fit_steps}")
+    body_out = Path(args.body_out) if args.body_out else out.with_name(out.stem + "_body.ply")
+    if body_out.resolve() in (src.resolve(), out.resolve()):
+        raise ValueError(f"--body-out {body_out}: would overwrite the input or the mesh")
+    if not src.is_file():
+        raise ValueError(f"{src}: no such file")
+    joints = load_joints(args.joints, args.frame_id)
+    with progress_bar("fitting the body", total=2 * args.fit_steps) as update:
+        r = refine_body_ply(src, out, joints, body_out, depth=args.depth, density_quantile=args.density_quantile,
+                            render=args.render, fit_steps=args.fit_steps, knn=args.knn,
+                            progress=lambda done, total: update(done))  # fmt: skip
+    m, f = r.mesh, r.fit
+    closed = "watertight" if m.watertight else "NOT watertight"
+    print(f"fitted anny: joints {f.joint_error_cm:.2f} cm off, head/hands Chamfer {f.part_error_cm_initial:.2f} -> "
+          f"{f.part_error_cm:.2f} cm; replaced {r.removed} head/hand points by {r.added} body points")  # fmt: skip
+    print(f"wrote {out}: {m.num_vertices} vertices, {m.num_faces} faces, {closed}, {m.seconds:.1f} s; body {body_out}"
+          + (f"; render {args.render}" if args.render else ""))  # fmt: skip
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    s = sub.add_parser("complete", help="complete a partial scan with the model (inpainting; PLY + PNG + JSON)")
+    add_complete_arguments(s)
+    s.set_defaults(func=cmd_complete)
+    s = sub.add_parser("edit", help="move a cloud to a new pose (renoise or regenerate the moving region)")
+    add_edit_arguments(s)
+    s.set_defaults(func=cmd_edit)
+    s = sub.add_parser("animate", help="clouds for a motion (independent / shared-noise / chain; PLYs + GIF + JSON)")
+    add_animate_arguments(s)
+    s.set_defaults(func=cmd_animate)
+    s = sub.add_parser("fit", help="fit a new outfit to one scan (POP: only its geometric features) -> new checkpoint")
+    add_fit_arguments(s)
+    s.set_defaults(func=cmd_fit)
+    s = sub.add_parser("mesh", help="watertight mesh from a point cloud PLY (screened Poisson reconstruction)")
+    add_mesh_arguments(s)
+    s.set_defaults(func=cmd_mesh)

@@ -1,0 +1,151 @@
+"""What the commands share: user-error handling (one line, exit 2), devices and threads, loading a
+model from ``--ckpt``, progress bars and the options of the apps."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import warnings
+from contextlib import contextmanager
+from typing import Any
+
+import torch
+
+from pocoloco.diffusion.samplers import SAMPLER_STEPS
+from pocoloco.engine.shipped import resolve_ckpt_arg
+from pocoloco.methods import Method, load_method
+from pocoloco.utils.atomic import output_folder
+
+__all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "add_app_arguments", "add_device_argument", "add_threads_argument",
+           "apply_threads", "check_app_args", "choose_device", "console", "load_method_from_args", "progress_bar",
+           "run_command"]  # fmt: skip
+
+EXIT_USER_ERROR = 2
+#: Exceptions that mean the user gave something wrong (a path, a file, a value).
+USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)
+
+
+def console(stderr: bool = False):
+    """A rich console (colours only on a terminal)."""
+    from rich.console import Console
+
+    return Console(stderr=stderr)
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"pocoloco: warning: {str(message).splitlines()[0]}", file=sys.stderr if file is None else file)
+
+
+def run_command(func, args: argparse.Namespace, prog: str = "pocoloco") -> int:
+    """Run one command; a user error becomes one line ``PROG: error: ...`` and exit code 2
+    (``POCOLOCO_DEBUG=1`` shows the traceback instead); library warnings print as one line.
+    ``--ckpt`` options naming a shipped model (``default``, ``default:pop`` ...) are resolved first."""
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning
+            for name, value in vars(args).items():  # --ckpt[-pop|...] default / default:pop / default:closet
+                if (name == "ckpt" or name.startswith("ckpt_")) and isinstance(value, str):
+                    setattr(args, name, str(resolve_ckpt_arg(value)))
+            apply_threads(getattr(args, "threads", None))
+            func(args)
+    except USER_ERRORS as e:
+        if os.environ.get("POCOLOCO_DEBUG"):
+            raise
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        print(f"{prog}: error: {msg}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+    return 0
+
+
+# ------------------------------------------------------------------------- devices, threads
+def add_threads_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (default: torch's, all cores; 1 makes runs bit-reproducible)")  # fmt: skip
+
+
+def apply_threads(threads: int | None) -> None:
+    """``--threads N``: torch's CPU threads (a one-line error below 1)."""
+    if threads is None:
+        return
+    if isinstance(threads, bool) or threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {threads}")
+    torch.set_num_threads(int(threads))
+
+
+def add_device_argument(parser: argparse.ArgumentParser, default: str | None = None) -> None:
+    parser.add_argument("--device", default=default,
+                        help="cpu, cuda, cuda:1 (default: " + (default or "cuda if available, else cpu") + ")")  # fmt: skip
+
+
+def choose_device(arg: str | None) -> torch.device:
+    """``--device``: the given device (a one-line error if CUDA is asked for and missing), else
+    CUDA when available, else the CPU. Only entry points choose the device."""
+    if arg is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(arg)
+    except RuntimeError:
+        raise ValueError(f"--device {arg}: not a device (cpu, cuda, cuda:1 ...)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {arg}: CUDA is not available")
+    return device
+
+
+def load_method_from_args(args: argparse.Namespace, expect: str | tuple[str, ...] | None = None) -> Method:
+    """The model of ``--ckpt`` on ``--device`` (``--raw-weights``: the raw weights instead of the EMA)."""
+    device = choose_device(getattr(args, "device", None))
+    return load_method(args.ckpt, device=device, use_ema=not getattr(args, "raw_weights", False), expect=expect)
+
+
+@contextmanager
+def progress_bar(label: str, total: int | None = None, loss: bool = False, transient: bool = True):
+    """A rich progress bar; yields ``update(done, total=None, **fields)``."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    columns: list[Any] = [TextColumn(label), BarColumn(), MofNCompleteColumn()]
+    if loss:
+        columns.append(TextColumn("loss {task.fields[loss]}"))
+    columns += [TimeElapsedColumn(), TimeRemainingColumn()]
+    with Progress(*columns, transient=transient) as bar:
+        task = bar.add_task(label, total=total, **({"loss": "-"} if loss else {}))
+
+        def update(done: int, total: int | None = None, **fields) -> None:
+            bar.update(task, completed=done, **({"total": total} if total is not None else {}), **fields)
+
+        yield update
+
+
+# ------------------------------------------------------------------------------------- the apps
+def add_app_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
+    """--ckpt, --sampler, --steps, --seed, --raw-weights, --device, --threads, --no-render, --out."""
+    parser.add_argument("--ckpt", default="default",
+                        help="checkpoint / run folder of a PocoLoco model; 'default' = the model shipped with pocoloco")  # fmt: skip
+    parser.add_argument("--sampler", default="dpm++sde",
+                        help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde)")  # fmt: skip
+    parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50; at most t)")
+    parser.add_argument("--seed", type=int, default=0, help="output k uses seed SEED + k (default 0)")
+    parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
+    add_device_argument(parser)
+    add_threads_argument(parser)
+    parser.add_argument("--no-render", action="store_true", help="skip the PNG / GIF")
+    parser.add_argument("--out", required=True, help=out_help)
+
+
+def check_app_args(args: argparse.Namespace) -> None:
+    """One-line errors for the options of :func:`add_app_arguments` (before any work)."""
+    if args.sampler not in SAMPLER_STEPS:
+        raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
+    if args.steps is not None and args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    output_folder(args.out)

@@ -1,0 +1,179 @@
+"""``pocoloco data synth | info | preview | export | import``: the synthetic capture pipeline and the
+dataset tools."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from pocoloco.cli.common import console
+from pocoloco.data.config import SYNTH_PRESETS, synth_preset
+from pocoloco.data.format import SPLITS, DatasetLayout, read_card
+from pocoloco.data.published import export_frame, import_loose_style
+from pocoloco.viz.preview import preview_dataset
+
+__all__ = ["register"]
+
+
+def cmd_data_synth(args: argparse.Namespace) -> None:
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    # lazy: the synth extra (newton, warp, open3d) is only needed to generate data
+    from pocoloco.data.synth import synthesize
+
+    config = synth_preset(args.preset)
+    overrides = {
+        k: v
+        for k, v in dict(
+            seed=args.seed,
+            train_sequences=args.train_sequences,
+            test_sequences=args.test_sequences,
+            frames_per_sequence=args.frames,
+            num_points=args.points,
+        ).items()
+        if v is not None
+    }
+    for k, v in overrides.items():
+        if k != "seed" and v <= 0:
+            raise ValueError(f"--{k.replace('_', '-')} must be positive, got {v}")
+    config = dataclasses.replace(config, **overrides)
+    out = Path(args.out or f"data/{args.preset}")
+    con = console()
+    con.print(f"[bold]pocoloco data synth[/] preset={args.preset} -> {out} (workers={args.workers})")
+    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), TimeRemainingColumn(), console=con) as bar:  # fmt: skip
+        task = bar.add_task("frames", total=None)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        card = synthesize(config, out, workers=args.workers, progress=progress)
+    print_card(card, out)
+
+
+def cmd_data_info(args: argparse.Namespace) -> None:
+    print_card(read_card(Path(args.path)), Path(args.path))
+
+
+def print_card(card: dict, path: Path) -> None:
+    """The dataset card as rich tables."""
+    from rich.table import Table
+
+    con = console()
+    table = Table(title=f"dataset {path} ({card.get('status', 'complete')}): frames per split")
+    for col in ("subject", "garment", "train", "test", "rejected", "loose %", "pen. max/mean mm"):
+        table.add_column(col, justify="right" if col != "subject" else "left")
+    for name, s in card.get("subjects", {}).items():
+        c = card.get("counts", {}).get(name, {})
+        pen = s.get("penetration")
+        share = card.get("loose_share", {}).get(name)
+        table.add_row(
+            name,
+            s.get("garment_kind", "?"),
+            str(c.get("train", {}).get("frames", "-")),
+            str(c.get("test", {}).get("frames", "-")),
+            str(sum(v.get("rejected_frames", 0) for v in c.values())) if c else "-",
+            f"{100 * share:.1f}" if share is not None else "-",
+            f"{pen['max_mm']:.1f} / {pen['mean_mm']:.2f}" if pen else "-",
+        )
+    con.print(table)
+    cfg = card.get("generation_config", {})
+    keys = ("train_sequences", "test_sequences", "frames_per_sequence", "fps", "num_points", "capture_cameras", "seed")
+    con.print("config: " + ", ".join(f"{k}={cfg.get(k)}" for k in keys))
+    norm = card.get("normalisation")
+    if norm:
+        con.print(f"normalisation (root-centred, on {norm['computed_on']}): mean={[round(m, 4) for m in norm['mean']]} "
+                  f"std={norm['std']:.4f}")  # fmt: skip
+    gen = card.get("generation")
+    if gen:
+        per = gen["cpu_seconds_per_frame"]
+        con.print("generation: " + ", ".join(f"{k} {v:.3f} s/frame" for k, v in per.items())
+                  + f"; wall {gen['wall_seconds_last_run']:.0f} s with {gen['workers']} worker(s)")  # fmt: skip
+    if card.get("status", "complete") != "complete":
+        con.print("[yellow]incomplete: rerun the same `pocoloco data synth` command to resume[/]")
+
+
+def cmd_data_preview(args: argparse.Namespace) -> None:
+    path = preview_dataset(Path(args.path), out=args.out, num=args.num, split=args.split, seed=args.seed)
+    print(f"wrote {path}")
+
+
+def cmd_data_export(args: argparse.Namespace) -> None:
+    root = Path(args.path)
+    read_card(root)
+    frames = DatasetLayout(root).iter_frames(args.split)
+    if args.subject:
+        frames = [f for f in frames if f[0] == args.subject]
+    if not frames:
+        raise ValueError(f"{root}: no frames for split {args.split!r}" + (f" and subject {args.subject!r}" if args.subject else ""))
+    if args.limit < 0:
+        raise ValueError(f"--limit must be >= 0, got {args.limit}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for subject, sequence, frame_path in frames[: args.limit or None]:
+        export_frame(frame_path, out / f"{subject}_{sequence}_{Path(frame_path).stem}.{args.format}", args.format)
+    print(f"wrote {min(len(frames), args.limit or len(frames))} {args.format} files to {out}")
+
+
+def cmd_data_import(args: argparse.Namespace) -> None:
+    seq = import_loose_style(args.ply_dir, args.joints, args.out, subject=args.subject, split=args.split,
+                             sequence=args.sequence)  # fmt: skip
+    print(f"imported into {seq}")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    data = sub.add_parser("data", help="synthetic data: generate, inspect, preview, export, import").add_subparsers(
+        dest="data_command", required=True, metavar="{synth,info,preview,export,import}")  # fmt: skip
+
+    s = data.add_parser("synth", help="generate (or resume) a synthetic capture dataset")
+    s.add_argument("--preset", default="small", help=f"one of {', '.join(SYNTH_PRESETS)} (default: small)")
+    s.add_argument("--out", help="output folder (default: data/PRESET); rerun the same command to resume")
+    s.add_argument("--workers", type=int, default=1, help="parallel worker processes, one sequence each (default 1)")
+    s.add_argument("--seed", type=int, help="seed of everything random: bodies' motions, garments, capture "
+                                            "(default: the preset's, 0)")  # fmt: skip
+    s.add_argument("--train-sequences", type=int, help="motion sequences per subject in the train split "
+                                                       "(default: the preset's)")  # fmt: skip
+    s.add_argument("--test-sequences", type=int, help="motion sequences per subject in the test split "
+                                                      "(default: the preset's)")  # fmt: skip
+    s.add_argument("--frames", type=int, help="stored frames per sequence (default: the preset's)")
+    s.add_argument("--points", type=int, help="points stored per frame (default: the preset's)")
+    s.set_defaults(func=cmd_data_synth)
+
+    s = data.add_parser("info", help="print a dataset's card as tables")
+    s.add_argument("path", help="dataset folder (holds card.json)")
+    s.set_defaults(func=cmd_data_info)
+
+    s = data.add_parser("preview", help="PNG grid of rendered frames coloured by label")
+    s.add_argument("path", help="dataset folder")
+    s.add_argument("--out", help="PNG path (default: PATH/preview_SPLIT.png)")
+    s.add_argument("--num", type=int, default=4, help="frames per subject, evenly spaced (default 4)")
+    s.add_argument("--split", default="train", choices=SPLITS, help="split to show (default train)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the point subsets drawn (default 0)")
+    s.set_defaults(func=cmd_data_preview)
+
+    s = data.add_parser("export", help="write frames as PLY (points, normals, labels) or POP-style NPZ")
+    s.add_argument("path", help="dataset folder")
+    s.add_argument("--out", required=True, help="output folder (created)")
+    s.add_argument("--format", choices=["ply", "npz"], default="ply",
+                   help="ply: points, normals, labels; npz: POP's packed training file (default ply)")  # fmt: skip
+    s.add_argument("--split", default="test", choices=SPLITS, help="split to export (default test)")
+    s.add_argument("--subject", help="only this subject (default: all)")
+    s.add_argument("--limit", type=int, default=0, help="at most this many frames (default 0 = all)")
+    s.set_defaults(func=cmd_data_export)
+
+    s = data.add_parser("import", help="convert a LOOSE/DynaCap-style sequence (one .ply per frame + a joints text file)")
+    s.add_argument("ply_dir", help="folder with one .ply per frame (frame id = last integer in the file name)")
+    s.add_argument("--joints", required=True, help="text file: per line a frame id then 3 x 24 floats")
+    s.add_argument("--out", required=True, help="dataset folder (created or extended)")
+    s.add_argument("--subject", required=True, help="subject name in the dataset")
+    s.add_argument("--split", default="train", choices=SPLITS, help="split to import into (default train)")
+    s.add_argument("--sequence", help="sequence name (default: the ply folder's name)")
+    s.set_defaults(func=cmd_data_import)

@@ -1,0 +1,129 @@
+"""``pocoloco eval`` (one checkpoint and the baselines) and ``pocoloco bench quality`` (every method
+on the same frames)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from pocoloco.cli.common import add_threads_argument, console, progress_bar
+from pocoloco.data import format as fmt
+from pocoloco.diffusion.samplers import SAMPLER_STEPS
+from pocoloco.evaluation.baselines import NEAREST_ALIGNS
+from pocoloco.evaluation.evaluate import (
+    EvalSettings,
+    evaluate,
+    markdown_table,
+    method_titles,
+    write_outputs,
+)
+from pocoloco.evaluation.quality import QUALITY_ROWS, bench_quality, table_markdown
+from pocoloco.utils.atomic import output_folder
+
+__all__ = ["register"]
+
+
+def add_nearest_align_argument(parser: argparse.ArgumentParser) -> None:
+    """``--nearest-align root|yaw`` (shared by ``eval`` and ``bench quality``)."""
+    parser.add_argument("--nearest-align", choices=NEAREST_ALIGNS, default="root",
+                        help="nearest-frame baseline: compare poses after moving the roots together (root, default) "
+                             "or also turning about the vertical axis (yaw)")  # fmt: skip
+
+
+def cmd_eval(args: argparse.Namespace) -> None:
+    """Everything is validated (one-line errors) before the first sample."""
+    if args.ckpt is None and not args.baselines_only:
+        raise ValueError("--ckpt is required (or --baselines-only)")
+    if args.ckpt is not None and args.baselines_only:
+        raise ValueError("--ckpt and --baselines-only exclude each other")
+    if args.no_baselines and args.baselines_only:
+        raise ValueError("--no-baselines and --baselines-only exclude each other")
+    if args.steps is not None and args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    settings = EvalSettings(split=args.split, num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
+                            sampler=args.sampler, steps=args.steps,
+                            baselines=() if args.no_baselines else EvalSettings.baselines,
+                            subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
+                            use_ema=not args.raw_weights, clip=args.clip or None, bf16=args.bf16,
+                            nearest_align=args.nearest_align)  # fmt: skip
+    if settings.sampler not in SAMPLER_STEPS:
+        raise ValueError(f"unknown sampler {settings.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
+    if settings.split not in fmt.SPLITS:
+        raise ValueError(f"unknown split {settings.split!r}; expected one of {fmt.SPLITS}")
+    fmt.read_card(args.data)
+    out = output_folder(args.out)
+    with progress_bar("eval") as update:
+        result, examples = evaluate(args.ckpt, args.data, settings, device=args.device, progress=update)
+    write_outputs(out, result, examples)
+    print(markdown_table(result.means, method_titles(result.settings)))
+    print(f"wrote {out / 'eval.json'}, {out / 'eval.md'}, {out / 'chamfer_per_frame.png'}, {out / 'examples.png'}")
+
+
+def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ckpt", help="checkpoint / run folder of any model; 'default' = the PocoLoco model shipped "
+                                       "with pocoloco (default:pop, default:closet its peers); omit with --baselines-only")  # fmt: skip
+    parser.add_argument("--data", required=True, help="pocoloco dataset folder")
+    parser.add_argument("--split", default="test", help="split to evaluate (default test)")
+    parser.add_argument("--frames", type=int, default=24, help="frames evenly spaced over the split (0 = all; default 24)")
+    parser.add_argument("--points", type=int, default=10_000, help="points per cloud (default 10000, as the paper)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="one sample per seed (default 0 1 2)")
+    parser.add_argument("--sampler", default="dpm++sde", help="dpm++sde, ddpm, dpm++ or ddim (default dpm++sde, 25 steps)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50)")
+    parser.add_argument("--subjects", nargs="+", help="only these subjects (default: all)")
+    parser.add_argument("--no-baselines", action="store_true", help="skip the nearest-frame / posed-body / GT rows")
+    parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
+    add_nearest_align_argument(parser)
+    parser.add_argument("--batch-size", type=int, default=4, help="clouds sampled together (default 4)")
+    parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
+    parser.add_argument("--clip", type=float, default=5.0,
+                        help="clamp the sampler's x0 estimates, normalised units (default 5; 0 = off; see pocoloco sample)")  # fmt: skip
+    parser.add_argument("--bf16", action="store_true", help="denoiser under bf16 autocast (see pocoloco sample --bf16)")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
+    add_threads_argument(parser)
+    parser.add_argument("--out", required=True, help="output folder (eval.json, eval.md, plots)")
+
+
+def cmd_bench_quality(args: argparse.Namespace) -> None:
+    settings = EvalSettings(num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
+                            sampler=args.sampler, steps=args.steps, clip=5.0, nearest_align=args.nearest_align)  # fmt: skip
+    con = console(stderr=True)
+    ckpts = {key: getattr(args, f"ckpt_{key}") for key in QUALITY_ROWS}
+    report = bench_quality(args.data, ckpts, args.out, settings, train_steps=args.train_steps, work=args.work,
+                           preset=args.preset, device=args.device, progress=lambda m: con.print(f"[bold]{m}"),
+                           train_progress=True)  # fmt: skip
+    print(table_markdown(report["means"]))
+    for c in report["claims"]:
+        print(f"- {c['claim']}: {'holds' if c['holds'] else 'does not hold'}")
+    out = Path(args.out)
+    print(f"wrote {out / 'quality.json'}, {out / 'quality.md'}, {out / 'quality.png'}")
+
+
+def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, help="pocoloco dataset (its test split is evaluated)")
+    for key, (title, _, _) in QUALITY_ROWS.items():
+        parser.add_argument(f"--ckpt-{key.replace('_', '-')}", dest=f"ckpt_{key}",
+                            help=f"{title} checkpoint / run folder, or 'default[:pop|:closet]' (shipped)")  # fmt: skip
+    parser.add_argument("--train-steps", type=int, help="train missing models for K steps into --work")
+    parser.add_argument("--work", help="folder for the runs trained by --train-steps (reused / resumed)")
+    parser.add_argument("--preset", default="small", help="training preset of the missing models (default small)")
+    parser.add_argument("--frames", type=int, default=24, help="test frames, evenly spaced (0 = all; default 24)")
+    parser.add_argument("--points", type=int, default=10_000, help="points per cloud (default 10000)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="PocoLoco samples per frame (default 0 1 2)")
+    parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco sampler (default dpm++sde, 25 steps)")
+    parser.add_argument("--steps", type=int, help="PocoLoco sampler steps (default: the sampler's)")
+    add_nearest_align_argument(parser)
+    add_threads_argument(parser)
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
+    parser.add_argument("--out", required=True, help="output folder (quality.json, quality.md, quality.png)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    s = sub.add_parser("eval", help="score a checkpoint and the baselines on a dataset split (JSON + markdown + plots)")
+    add_eval_arguments(s)
+    s.set_defaults(func=cmd_eval)
+    bench = sub.add_parser("bench", help="benchmarks over trained models").add_subparsers(
+        dest="bench_command", required=True, metavar="{quality}")  # fmt: skip
+    s = bench.add_parser("quality", help="PocoLoco, POP, CloSET (+/- decomposition) and baselines on the same test "
+                                         "frames: quality.json / .md / .png")  # fmt: skip
+    add_bench_quality_arguments(s)
+    s.set_defaults(func=cmd_bench_quality)

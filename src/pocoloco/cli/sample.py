@@ -1,0 +1,121 @@
+"""``pocoloco sample``: clouds for one pose from any checkpoint (PLYs, a PNG, ``sample.json``)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import torch
+
+from pocoloco.cli.common import (
+    add_device_argument,
+    add_threads_argument,
+    load_method_from_args,
+)
+from pocoloco.data.poses import pose_spec_kind, subject_of_spec
+from pocoloco.diffusion.samplers import SAMPLER_STEPS
+from pocoloco.methods import SamplerOptions
+from pocoloco.methods.outputs import write_samples
+from pocoloco.methods.pocoloco.sampling import DEFAULT_CLIP
+from pocoloco.utils.atomic import output_folder
+
+__all__ = ["register"]
+
+
+def cmd_sample(args: argparse.Namespace) -> None:
+    """Validate everything (one-line errors before anything is written), sample, write the folder."""
+    for name in ("num", "points", "steps", "batch_size"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    if args.clip < 0:
+        raise ValueError(f"--clip must be >= 0 (0 = off), got {args.clip}")
+    out = output_folder(args.out)
+    method = load_method_from_args(args)
+    spec = os.fspath(args.joints)
+    if method.deterministic:
+        if args.num is not None and args.num != 1:
+            raise ValueError(f"--num {args.num}: {method.title} is deterministic (one cloud per pose and outfit); "
+                             "use --num 1")  # fmt: skip
+        num = 1
+    else:
+        num = 3 if args.num is None else args.num
+    options = SamplerOptions(sampler=args.sampler, steps=args.steps, clip=args.clip or None, bf16=args.bf16,
+                             batch_size=args.batch_size)  # fmt: skip
+    if not method.deterministic and args.sampler not in SAMPLER_STEPS:
+        raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
+    outfit = None
+    if method.outfit_names():
+        if method.needs_body:
+            pose_spec_kind(spec)  # bare joints: the one-line error first
+        name = args.outfit if args.outfit is not None else subject_of_spec(spec)
+        if name is None or (args.outfit is None and name not in method.outfit_names()):
+            raise ValueError(f"--outfit is required (this {method.kind} checkpoint has outfits "
+                             f"{', '.join(method.outfit_names())})")  # fmt: skip
+        outfit = method.outfit_id(name)
+    elif args.outfit is not None:
+        method.outfit_id(args.outfit)  # one line: this model has no outfit codes
+    pose = method.load_pose(spec, outfit, args.frame_id)
+    method.check_options(options)
+    seeds = [args.seed + k for k in range(num)]
+
+    t0 = time.perf_counter()
+    clouds = method.predict(pose, args.points, seeds, outfit, options)
+    seconds = time.perf_counter() - t0
+    settings = {
+        "checkpoint": str(method.path), "model_kind": method.kind, "model": method.title, "step": method.step,
+        "preset": method.config.preset, "joints": spec, "frame_id": args.frame_id, "joints_m": pose.joints.tolist(),
+        "num": num, "points": args.points, "seed": args.seed, "seeds": seeds, "deterministic": method.deterministic,
+        **method.sample_settings(options, args.points),
+    }  # fmt: skip
+    if outfit is not None:
+        settings.update(outfit=method.outfit_names()[outfit], outfit_id=outfit, body_source=pose.source)
+    settings.update(normals=clouds.normals is not None, device=str(method.device), threads=torch.get_num_threads(),
+                    seconds_total=seconds, seconds_per_sample=seconds / num)  # fmt: skip
+    write_samples(out, clouds, settings, render=not args.no_render)
+    what = f"{num} samples" if not method.deterministic else f"1 {method.title} cloud"
+    how = (f"{args.sampler} {settings['steps']} steps" if "steps" in settings
+           else f"outfit {method.outfit_names()[outfit]}" if outfit is not None else method.title)  # fmt: skip
+    print(f"wrote {what} of {args.points} points to {out} ({seconds / num:.3f} s per sample, {how})")
+
+
+def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``pocoloco sample`` options."""
+    parser.add_argument("--ckpt", default="default",
+                        help="checkpoint folder, checkpoints folder or run folder of any model; 'default' (the "
+                             "default) = the PocoLoco model shipped with pocoloco, default:pop / default:closet "
+                             "its shipped peers")  # fmt: skip
+    parser.add_argument("--joints", default="demo:skirt",
+                        help="pose: .npy/.npz (24, 3) joints, a LOOSE-style joints .txt, a dataset frame .npz, "
+                             "DATASET:subject/split/sequence/index, or demo:skirt|shirt|tight (a shipped pose; "
+                             "default demo:skirt). POP / CloSET need the posed body: a dataset frame, or an .npz "
+                             "with anny pose parameters joint_rotvecs (24, 3)")  # fmt: skip
+    parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
+    parser.add_argument("--num", type=int, default=None,
+                        help="K hypotheses to draw (default 3; POP / CloSET are deterministic: 1)")  # fmt: skip
+    parser.add_argument("--outfit",
+                        help="POP / CloSET: outfit name or id (default: the subject of a DATASET:... frame)")  # fmt: skip
+    parser.add_argument("--sampler", default="dpm++sde",
+                        help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde: SDE-DPM-Solver++, 25 steps)")  # fmt: skip
+    parser.add_argument("--steps", type=int,
+                        help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50; ddpm 1000 = the paper's)")  # fmt: skip
+    parser.add_argument("--points", type=int, default=2048, help="N points per cloud (default 2048; any N works)")
+    parser.add_argument("--seed", type=int, default=0, help="cloud k uses seed SEED + k (default 0)")
+    parser.add_argument("--batch-size", type=int, default=8, help="clouds denoised together (default 8)")
+    parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
+    parser.add_argument("--bf16", action="store_true",
+                        help="denoiser under bf16 autocast: several times faster on CPUs with AMX / avx512_bf16 and on GPUs")
+    parser.add_argument("--clip", type=float, default=DEFAULT_CLIP,
+                        help=f"clamp the sampler's x0 estimates to [-CLIP, CLIP] normalised units (default {DEFAULT_CLIP}: "
+                             "outside the data, which stay within +-3.5 on small; 0 = off)")  # fmt: skip
+    parser.add_argument("--no-render", action="store_true", help="skip hypotheses.png")
+    add_device_argument(parser)
+    add_threads_argument(parser)
+    parser.add_argument("--out", required=True, help="output folder (sample_000.ply ..., hypotheses.png, sample.json)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    s = sub.add_parser("sample", help="sample clouds for a pose from a trained checkpoint (PLY + PNG)")
+    add_sample_arguments(s)
+    s.set_defaults(func=cmd_sample)

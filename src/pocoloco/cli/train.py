@@ -1,0 +1,160 @@
+"""``pocoloco train``: any method, one loop (:mod:`pocoloco.engine.trainer`); also what ``torchrun``
+launches (``torchrun --nproc_per_node=2 -m pocoloco train ...``: DDP, gloo on CPU, NCCL on GPUs)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+
+from pocoloco.cli.common import add_threads_argument, console
+from pocoloco.data.format import read_card
+from pocoloco.diffusion.schedules import PREDICTION_TYPES
+from pocoloco.engine.trainer import check_run_folder, dist_info, init_distributed
+from pocoloco.engine.trainer import train as run_training
+from pocoloco.methods import METHODS, method_class
+from pocoloco.methods.pocoloco.config import SCHEDULE_KINDS
+from pocoloco.methods.registry import config_from_checkpoint
+
+__all__ = ["register"]
+
+#: command-line option -> train config field (a method whose config lacks the field refuses the option)
+FIELD_OPTIONS = {
+    "steps": "steps", "batch_size": "batch_size", "lr": "lr", "num_points": "num_points", "seed": "seed",
+    "ckpt_every": "ckpt_every", "sample_every": "sample_every", "log_every": "log_every", "bf16": "bf16",
+    "ema_decay": "ema_decay", "grad_clip": "grad_clip", "schedule": "schedule", "prediction_type": "prediction_type",
+    "min_snr": "min_snr_gamma", "workers": "num_workers", "normal_start": "normal_start",
+    "query_points": "query_points", "subjects": "subjects",
+}  # fmt: skip
+
+
+def _preset_defaults(field: str) -> str:
+    """``pocoloco small 20000, pop small 10000, ...``: the ``small`` presets' value of a field."""
+    out = []
+    for kind, cls in METHODS.items():
+        preset = cls.presets().get("small")
+        if preset is not None and hasattr(preset, field):
+            out.append(f"{kind} {getattr(preset, field)}")
+    return "; default (small preset): " + ", ".join(out) if out else ""
+
+
+def _fields(kind: str) -> set[str]:
+    return {f.name for f in dataclasses.fields(method_class(kind).train_config)}
+
+
+def _applies_to(field: str) -> str:
+    return " / ".join(k for k in METHODS if field in _fields(k))
+
+
+def _config_from_args(args: argparse.Namespace):
+    """The run's config: the preset (or, with ``--resume`` and no ``--preset``, the checkpoint's) with
+    the options given; an option the method has no use for is a one-line error."""
+    cls = method_class(args.model)
+    have = _fields(args.model)
+    overrides = {}
+    for option, field in FIELD_OPTIONS.items():
+        value = getattr(args, option, None)
+        if value is None or value is False:
+            continue
+        if field not in have:
+            raise ValueError(f"--{option.replace('_', '-')} applies to --model {_applies_to(field)} only")
+        overrides[field] = value
+    extra = {}
+    if args.no_decomposition:
+        takers = [k for k, c in METHODS.items() if "decomposition" in getattr(c, "train_options", ())]
+        if args.model not in takers:
+            raise ValueError(f"--no-decomposition applies to --model {' / '.join(takers)} only")
+        extra["decomposition"] = False
+    if args.preset is None and args.resume:
+        root = Path(args.out) / "checkpoints"
+        if check_run_folder(args.out, resume=True) is None:  # raises the one-line error
+            raise ValueError(f"{args.out}: --resume but no checkpoint in {root}")
+        if extra:
+            raise ValueError("--no-decomposition cannot change on --resume (it comes from the checkpoint)")
+        return config_from_checkpoint(root, args.model, **overrides)
+    return cls.preset(args.preset or "small", **extra, **overrides)
+
+
+def cmd_train(args: argparse.Namespace) -> None:
+    """Validate everything (options, data, run folder), then print the banner and train."""
+    read_card(args.data)  # one line if --data is not a dataset
+    config = _config_from_args(args)
+    task = method_class(config.model).training_task(config, args.data)
+    check_run_folder(args.out, args.resume)
+    device, started = init_distributed(args.device)
+    rank, world = dist_info()
+    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
+    if args.threads is None and device.type == "cpu" and "OMP_NUM_THREADS" not in os.environ:
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // max(local_world, 1)))
+    try:
+        model = task.build_model() if rank == 0 else None
+        if rank == 0:
+            n_params = sum(p.numel() for p in model.parameters())
+            del model
+            console(stderr=True).print(
+                f"[bold]pocoloco train[/] model={config.model} preset={config.preset} params={n_params:,} "
+                f"device={device} world={world} threads={torch.get_num_threads()} steps={config.steps} "
+                f"batch={config.batch_size}x{world} N={config.num_points} -> {args.out}"
+            )  # fmt: skip
+        result = run_training(task, args.data, args.out, device=device, resume=args.resume,
+                              progress=not args.no_progress)  # fmt: skip
+        if rank == 0:
+            n_params = sum(p.numel() for p in result.model.parameters())
+            print(f"trained to step {result.step} ({result.steps_per_s:.3f} steps/s, {n_params:,} parameters), loss "
+                  f"{result.final_loss:.4f}; checkpoint {result.last_checkpoint}")  # fmt: skip
+    finally:
+        if started:
+            dist.destroy_process_group()
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``pocoloco train`` options."""
+    d = _preset_defaults
+    parser.add_argument("--model", default="pocoloco", choices=list(METHODS),
+                        help="method to train (default pocoloco: the diffusion model; pop / closet: its peers)")  # fmt: skip
+    parser.add_argument("--data", required=True, help="pocoloco dataset folder (trains on its train split)")
+    parser.add_argument("--preset", default=None,
+                        help="training preset: tiny (tests), small (this CPU), paper (the paper's settings) "
+                             "(default small; with --resume, the checkpoint's config)")  # fmt: skip
+    parser.add_argument("--out", required=True, help="run folder (checkpoints, logs, samples)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the newest intact checkpoint in --out (bit-exact with one thread)")  # fmt: skip
+    parser.add_argument("--steps", type=int, help="total optimiser steps" + d("steps"))
+    parser.add_argument("--batch-size", type=int, help="clouds (frames) per step per process" + d("batch_size"))
+    parser.add_argument("--lr", type=float, help="peak learning rate" + d("lr"))
+    parser.add_argument("--num-points", type=int, help="points per training cloud (scan points for pop / closet)"
+                        + d("num_points"))  # fmt: skip
+    parser.add_argument("--seed", type=int, help="seed of everything random" + d("seed"))
+    parser.add_argument("--ckpt-every", type=int, help="checkpoint period in steps, 0: only at the end" + d("ckpt_every"))
+    parser.add_argument("--sample-every", type=int, help="rendered-preview period in steps, 0: never" + d("sample_every"))
+    parser.add_argument("--log-every", type=int, help="metrics period in steps" + d("log_every"))
+    parser.add_argument("--bf16", action="store_true", default=None,
+                        help="bf16 autocast of the forward pass (pocoloco, closet; default off)")  # fmt: skip
+    parser.add_argument("--ema-decay", type=float, help="EMA decay of the weights" + d("ema_decay"))
+    parser.add_argument("--grad-clip", type=float, help="max gradient L2 norm" + d("grad_clip"))
+    g = parser.add_argument_group("pocoloco only")
+    g.add_argument("--schedule", choices=SCHEDULE_KINDS, help="beta schedule (default four = PocoLoco's quartic)")
+    g.add_argument("--prediction-type", choices=PREDICTION_TYPES, help="network target (default epsilon)")
+    g.add_argument("--min-snr", type=float, metavar="GAMMA", help="min-SNR-gamma loss weighting, e.g. 5 (default off)")
+    g.add_argument("--workers", type=int, help="DataLoader worker processes (default 0: load in the main process)")
+    g = parser.add_argument_group("pop / closet only")
+    g.add_argument("--no-decomposition", action="store_true",
+                   help="closet: one decoder instead of garment template + pose wrinkles (the paper's ablation)")  # fmt: skip
+    g.add_argument("--normal-start", type=int,
+                   help="first step with the normal loss (default: 62.5%% of --steps, as POP)")  # fmt: skip
+    g.add_argument("--query-points", type=int, help="closet: surface points per training frame" + d("query_points"))
+    g.add_argument("--subjects", nargs="+",
+                   help="train on these subjects only, e.g. hold one out for `pocoloco fit` (default: all)")  # fmt: skip
+    parser.add_argument("--device", default=None, help="cuda, cuda:1, cpu (default: cuda if available, else cpu)")
+    add_threads_argument(parser)
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    s = sub.add_parser("train", help="train a model on a dataset (PocoLoco diffusion, or POP / CloSET)")
+    add_train_arguments(s)
+    s.set_defaults(func=cmd_train)

@@ -1,0 +1,292 @@
+"""Pose inputs: the 24 joints of one pose, and (for the body-driven methods) the posed body.
+
+Every method is conditioned on a :class:`Pose`. PocoLoco needs only its ``joints``; POP and CloSET
+also need the subject's posed body (``body_vertices``, the skinning transforms ``vtransf``) and
+POP the mean-shape body in the same pose (``mean_shape``, its pose encoder's input, paper Sec. 3.2).
+
+Where poses come from (``--joints`` on the command line, :func:`load_joints` / :func:`pose_from_spec`):
+
+- a ``.npy`` (J, 3) array, or a ``.npz`` with a ``joints`` array (this covers dataset frame files);
+- a LOOSE-style joints text file (per line a frame id and 3J floats);
+- a dataset frame ``DATASET:subject/split/sequence/index`` (joints, and the posed body);
+- ``demo:NAME``, a pose shipped with the package (``demo:skirt``, ``demo:shirt``, ``demo:tight``:
+  the joints of frame 40 of the test sequence of each subject of the ``small`` dataset);
+- an ``.npz`` with anny pose parameters ``joint_rotvecs`` (24, 3) (+ optional ``root_translation``),
+  posed with a subject's phenotype (the body-driven methods).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pocoloco.body.anny_body import AnnyBody
+from pocoloco.body.skeleton import NUM_JOINTS
+from pocoloco.body.surface import pose_mean_shape_vertices
+from pocoloco.data.format import (
+    SPLITS,
+    DatasetLayout,
+    read_card,
+    read_frame,
+    read_motion,
+)
+from pocoloco.data.published import read_joints_txt
+
+__all__ = [
+    "DEMO_POSES_DIR",
+    "MeanShapeCache",
+    "Pose",
+    "check_joints",
+    "dataset_frame_path",
+    "demo_pose_names",
+    "demo_pose_path",
+    "is_anny_pose_file",
+    "load_joints",
+    "motion_path_of",
+    "pose_from_anny_file",
+    "pose_from_frame",
+    "pose_spec_kind",
+    "subject_of_spec",
+]
+
+#: (24, 3) joints in metres of one test frame per subject of the ``small`` dataset (frame 40 of
+#: its test sequence), usable as ``--joints demo:NAME``
+DEMO_POSES_DIR = Path(__file__).resolve().parent.parent / "assets" / "poses"
+
+
+def demo_pose_names() -> list[str]:
+    """Names of the shipped demo poses (``skirt``, ``shirt``, ``tight``)."""
+    return sorted(p.stem for p in DEMO_POSES_DIR.glob("*.npy"))
+
+
+def demo_pose_path(name: str) -> Path:
+    """The .npy of a shipped demo pose; a one-line error naming the known ones otherwise."""
+    path = DEMO_POSES_DIR / f"{name}.npy"
+    if not path.is_file():
+        raise ValueError(f"demo:{name}: no such demo pose; choose one of: {', '.join(demo_pose_names())}")
+    return path
+
+
+# ------------------------------------------------------------------------------------ joints
+def check_joints(src: str, joints: Any, num_joints: int) -> np.ndarray:
+    """(J, 3) finite float array or a one-line ValueError naming ``src``."""
+    arr = np.asarray(joints)
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"{src}: joints must be numeric, got dtype {arr.dtype}")
+    if arr.shape != (num_joints, 3):
+        raise ValueError(f"{src}: expected joints of shape ({num_joints}, 3), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{src}: joints contain NaN or inf")
+    return arr.astype(np.float32)
+
+
+def _load_array_file(path: Path) -> np.ndarray:
+    """The joints array of a .npy, or of a .npz (key ``joints``, else its only array)."""
+    try:
+        loaded = np.load(path, allow_pickle=False)
+        if not hasattr(loaded, "files"):  # a .npy array
+            return np.asarray(loaded)
+        with loaded as z:
+            if "joints" in z.files:
+                return z["joints"]
+            if len(z.files) == 1:
+                return z[z.files[0]]
+            raise ValueError(f"{path}: npz has no 'joints' array (arrays: {', '.join(sorted(z.files))})")
+    except ValueError as e:
+        if str(e).startswith(str(path)):
+            raise
+        raise ValueError(f"{path}: cannot read joints ({type(e).__name__}: {' '.join(str(e).split())})") from None
+    except Exception as e:  # zipfile.BadZipFile, EOFError, OSError ...
+        raise ValueError(f"{path}: cannot read joints ({type(e).__name__}: {' '.join(str(e).split())})") from None
+
+
+def dataset_frame_path(spec: str) -> Path:
+    """``DATASET:subject/split/sequence/index`` -> the frame file (the dataset is validated)."""
+    root, _, key = spec.rpartition(":")
+    parts = key.strip("/").split("/")
+    if len(parts) != 4:
+        raise ValueError(f"{spec}: expected DATASET:subject/split/sequence/index, got frame key {key!r}")
+    subject, split, sequence, index = parts
+    read_card(root)  # one-line error when root is not a dataset
+    if split not in SPLITS:
+        raise ValueError(f"{spec}: unknown split {split!r}; expected one of {SPLITS}")
+    try:
+        idx = int(index)
+    except ValueError:
+        raise ValueError(f"{spec}: frame index {index!r} is not an integer") from None
+    layout = DatasetLayout(root)
+    if subject not in layout.subjects():
+        raise ValueError(f"{spec}: no subject {subject!r} in {root} (has {', '.join(layout.subjects()) or 'none'})")
+    path = layout.frame_path(subject, split, sequence, idx)
+    if not path.is_file():
+        raise ValueError(f"{spec}: no such frame ({path})")
+    return path
+
+
+def load_joints(spec: str | os.PathLike, frame_id: int | None = None, num_joints: int = NUM_JOINTS) -> np.ndarray:
+    """Read one pose's joints (J, 3) float32, in metres, from ``spec``.
+
+    ``spec`` is one of:
+
+    - a ``.npy`` holding a (J, 3) array, or a ``.npz`` with a ``joints`` array (this covers our
+      dataset frame files) or a single (J, 3) array;
+    - a LOOSE-style joints text file (per line a frame id and 3J floats,
+      :func:`pocoloco.data.published.read_joints_txt`): ``frame_id`` picks the line with that
+      frame id (None: the first line);
+    - a dataset frame ``DATASET:subject/split/sequence/index`` (e.g. ``data/tiny:s0/test/seq_000/3``);
+    - ``demo:NAME``, a pose shipped with the package (``demo:skirt``, ``demo:shirt``, ``demo:tight``).
+
+    Raises:
+        ValueError (one line, naming the file): unreadable file, not a dataset, no such frame,
+        wrong joint count or shape, NaN / inf.
+    """
+    spec = os.fspath(spec)
+    path = Path(spec)
+    if spec.startswith("demo:") and not path.exists():
+        if frame_id is not None:
+            raise ValueError(f"{spec}: --frame-id only applies to joints text files")
+        return check_joints(spec, _load_array_file(demo_pose_path(spec[5:])), num_joints)
+    if not path.exists() and ":" in spec:
+        if frame_id is not None:
+            raise ValueError(f"{spec}: --frame-id only applies to joints text files")
+        return check_joints(spec, read_frame(dataset_frame_path(spec), ["joints"]).joints, num_joints)
+    if not path.is_file():
+        raise ValueError(f"{spec}: no such joints file (or DATASET:subject/split/sequence/index frame)")
+    if path.suffix in (".npy", ".npz"):
+        if frame_id is not None:
+            raise ValueError(f"{spec}: --frame-id only applies to joints text files")
+        return check_joints(spec, _load_array_file(path), num_joints)
+    ids, joints = read_joints_txt(path, num_joints)  # (T,), (T, J, 3); validates counts and NaNs
+    if frame_id is None:
+        return joints[0]
+    hit = np.flatnonzero(ids == frame_id)
+    if len(hit) == 0:
+        raise ValueError(f"{spec}: no line with frame id {frame_id} (ids {ids.min()}..{ids.max()})")
+    return joints[hit[0]]
+
+
+# ---------------------------------------------------------------------------------- posed body
+@dataclass
+class Pose:
+    """One pose (numpy float32, metres, world frame).
+
+    joints (J, 3) (joints[0] = the root the methods centre on); body_vertices (V, 3) the subject's
+    posed body and vtransf (V, 3, 3) its per-vertex skinning transforms, or None (joints only);
+    mean_shape (V, 3) the posed mean-shape body centred on its own root (POP's pose input) or
+    None; subject: the dataset subject the body belongs to (None for joints / an anny pose file);
+    source: where it came from.
+    """
+
+    joints: np.ndarray
+    body_vertices: np.ndarray | None = None
+    vtransf: np.ndarray | None = None
+    mean_shape: np.ndarray | None = None
+    subject: str | None = None
+    source: str = ""
+
+    @property
+    def has_body(self) -> bool:
+        return self.body_vertices is not None and self.vtransf is not None
+
+
+def subject_of_spec(spec: str) -> str | None:
+    """The subject of a ``DATASET:subject/split/sequence/index`` spec, else None."""
+    spec = os.fspath(spec)
+    if ":" not in spec or spec.startswith("demo:") or Path(spec).exists():
+        return None
+    return spec.rpartition(":")[2].strip("/").split("/")[0] or None
+
+
+class MeanShapeCache:
+    """Posed mean-shape bodies (T, V, 3), centred on their root, per ``motion.npz`` (anny, cached)."""
+
+    def __init__(self):
+        self._cache: dict[str, np.ndarray] = {}
+
+    def get(self, motion_path: Path, frame_index: int, whole_sequence: bool = True) -> np.ndarray:
+        key = os.fspath(motion_path)
+        if key not in self._cache:
+            m = read_motion(motion_path)
+            if frame_index >= len(m.joint_rotvecs):
+                raise ValueError(f"{motion_path}: frame {frame_index} is beyond the motion ({len(m.joint_rotvecs)} frames)")
+            if not whole_sequence:
+                return pose_mean_shape_vertices(m.joint_rotvecs[frame_index : frame_index + 1])[0]
+            self._cache[key] = pose_mean_shape_vertices(m.joint_rotvecs)
+        verts = self._cache[key]
+        if frame_index >= len(verts):
+            raise ValueError(f"{motion_path}: frame {frame_index} is beyond the motion ({len(verts)} frames)")
+        return verts[frame_index]
+
+
+def motion_path_of(frame_path: Path) -> Path:
+    """``.../<sequence>/frames/000123.npz`` -> ``.../<sequence>/motion.npz``."""
+    return Path(frame_path).parent.parent / "motion.npz"
+
+
+def pose_from_frame(frame_path: str | os.PathLike, subject: str | None, need_mean_shape: bool,
+                    cache: MeanShapeCache | None = None, frame=None) -> Pose:  # fmt: skip
+    """The posed body of a dataset frame file (and, if needed, the mean shape in its pose)."""
+    path = Path(frame_path)
+    fr = frame if frame is not None else read_frame(path, ["joints", "frame_index", "body_vertices", "vtransf"],
+                                                    allow_missing=True)  # fmt: skip
+    if fr.body_vertices is None or fr.vtransf is None:
+        raise ValueError(f"{path}: frame has no posed body (body_vertices / vtransf); POP and CloSET need it")
+    mean = None
+    if need_mean_shape:
+        mean = (cache or MeanShapeCache()).get(motion_path_of(path), int(fr.frame_index), whole_sequence=cache is not None)
+    return Pose(np.asarray(fr.joints, np.float32), np.asarray(fr.body_vertices, np.float32),
+                np.asarray(fr.vtransf, np.float32), mean, subject, os.fspath(path))  # fmt: skip
+
+
+def pose_from_anny_file(path: str | os.PathLike, phenotype: dict[str, float], need_mean_shape: bool) -> Pose:
+    """An ``.npz`` with ``joint_rotvecs`` (24, 3) anny axis-angle rotations (as in ``motion.npz``;
+    optional ``root_translation`` (3,)) -> the body of ``phenotype`` in that pose."""
+    src = os.fspath(path)
+    try:
+        with np.load(src, allow_pickle=False) as z:
+            rot = np.asarray(z["joint_rotvecs"], np.float32)
+            trans = np.asarray(z["root_translation"], np.float32) if "root_translation" in z.files else None
+    except Exception as e:
+        raise ValueError(f"{src}: cannot read anny pose parameters ({type(e).__name__}: {e})") from None
+    if rot.ndim == 3 and rot.shape[0] == 1:
+        rot = rot[0]
+    if rot.shape != (NUM_JOINTS, 3) or not np.isfinite(rot).all():
+        raise ValueError(f"{src}: joint_rotvecs must be a finite ({NUM_JOINTS}, 3) array, got {rot.shape}")
+    if trans is not None:
+        trans = trans.reshape(-1)[:3] if trans.size >= 3 else None
+    posed = AnnyBody(phenotype).pose(rot[None], None if trans is None else trans[None])
+    mean = None
+    if need_mean_shape:
+        mean = pose_mean_shape_vertices(rot[None])[0]
+    return Pose(posed.joints[0], posed.vertices[0], posed.vtransf[0], mean, None, src)
+
+
+def is_anny_pose_file(spec: str) -> bool:
+    """True for an existing ``.npz`` holding ``joint_rotvecs``."""
+    p = Path(spec)
+    if p.suffix != ".npz" or not p.is_file():
+        return False
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            return "joint_rotvecs" in z.files
+    except Exception:
+        return False
+
+
+def pose_spec_kind(spec: str) -> str:
+    """"dataset" (DATASET:subject/split/sequence/index), "anny" (.npz with joint_rotvecs) or "frame"
+    (a frame .npz inside a dataset); anything else (bare joints) is a one-line error."""
+    path = Path(spec)
+    if not path.exists() and ":" in spec and not spec.startswith("demo:"):
+        return "dataset"
+    if is_anny_pose_file(spec):
+        return "anny"
+    if path.suffix == ".npz" and path.is_file() and path.parent.name == "frames" and \
+            (path.parent.parent / "motion.npz").is_file():  # fmt: skip
+        return "frame"
+    raise ValueError(f"{spec}: POP and CloSET need the posed body, not only joints: pass a dataset frame "
+                     "DATASET:subject/split/sequence/index or an .npz with anny pose parameters 'joint_rotvecs' (24, 3)")

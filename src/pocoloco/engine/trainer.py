@@ -1,0 +1,495 @@
+"""The one training loop every method trains with (``pocoloco train --model pocoloco|pop|closet``).
+
+A method gives the loop a :class:`TrainingTask`: how to build its network and optimiser, the
+batch of each step, and the loss of a batch. The loop owns everything else, the same for all:
+
+* the learning rate of every step: linear warm-up, then constant or cosine (:func:`lr_at`);
+  an optimiser's parameter groups keep their ratios to the config's ``lr`` (POP's features
+  learn at 5e-4 while its network learns at 3e-4);
+* gradient-norm clipping (``grad_clip``; the norm is logged either way);
+* EMA weights with warm-up, ``decay_s = min(ema_decay, (1 + s) / (10 + s))`` (``ema_decay``
+  None: no EMA, the checkpoint's weights are the trained ones);
+* bf16 autocast of the loss's forward pass (``bf16``);
+* DistributedDataParallel under ``torchrun`` (NCCL on GPUs, gloo on CPU); ``batch_size`` is per
+  process; only rank 0 writes logs, previews and checkpoints;
+* atomic checkpoints (:mod:`pocoloco.engine.checkpoint`) with optimiser and RNG state, and a
+  bit-exact ``resume``: everything random in a step is a pure function of ``(seed, step, rank)``
+  (the batch order of :class:`pocoloco.data.step_batches.StepBatches`, and whatever the task
+  seeds from :func:`pocoloco.utils.seeding.seed_of`), so a resumed run needs only the weights,
+  EMA, optimiser state and step; a damaged newest checkpoint falls back to the newest intact one,
+  and temporaries of an interrupted save are removed on start;
+* logging: ``metrics.jsonl`` (always), TensorBoard scalars (if installed), ``loss.png``, a rich
+  progress bar, and the task's rendered previews.
+
+Run folder::
+
+    RUN_DIR/config.json        the run's config (+ data folder, world size)
+    RUN_DIR/metrics.jsonl      one JSON record per logged step
+    RUN_DIR/tb/                TensorBoard scalars (only if tensorboard is installed)
+    RUN_DIR/loss.png           loss curves (refreshed at every checkpoint / preview)
+    RUN_DIR/samples/step_XXXXXX.png   the task's previews next to the data
+    RUN_DIR/checkpoints/       see :mod:`pocoloco.engine.checkpoint`
+
+The config a task carries is the method's frozen dataclass; the loop reads these fields:
+``model`` (kind), ``preset``, ``steps``, ``batch_size``, ``lr``, ``seed``, ``ckpt_every``,
+``sample_every``, ``log_every``, ``keep_checkpoints`` and, when present, ``warmup_steps`` (0),
+``lr_schedule`` ("constant"), ``grad_clip`` (None), ``ema_decay`` (None), ``bf16`` (False),
+``num_workers`` (0); ``to_dict()`` / ``from_dict()`` store it in checkpoints.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import json
+import math
+import os
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+
+from pocoloco.data.dataset import Normalisation
+from pocoloco.engine import checkpoint as ckpt_io
+from pocoloco.utils.atomic import write_json_atomic
+from pocoloco.viz.render import plot_curves
+
+__all__ = [
+    "EMA",
+    "Logger",
+    "ProgressBar",
+    "TrainResult",
+    "TrainingTask",
+    "check_run_folder",
+    "dist_info",
+    "ema_decay_at",
+    "init_distributed",
+    "lr_at",
+    "train",
+]
+
+
+# ---------------------------------------------------------------------------- pure schedules
+def lr_at(config: Any, step: int) -> float:
+    """Learning rate of optimiser step ``step`` (0-based): linear warm-up over ``warmup_steps``,
+    then constant or cosine (to 0 at ``steps``)."""
+    warmup = getattr(config, "warmup_steps", 0)
+    if warmup and step < warmup:
+        return config.lr * (step + 1) / warmup
+    if getattr(config, "lr_schedule", "constant") == "cosine":
+        span = max(config.steps - warmup, 1)
+        progress = min(max(step - warmup, 0) / span, 1.0)
+        return config.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
+    return config.lr
+
+
+def ema_decay_at(ema_decay: float, step: int) -> float:
+    """EMA decay after optimiser step ``step`` (0-based): ``min(ema_decay, (1 + step) / (10 + step))``."""
+    return min(ema_decay, (1.0 + step) / (10.0 + step))
+
+
+class EMA:
+    """Exponential moving average of a module's parameters (fp32 copy); buffers are copied.
+
+    ``update(model, step)``: ema <- d ema + (1 - d) param with d = :func:`ema_decay_at`.
+    """
+
+    def __init__(self, model: nn.Module, decay: float):
+        self.decay = float(decay)
+        self.module = copy.deepcopy(model).eval()
+        for p in self.module.parameters():
+            p.requires_grad_(False)
+
+    @torch.no_grad()
+    def update(self, model: nn.Module, step: int) -> float:
+        d = ema_decay_at(self.decay, step)
+        ema_p = list(self.module.parameters())
+        src_p = [p.detach() for p in model.parameters()]
+        torch._foreach_lerp_(ema_p, src_p, 1.0 - d)
+        for e, b in zip(self.module.buffers(), model.buffers(), strict=True):
+            e.copy_(b)
+        return d
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return self.module.state_dict()
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        self.module.load_state_dict(state)
+
+
+# ------------------------------------------------------------------------------------ the task
+class TrainingTask(ABC):
+    """What a method gives the loop: one training run of one method on one dataset.
+
+    Attributes:
+        config: the method's train config (fields: module docstring).
+        kind: the checkpoints' ``model_kind`` (``config.model``).
+        normalisation: the dataset's, stored in every checkpoint.
+        resumable_changes: config fields that may differ on ``--resume``.
+        ddp_find_unused: wrap in DDP with ``find_unused_parameters`` (some parameters get no
+            gradient in some steps, e.g. POP's normal head before its normal loss is on).
+    """
+
+    config: Any
+    kind: str
+    normalisation: Normalisation
+    resumable_changes: frozenset[str] = frozenset({"steps", "ckpt_every", "sample_every", "log_every",
+                                                   "keep_checkpoints", "num_workers"})  # fmt: skip
+    ddp_find_unused: bool = False
+
+    @abstractmethod
+    def build_model(self) -> nn.Module:
+        """A fresh network (torch's global RNG was just seeded with ``config.seed``)."""
+
+    @abstractmethod
+    def make_optimizer(self, model: nn.Module) -> torch.optim.Optimizer:
+        """The optimiser; its groups' ``lr`` are base rates scaled by :func:`lr_at` / ``config.lr``."""
+
+    @abstractmethod
+    def step_batches(self, model: nn.Module, rank: int, world: int) -> torch.utils.data.Dataset:
+        """A map-style dataset: item ``step`` is this rank's batch of that step (a pure function of
+        ``(config.seed, step, rank)``); tensors or objects with ``.to(device)``."""
+
+    @abstractmethod
+    def loss(self, net: nn.Module, batch: Any, step: int, rank: int) -> tuple[torch.Tensor, dict[str, float]]:
+        """The differentiable loss of ``batch`` (on the device) and floats to log (``"loss"`` first).
+        ``net`` is the model, or its DDP wrapper: call it, not the model, for the forward pass."""
+
+    def check_resume(self, ck: ckpt_io.Checkpoint) -> None:
+        """Raise a one-line ValueError if ``ck`` cannot continue this run (data differ, ...)."""
+
+    def checkpoint_extra(self, model: nn.Module) -> dict[str, Any]:
+        """More JSON metadata for every checkpoint's ``meta.json``."""
+        return {}
+
+    def log_extra(self, step: int) -> dict[str, Any]:
+        """More fields for the metrics record of (0-based) ``step``."""
+        return {}
+
+    def preview(self, model: nn.Module, step: int, out: Path, device: torch.device) -> Path | None:
+        """Render what ``model`` (the EMA model if any) makes of a few frames to ``out/samples``."""
+        return None
+
+
+# ------------------------------------------------------------------------------------- logging
+class Logger:
+    """metrics.jsonl (always) + TensorBoard (if importable); rank 0 only."""
+
+    def __init__(self, run_dir: Path, resume_step: int | None):
+        self.path = run_dir / "metrics.jsonl"
+        self.records: list[dict[str, Any]] = []
+        if resume_step is not None and self.path.is_file():  # drop records past the checkpoint
+            for line in self.path.read_text(encoding="utf-8").splitlines():
+                try:
+                    rec = json.loads(line)
+                except json.JSONDecodeError:
+                    continue
+                if isinstance(rec, dict) and rec.get("step", math.inf) <= resume_step:
+                    self.records.append(rec)
+        self.file = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 - closed in close()
+        for rec in self.records:
+            self.file.write(json.dumps(rec) + "\n")
+        self.file.flush()
+        self.tb = None
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_step)
+        except Exception:  # tensorboard is an optional extra
+            self.tb = None
+
+    def log(self, rec: dict[str, Any]) -> None:
+        self.records.append(rec)
+        self.file.write(json.dumps(rec) + "\n")
+        self.file.flush()
+        if self.tb is not None:
+            for k, v in rec.items():
+                if k != "step" and isinstance(v, (int, float)):
+                    self.tb.add_scalar(f"train/{k}", v, rec["step"])
+
+    def plot(self, path: Path) -> None:
+        recs = [r for r in self.records if "loss" in r]
+        if len(recs) < 1:
+            return
+        steps = [r["step"] for r in recs]
+        curves = {"loss": (steps, [r["loss"] for r in recs])}
+        if len(recs) >= 10:  # a running mean reads better than the noisy per-step loss
+            k = max(len(recs) // 20, 5)
+            ys = np.convolve([r["loss"] for r in recs], np.ones(k) / k, mode="valid")
+            curves[f"loss (mean of {k})"] = (steps[k - 1:], ys.tolist())
+            # the loss per quarter of [0, T): the low-noise quarter q0 is near 1 for a long time
+            # and hides the progress of the others
+            for q in range(4):
+                sel = [(r["step"], r[f"mse_q{q}"]) for r in recs if f"mse_q{q}" in r]
+                if len(sel) >= k:
+                    ys = np.convolve([v for _, v in sel], np.ones(k) / k, mode="valid")
+                    curves[f"mse, t in quarter {q} (mean of {k})"] = ([s_ for s_, _ in sel][k - 1:], ys.tolist())
+        plot_curves(curves, path, logy=True, title="training loss")
+
+    def close(self) -> None:
+        self.file.close()
+        if self.tb is not None:
+            self.tb.close()
+
+
+class ProgressBar:
+    """A rich progress bar with the loss (or nothing)."""
+
+    def __init__(self, enabled: bool, start: int, total: int):
+        self.bar = None
+        if not enabled:
+            return
+        from rich import progress as rp
+
+        self.bar = rp.Progress(rp.TextColumn("train"), rp.BarColumn(), rp.MofNCompleteColumn(),
+                               rp.TextColumn("loss {task.fields[loss]}"), rp.TimeElapsedColumn(),
+                               rp.TimeRemainingColumn())  # fmt: skip
+        self.bar.start()
+        self.task = self.bar.add_task("train", total=total, completed=start, loss="-")
+
+    def advance(self, loss: float) -> None:
+        if self.bar is not None:
+            self.bar.update(self.task, advance=1, loss=f"{loss:.4f}")
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+# ------------------------------------------------------------------------------ distributed
+def dist_info() -> tuple[int, int]:
+    """(rank, world size); (0, 1) outside ``torch.distributed``."""
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def init_distributed(device_arg: str | None) -> tuple[torch.device, bool]:
+    """Choose the device and, under torchrun (WORLD_SIZE > 1), initialise the process group
+    (NCCL on GPUs, gloo on CPU). Returns (device, whether this call started the group)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    if device_arg is None:
+        device = torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() and world > 1 else
+                              "cuda" if torch.cuda.is_available() else "cpu")  # fmt: skip
+    else:
+        device = torch.device(device_arg)
+        if device.type == "cuda" and world > 1 and device.index is None:
+            device = torch.device(f"cuda:{local_rank}")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"--device {device_arg}: CUDA is not available")
+        torch.cuda.set_device(device)
+    started = False
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        started = True
+    return device, started
+
+
+# ----------------------------------------------------------------------------------- the loop
+@dataclass
+class TrainResult:
+    """What :func:`train` returns.
+
+    model: the trained raw model (unwrapped from DDP). ema: the EMA model (the model itself
+    without EMA). step: steps done. last_checkpoint: folder of the last checkpoint written (None
+    if none / not rank 0). steps_per_s: over the steps of this call. final_loss: of the last step.
+    """
+
+    model: nn.Module
+    ema: nn.Module
+    step: int
+    last_checkpoint: Path | None
+    steps_per_s: float
+    final_loss: float
+
+
+def check_run_folder(out: str | os.PathLike, resume: bool) -> Path | None:
+    """One-line errors before any work: ``resume`` without a checkpoint in ``out``, or a fresh run
+    into a folder that holds checkpoints. Returns the newest checkpoint (None for a fresh run)."""
+    ckpt_root = Path(out) / "checkpoints"
+    existing = ckpt_io.latest_checkpoint(ckpt_root)
+    if resume and existing is None:
+        raise ValueError(f"{out}: --resume but no checkpoint in {ckpt_root}")
+    if not resume and existing is not None:
+        raise ValueError(f"{out}: already holds checkpoints; pass --resume or choose another --out")
+    return existing
+
+
+def _check_resume_config(task: TrainingTask, ck: ckpt_io.Checkpoint) -> None:
+    stored = type(task.config).from_dict(ck.config)
+    a, b = stored.to_dict(), task.config.to_dict()
+    diff = [k for k in a if k not in task.resumable_changes and a[k] != b.get(k)]
+    if diff:
+        detail = "; ".join(f"{k}: checkpoint {a[k]!r} vs requested {b.get(k)!r}" for k in diff[:3])
+        raise ValueError(f"{ck.path}: cannot resume with a different config ({detail})")
+
+
+def _to_device(batch: Any, device: torch.device) -> Any:
+    if isinstance(batch, dict):
+        return {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v for k, v in batch.items()}
+    return batch.to(device)
+
+
+def _grad_norm(model: nn.Module) -> torch.Tensor:
+    grads = [p.grad.detach().norm() for p in model.parameters() if p.grad is not None]
+    return torch.stack(grads).norm() if grads else torch.zeros(())
+
+
+def train(
+    task: TrainingTask,
+    data: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    device: str | torch.device = "cpu",
+    resume: bool = False,
+    progress: bool = True,
+    log_fn=None,
+) -> TrainResult:
+    """Run ``task`` into the run folder ``out`` (``data``: recorded in config.json and checkpoints).
+
+    Args:
+        device: where to train (the caller chooses; with DDP the process's device).
+        resume: continue from the newest intact checkpoint in ``out``, which must have the same
+            config (``task.resumable_changes`` excepted) and pass ``task.check_resume``;
+            without it, an existing checkpoint is an error.
+        progress: show a rich progress bar (rank 0). log_fn: called with each metrics record.
+    If ``torch.distributed`` is initialised, the model is wrapped in DistributedDataParallel and
+    every rank trains on its own part of each global batch.
+    """
+    config = task.config
+    device = torch.device(device)
+    rank, world = dist_info()
+    out = Path(out)
+    ckpt_root = out / "checkpoints"
+    if rank == 0:
+        ckpt_io.clean_stale_temporaries(ckpt_root)
+
+    # ---- resume or fresh start -------------------------------------------------------------
+    start_step, ck = 0, None
+    check_run_folder(out, resume)
+    if resume:
+        ck = ckpt_io.load_checkpoint(ckpt_root, expect_model=task.kind, expect_preset=config.preset)
+        _check_resume_config(task, ck)
+        task.check_resume(ck)
+        start_step = ck.step
+        if start_step > config.steps:
+            raise ValueError(f"{ck.path}: checkpoint is at step {start_step}, past --steps {config.steps}")
+
+    torch.manual_seed(config.seed)
+    model = task.build_model()
+    if ck is not None:
+        model.load_state_dict(ck.model_state)
+    model.to(device)
+    ema_decay = getattr(config, "ema_decay", None)
+    ema = EMA(model, ema_decay) if ema_decay is not None else None
+    if ema is not None and ck is not None and ck.ema_state is not None:
+        ema.load_state_dict(ck.ema_state)
+    optimizer = task.make_optimizer(model)
+    base_lrs = [float(g["lr"]) for g in optimizer.param_groups]
+    if ck is not None and ck.optimizer_state is not None:
+        optimizer.load_state_dict(ck.optimizer_state)
+    if ck is not None and ck.rng_state is not None:
+        ckpt_io.restore_rng_state(ck.rng_state)
+
+    net: nn.Module = model
+    if world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
+                                      find_unused_parameters=task.ddp_find_unused)  # fmt: skip
+
+    batches = task.step_batches(model, rank, world)
+    loader = torch.utils.data.DataLoader(
+        batches, batch_size=None, sampler=range(start_step, config.steps),
+        num_workers=getattr(config, "num_workers", 0), pin_memory=device.type == "cuda",
+    )  # fmt: skip
+
+    # ---- rank-0 outputs ---------------------------------------------------------------------
+    logger = None
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / "config.json", {"data": os.fspath(data), "world_size": world, **config.to_dict()})
+        logger = Logger(out, start_step if ck is not None else None)
+
+    def save(step: int) -> Path:
+        return ckpt_io.save_checkpoint(
+            ckpt_root, step, model_kind=task.kind, preset=config.preset, config=config.to_dict(),
+            normalisation=task.normalisation, model_state=model.state_dict(),
+            ema_state=None if ema is None else ema.state_dict(), optimizer_state=optimizer.state_dict(),
+            rng_state=ckpt_io.capture_rng_state(),
+            extra={"world_size": world, "data": os.fspath(data), **task.checkpoint_extra(model)},
+            keep=config.keep_checkpoints,
+        )  # fmt: skip
+
+    bf16 = bool(getattr(config, "bf16", False))
+    grad_clip = getattr(config, "grad_clip", None)
+
+    def autocast():
+        return torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
+
+    bar = ProgressBar(progress and rank == 0, start_step, config.steps)
+    last_ckpt, saved_step, loss_val, t0, step = None, None, float("nan"), time.perf_counter(), start_step
+    model.train()
+    try:
+        for step, batch in zip(range(start_step, config.steps), loader, strict=True):
+            lr = lr_at(config, step)
+            for group, base in zip(optimizer.param_groups, base_lrs, strict=True):
+                group["lr"] = lr if base == config.lr else base * (lr / config.lr)
+            batch = _to_device(batch, device)
+            with autocast():
+                loss, logs = task.loss(net, batch, step, rank)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            gnorm = (torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+                     if grad_clip is not None else _grad_norm(model))  # fmt: skip
+            optimizer.step()
+            decay_now = ema.update(model, step) if ema is not None else None
+            done = step + 1
+            loss_val = logs["loss"]
+            if not math.isfinite(loss_val):
+                raise FloatingPointError(f"loss is {loss_val} at step {done}; lower --lr or check the data")
+
+            if done % config.log_every == 0 or done == config.steps:
+                if world > 1:
+                    lt = torch.tensor([loss_val], device=device)
+                    dist.all_reduce(lt)
+                    loss_val = float(lt) / world
+                if rank == 0:
+                    elapsed = time.perf_counter() - t0
+                    rec = {"step": done, "loss": loss_val, **{k: v for k, v in logs.items() if k != "loss"},
+                           "lr": lr, "grad_norm": float(gnorm), **task.log_extra(step)}  # fmt: skip
+                    if decay_now is not None:
+                        rec["ema_decay"] = decay_now
+                    rec.update(steps_per_s=(done - start_step) / max(elapsed, 1e-9), time=elapsed)
+                    logger.log(rec)
+                    if log_fn is not None:
+                        log_fn(rec)
+            if rank == 0:
+                bar.advance(loss_val)
+                if config.sample_every and done % config.sample_every == 0:
+                    task.preview(model if ema is None else ema.module, done, out, device)
+                    logger.plot(out / "loss.png")
+                if config.ckpt_every and done % config.ckpt_every == 0:
+                    last_ckpt, saved_step = save(done), done
+                    logger.plot(out / "loss.png")
+            step = done
+        if rank == 0 and step > start_step and saved_step != step:
+            last_ckpt = save(step)
+            logger.plot(out / "loss.png")
+    finally:
+        bar.close()
+        if logger is not None:
+            logger.close()
+    if world > 1:
+        dist.barrier()
+    elapsed = time.perf_counter() - t0
+    return TrainResult(model=model, ema=model if ema is None else ema.module, step=step, last_checkpoint=last_ckpt,
+                       steps_per_s=(step - start_step) / max(elapsed, 1e-9), final_loss=loss_val)  # fmt: skip

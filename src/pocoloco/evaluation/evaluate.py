@@ -1,0 +1,368 @@
+"""Evaluation (``pocoloco eval``): a trained model of any method and two baselines scored on the test
+frames of a dataset.
+
+For every evaluated test frame (joints K, ground-truth scan G with normals and labels):
+
+* **model**: S clouds of N points for K (one per seed, :meth:`pocoloco.methods.Method.predict`; a
+  deterministic method gives one cloud);
+  each is scored against G (:func:`pocoloco.evaluation.metrics.evaluate_frame`) and the S scores are
+  averaged, as the PocoLoco paper averages its metrics over several samples. Diversity is the
+  mean pairwise Chamfer (cm) among the S clouds, over the whole cloud and separately over the
+  points in the garment / body region (each point takes the label of its nearest GT point).
+* **nearest-frame** baseline: the training frame of the same subject whose root-aligned joints
+  are nearest to K (sum of squared joint distances), its scan translated by the root offset.
+* **posed-body** baseline: N points sampled uniformly on the frame's posed minimally-clothed
+  body (the body the garment was simulated on), with face normals.
+* **GT resample** (reference row, the metric's own noise floor): another N-point subset of
+  the same scan.
+
+G is an N-point subset of the scan (fixed seed), so every row compares N points with N points.
+Metric definitions and units: :mod:`pocoloco.evaluation.metrics` (Chamfer = S2M + M2S in cm, unsquared;
+POP CD = squared, point-to-plane M2S, in 1e-4 m^2).
+
+Output folder: ``eval.json`` (settings, per-frame rows, means per method and per subject),
+``eval.md`` (the same tables in markdown), ``chamfer_per_frame.png`` (per-frame Chamfer of
+every method), ``examples.png`` (GT, baselines and samples for a few frames, coloured by label;
+a generated point takes the label of its nearest GT point).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pocoloco.data import format as fmt
+from pocoloco.data.dataset import Normalisation
+from pocoloco.data.poses import MeanShapeCache
+from pocoloco.evaluation.baselines import (
+    NEAREST_ALIGNS,
+    NearestFrameBaseline,
+    posed_body_baseline,
+    select_frames,
+    subset,
+)
+from pocoloco.evaluation.metrics import diversity_cm, evaluate_frame, nearest, summarise
+from pocoloco.methods import SamplerOptions, load_method
+from pocoloco.utils.atomic import (
+    jsonable,
+    output_folder,
+    write_json_atomic,
+    write_text_atomic,
+)
+from pocoloco.viz.render import plot_curves, render_grid
+
+__all__ = ["EvalResult", "EvalSettings", "METHODS", "TABLE_COLUMNS", "evaluate", "markdown_table", "markdown_tables",
+           "method_titles", "write_outputs"]  # fmt: skip
+
+#: methods in the order of the tables; "model" is the checkpoint being evaluated
+METHODS = ("model", "nearest_frame", "posed_body", "gt_resample")
+METHOD_TITLES = {
+    "model": "PocoLoco (this checkpoint)",
+    "nearest_frame": "nearest training frame (pose)",
+    "posed_body": "posed body (no clothes)",
+    "gt_resample": "GT resample (noise floor)",
+}
+#: columns of the markdown table: (key, header, format)
+TABLE_COLUMNS = (
+    ("chamfer_cm", "Chamfer cm", "{:.2f}"),
+    ("s2m_cm", "S2M cm", "{:.2f}"),
+    ("m2s_cm", "M2S cm", "{:.2f}"),
+    ("pop_chamfer_e-4m2", "CD 1e-4 m^2", "{:.2f}"),
+    ("normal_l1_e-1", "normal 1e-1", "{:.2f}"),
+    ("fscore_pct", "F@1cm %", "{:.1f}"),
+    ("loose_pred_pct", "loose %", "{:.1f}"),
+    ("loose_gt_pct", "loose GT %", "{:.1f}"),
+    ("diversity_cm", "div. cm", "{:.2f}"),
+    ("diversity_garment_cm", "div. garment", "{:.2f}"),
+    ("diversity_body_cm", "div. body", "{:.2f}"),
+    ("seconds_per_sample", "s/sample", "{:.2f}"),
+)
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """What ``pocoloco eval`` evaluates.
+
+    split: dataset split. num_frames: frames evaluated, evenly spaced over the split's frames in
+    order (0 or >= the split size: all). num_points: N points per cloud (model, baselines and
+    the GT subset). seeds: one model sample per seed and frame. sampler / steps: see
+    ``pocoloco sample``. baselines: which of ``nearest_frame``, ``posed_body``, ``gt_resample``.
+    subjects: restrict to these subjects (None: all). batch_size: clouds sampled together.
+    use_ema: EMA (default) or raw weights. clip: x0 clamp of the sampler (``sample_clouds``).
+    bf16: the denoiser under bf16 autocast (``sample_clouds``). nearest_align: ``root`` or ``yaw``
+    (``NearestFrameBaseline``).
+    """
+
+    split: str = "test"
+    num_frames: int = 24
+    num_points: int = 10_000
+    seeds: tuple[int, ...] = (0, 1, 2)
+    sampler: str = "dpm++sde"
+    steps: int | None = None
+    baselines: tuple[str, ...] = ("nearest_frame", "posed_body", "gt_resample")
+    subjects: tuple[str, ...] | None = None
+    batch_size: int = 4
+    use_ema: bool = True
+    clip: float | None = None
+    bf16: bool = False
+    nearest_align: str = "root"
+
+    def __post_init__(self):
+        if self.num_frames < 0:
+            raise ValueError(f"num_frames must be >= 0, got {self.num_frames}")
+        if self.num_points < 1:
+            raise ValueError(f"num_points must be >= 1, got {self.num_points}")
+        if len(self.seeds) < 1:
+            raise ValueError("at least one seed is needed")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"seeds must be distinct, got {list(self.seeds)}")
+        unknown = [b for b in self.baselines if b not in METHODS[1:]]
+        if unknown:
+            raise ValueError(f"unknown baselines {unknown}; choose from {', '.join(METHODS[1:])}")
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.clip is not None and not self.clip > 0:
+            raise ValueError(f"clip must be > 0, got {self.clip}")
+        if self.nearest_align not in NEAREST_ALIGNS:
+            raise ValueError(f"nearest_align must be one of {', '.join(NEAREST_ALIGNS)}, got {self.nearest_align!r}")
+
+
+# ---------------------------------------------------------------------------------- evaluation
+@dataclass
+class EvalResult:
+    """settings: the EvalSettings as a dict plus checkpoint facts. frames: one dict per frame with
+    ``key``, ``subject`` and a metrics dict per method. means: method -> mean metrics;
+    per_subject: subject -> method -> mean metrics."""
+
+    settings: dict[str, Any]
+    frames: list[dict[str, Any]] = field(default_factory=list)
+    means: dict[str, dict[str, float]] = field(default_factory=dict)
+    per_subject: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"settings": self.settings, "means": self.means, "per_subject": self.per_subject,
+                "frames": self.frames}  # fmt: skip
+
+
+def evaluate(
+    ckpt: str | os.PathLike | None,
+    data: str | os.PathLike,
+    settings: EvalSettings = EvalSettings(),
+    *,
+    device: str = "cpu",
+    progress: Callable[[int, int], None] | None = None,
+    keep_examples: int = 3,
+) -> tuple[EvalResult, list[dict[str, Any]]]:
+    """Score the checkpoint ``ckpt`` (any method; None: baselines only) on ``settings.split`` of the
+    dataset at ``data``.
+
+    Returns the :class:`EvalResult` and, for up to ``keep_examples`` frames, the clouds (GT,
+    baselines, model samples) to render.
+    """
+    card = fmt.read_card(data)
+    layout = fmt.DatasetLayout(data)
+    subjects = list(settings.subjects) if settings.subjects else None
+    if subjects:
+        unknown = [s for s in subjects if s not in card["subjects"]]
+        if unknown:
+            raise ValueError(f"{data}: unknown subjects {unknown}; the card lists {sorted(card['subjects'])}")
+    all_frames = layout.iter_frames(settings.split, subjects or layout.subjects())
+    if not all_frames:
+        raise ValueError(f"{data}: no frames in split {settings.split!r}")
+    chosen = [all_frames[i] for i in select_frames(all_frames, settings.num_frames)]
+
+    info: dict[str, Any] = {"data": os.fspath(data), **_settings_dict(settings)}
+    method = None
+    options = SamplerOptions(sampler=settings.sampler, steps=settings.steps, clip=settings.clip, bf16=settings.bf16,
+                             batch_size=settings.batch_size)  # fmt: skip
+    if ckpt is not None:
+        method = load_method(ckpt, device=device, use_ema=settings.use_ema)
+        method.check_options(options)
+        info.update(method.info())
+        if method.outfit_names():  # one-line error before any work if a subject was never trained
+            for subject in sorted({s for s, _, _ in chosen}):
+                method.outfit_id(subject)
+        _check_normalisation(method.normalisation, card, method.path, data)
+    seeds = list(settings.seeds[:1]) if method is not None and method.deterministic else list(settings.seeds)
+    nearest_frame = (NearestFrameBaseline(data, subjects, align=settings.nearest_align)
+                     if "nearest_frame" in settings.baselines else None)  # fmt: skip
+    faces: dict[str, np.ndarray] = {}
+    mean_cache = MeanShapeCache()
+
+    result = EvalResult(info)
+    examples: list[dict[str, Any]] = []
+    example_ids = set(select_frames(chosen, keep_examples)) if keep_examples > 0 else set()
+    for n_done, (subject, sequence, path) in enumerate(chosen):
+        fr = fmt.read_frame(path, ["points", "normals", "labels", "joints", "frame_index", "body_vertices", "vtransf"],
+                            allow_missing=True)  # fmt: skip
+        key = f"{subject}/{settings.split}/{sequence}/{fr.frame_index:06d}"
+        gsel = subset(fr.num_points, settings.num_points, (0, n_done))
+        gt, gt_n = fr.points[gsel].astype(np.float64), fr.normals[gsel].astype(np.float64)
+        gt_lab = None if fr.labels is None else fr.labels[gsel]
+        row: dict[str, Any] = {"key": key, "subject": subject}
+        clouds: dict[str, Any] = {"gt": (gt, gt_lab)}
+
+        def score(points, normals):
+            return evaluate_frame(points, normals, gt, gt_n, gt_lab)
+
+        if method is not None:
+            pose = method.pose_from_frame(path, subject, frame=fr, cache=mean_cache)
+            outfit = method.outfit_id(subject) if method.outfit_names() else None
+            t0 = time.perf_counter()
+            pred = method.predict(pose, settings.num_points, seeds, outfit, options)
+            per_sample = (time.perf_counter() - t0) / len(seeds)
+            normals = [None if pred.normals is None else pred.normals[k] for k in range(len(seeds))]
+            if method.deterministic:
+                m = score(pred.points[0], normals[0])
+                # deterministic: every seed gives the same cloud, so the diversity is exactly 0
+                m["seconds_per_sample"] = per_sample
+                m["diversity_cm"] = 0.0
+                if gt_lab is not None:
+                    m["diversity_garment_cm"] = m["diversity_body_cm"] = 0.0
+            else:
+                m = summarise([score(pred.points[k], normals[k]) for k in range(len(seeds))])
+                m.pop("num_frames", None)
+                m["seconds_per_sample"] = per_sample
+                if len(seeds) >= 2:
+                    m["diversity_cm"] = diversity_cm(pred.points)
+                    if gt_lab is not None:
+                        m["diversity_garment_cm"] = diversity_cm(pred.points, gt, gt_lab, region="garment")
+                        m["diversity_body_cm"] = diversity_cm(pred.points, gt, gt_lab, region="body")
+            row["model"] = m
+            clouds["model"] = pred.points
+        if nearest_frame is not None:
+            pred = nearest_frame.predict(fr.joints, settings.num_points, (1, n_done), subject=subject)
+            row["nearest_frame"] = {**score(pred["points"], pred["normals"]), "pose_rms_cm": 100 * pred["pose_rms_m"],
+                                    "yaw_deg": pred["yaw_deg"]}  # fmt: skip
+            row["nearest_frame_source"] = pred["source"]
+            clouds["nearest_frame"] = (pred["points"], pred["labels"])
+        if "posed_body" in settings.baselines:
+            if fr.body_vertices is None:
+                raise ValueError(f"{path}: no body_vertices (imported data?): drop the posed_body baseline")
+            if subject not in faces:
+                faces[subject] = fmt.read_subject(layout.subject_path(subject)).faces
+            pred = posed_body_baseline(fr, faces[subject], settings.num_points, seed=n_done)
+            row["posed_body"] = score(pred["points"], pred["normals"])
+            clouds["posed_body"] = (pred["points"], np.zeros(settings.num_points, np.uint8))
+        if "gt_resample" in settings.baselines:
+            other = subset(fr.num_points, settings.num_points, (2, n_done))
+            row["gt_resample"] = score(fr.points[other], fr.normals[other])
+        result.frames.append(row)
+        if n_done in example_ids:
+            examples.append({"key": key, **clouds})
+        if progress is not None:
+            progress(n_done + 1, len(chosen))
+
+    methods = [m for m in METHODS if any(m in r for r in result.frames)]
+    result.means = {m: _mean(result.frames, m) for m in methods}
+    for subject in sorted({r["subject"] for r in result.frames}):
+        rows = [r for r in result.frames if r["subject"] == subject]
+        result.per_subject[subject] = {m: _mean(rows, m) for m in methods}
+    return result, examples
+
+
+def _mean(rows: list[dict[str, Any]], method: str) -> dict[str, float]:
+    out = summarise([r[method] for r in rows if method in r])
+    return out
+
+
+def _settings_dict(s: EvalSettings) -> dict[str, Any]:
+    return {"split": s.split, "num_frames": s.num_frames, "num_points": s.num_points, "seeds": list(s.seeds),
+            "sampler": s.sampler, "steps": s.steps, "baselines": list(s.baselines),
+            "subjects": None if s.subjects is None else list(s.subjects), "weights": "ema" if s.use_ema else "raw",
+            "clip": s.clip}  # fmt: skip
+
+
+def _check_normalisation(normalisation, card: dict[str, Any], ckpt: Path, data) -> None:
+    """Warn-free check that the model was trained in the same units as this dataset (metres, similar scale)."""
+    here = Normalisation.from_card(card)
+    ratio = float(np.max(np.atleast_1d(normalisation.std))) / float(np.max(np.atleast_1d(here.std)))
+    if not 0.2 < ratio < 5.0:
+        raise ValueError(f"{ckpt}: trained on data with scale {normalisation.std} but {data} has {here.std} "
+                         "(another unit?)")  # fmt: skip
+
+
+# -------------------------------------------------------------------------------------- output
+def _fmt(value: Any, pattern: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return pattern.format(value)
+
+
+def method_titles(settings: dict[str, Any]) -> dict[str, str]:
+    """``METHOD_TITLES`` with the "model" row named after the evaluated checkpoint's kind."""
+    titles = dict(METHOD_TITLES)
+    if settings.get("model_title"):
+        titles["model"] = f"{settings['model_title']} (this checkpoint)"
+    return titles
+
+
+def markdown_table(means: dict[str, dict[str, float]], titles: dict[str, str] | None = None,
+                   columns: Sequence[tuple[str, str, str]] = TABLE_COLUMNS, first: str = "method") -> str:
+    """One markdown table: a row per method, the ``columns`` (key, header, format) present in any
+    row; ``first`` heads the column of row titles."""
+    titles = METHOD_TITLES if titles is None else titles
+    cols = [c for c in columns if any(c[0] in m for m in means.values())]
+    lines = [f"| {first} | " + " | ".join(h for _, h, _ in cols) + " |", "|---|" + "---|" * len(cols)]
+    for method, m in means.items():
+        cells = [_fmt(m.get(k), f) for k, _, f in cols]
+        lines.append(f"| {titles.get(method, method)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def markdown_tables(result: EvalResult) -> str:
+    """The whole ``eval.md``: settings, the mean table, one table per subject."""
+    s = result.settings
+    titles = method_titles(s)
+    head = [f"# pocoloco eval — {s.get('checkpoint', 'baselines only')}", ""]
+    if "step" in s:
+        head.append(f"{s.get('model_title', 'PocoLoco')} checkpoint step {s['step']}, preset `{s['preset']}`, "
+                    f"{s['num_parameters']:,} parameters" + (", deterministic: one cloud per frame (its seeds only "
+                    "pick the query points), diversity 0." if s.get("deterministic") else f", {s['weights']} weights."))  # fmt: skip
+    n = len(result.frames)
+    head.append(f"Data `{s['data']}`, split `{s['split']}`: {n} frames, {s['num_points']} points per cloud "
+                f"(GT subsampled to the same N), model samples: {len(s['seeds'])} seeds {s['seeds']} with "
+                f"{s['sampler']} ({s['steps'] or 'default'} steps), metrics averaged over seeds and frames.")  # fmt: skip
+    head += ["", "Chamfer = S2M + M2S (unsquared, cm; PocoLoco Table 2). CD 1e-4 m^2 = POP convention (squared, "
+             "point-to-plane M2S). normal = L1 of unit normals x10. loose % = share of points whose nearest GT point is "
+             "garment. div. = mean pairwise Chamfer among the seeds' samples (whole / garment region / body region).",
+             "", "## All frames", "", markdown_table(result.means, titles)]  # fmt: skip
+    for subject, means in result.per_subject.items():
+        head += ["", f"## {subject}", "", markdown_table(means, titles)]
+    return "\n".join(head) + "\n"
+
+
+def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dict[str, Any]]) -> Path:
+    """eval.json, eval.md, chamfer_per_frame.png, examples.png in ``out`` (each written atomically)."""
+    out = output_folder(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "eval.json", jsonable(result.to_dict()))
+    write_text_atomic(out / "eval.md", markdown_tables(result))
+    curves = {}
+    for method in result.means:
+        ys = [r[method]["chamfer_cm"] for r in result.frames if method in r]
+        curves[method_titles(result.settings).get(method, method)] = (list(range(len(ys))), ys)
+    plot_curves(curves, out / "chamfer_per_frame.png", logy=False, title="Chamfer (cm) per test frame",
+                xlabel="evaluated frame", ylabel="Chamfer cm")  # fmt: skip
+    panels = []
+    for ex in examples:
+        gt, lab = ex["gt"]
+        panels.append((gt, lab, None, f"GT {ex['key'].split('/')[0]}"))
+        for method in ("nearest_frame", "posed_body"):
+            if method in ex:
+                panels.append((*ex[method], None, method.replace("_", " ")))
+        if "model" in ex:
+            for k, pts in enumerate(ex["model"][:3]):  # coloured by the label of the nearest GT point
+                plab = None if lab is None else lab[nearest(pts, gt)[1]]
+                panels.append((pts, plab, None, f"sample {k}"))
+    if panels:
+        per_row = len(panels) // max(len(examples), 1)
+        render_grid(panels, out / "examples.png", views=("front",), ncols=max(per_row, 1))
+    return out

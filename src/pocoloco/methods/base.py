@@ -1,0 +1,191 @@
+"""The one interface every method is seen through: :class:`Method` (a trained model, loaded from a
+checkpoint) and its training side (a config class, named presets and a
+:class:`~pocoloco.engine.trainer.TrainingTask`).
+
+Sampling, evaluation, the quality bench, the apps and the command line never ask which method
+they hold: they load a checkpoint with :func:`pocoloco.methods.load_method` and call
+
+* ``method.load_pose(spec, outfit)`` -> :class:`~pocoloco.data.poses.Pose` (joints, and the posed
+  body for methods that need it, ``needs_body``);
+* ``method.predict(pose, num_points, seeds, outfit, options)`` -> :class:`SampledClouds`
+  (one cloud per seed; a deterministic method (``deterministic``) takes one seed, which only
+  picks its query points);
+* ``method.outfit_id(name)`` / ``outfit_names()`` (methods with outfit codes; PocoLoco has none);
+* ``method.info()`` (what reports say about the checkpoint).
+
+Adding a method = one folder under ``methods/`` with a :class:`Method` subclass, and one line in
+:data:`pocoloco.methods.registry.METHODS`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, NamedTuple
+
+import numpy as np
+from torch import nn
+
+from pocoloco.data.dataset import Normalisation
+from pocoloco.data.poses import MeanShapeCache, Pose
+from pocoloco.engine.checkpoint import Checkpoint, save_checkpoint
+from pocoloco.engine.trainer import TrainingTask
+
+__all__ = ["Method", "SampledClouds", "SamplerOptions"]
+
+#: meta.json entries that ``save_checkpoint`` writes itself
+_META_OWN = frozenset({"format", "version", "model_kind", "preset", "step", "config", "normalisation", "has_ema",
+                       "has_training_state", "torch_version"})  # fmt: skip
+
+
+class SampledClouds(NamedTuple):
+    """What :meth:`Method.predict` returns; unpacks as ``points, normals``.
+
+    points: (K, N, 3) float32 metres, in the frame of the input pose.
+    normals: (K, N, 3) float32 unit normals, or None (a model without normals).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class SamplerOptions:
+    """How a generative method samples (deterministic methods ignore these).
+
+    sampler / steps: see :data:`pocoloco.diffusion.SAMPLER_STEPS` (steps None: the sampler's
+    default). clip: clamp of the sampler's x0 estimates in normalised units (None: off).
+    bf16: the network under bf16 autocast. batch_size: clouds denoised together (speed and
+    memory only). progress: optional ``callable(done_clouds, K)``.
+    """
+
+    sampler: str = "dpm++sde"
+    steps: int | None = None
+    clip: float | None = None
+    bf16: bool = False
+    batch_size: int = 8
+    progress: Callable[[int, int], None] | None = None
+
+
+class Method(ABC):
+    """A trained model of one method, ready to predict (network in eval mode).
+
+    Class attributes: ``kind`` (the checkpoints' ``model_kind``), ``deterministic`` (one cloud
+    per pose and outfit), ``needs_body`` (conditioned on the posed body, not only joints),
+    ``train_config`` (the method's train config class), ``presets`` (preset name -> config).
+    Instance attributes: ``model`` (the network), ``config`` (the train config it was trained
+    with), ``normalisation``, ``path`` (checkpoint folder), ``step``, ``meta`` (``meta.json``).
+    """
+
+    kind: ClassVar[str]
+    deterministic: ClassVar[bool] = False
+    needs_body: ClassVar[bool] = False
+    #: can fit a new outfit to a scan (``fit_outfit``, ``mean_outfit_code``, ``add_outfit``)
+    fits_outfits: ClassVar[bool] = False
+    #: keyword options of :meth:`preset` beyond the config's fields (CloSET: ``decomposition``)
+    train_options: ClassVar[frozenset[str]] = frozenset()
+    train_config: ClassVar[type]
+
+    def __init__(self, model: nn.Module, config: Any, normalisation: Normalisation, path: Path, step: int,
+                 meta: dict[str, Any]):  # fmt: skip
+        self.model, self.config, self.normalisation = model, config, normalisation
+        self.path, self.step, self.meta = Path(path), int(step), dict(meta)
+
+    # ------------------------------------------------------------------ loading and training
+    @classmethod
+    @abstractmethod
+    def from_checkpoint(cls, ck: Checkpoint, device: str = "cpu", use_ema: bool = True) -> Method:
+        """Build the trained model of a loaded checkpoint (one-line ValueError if it is corrupt)."""
+
+    @classmethod
+    @abstractmethod
+    def presets(cls) -> dict[str, Any]:
+        """Named training presets (``tiny`` for tests, ``small`` for this CPU, ``paper``)."""
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> Any:
+        """A named training preset with field overrides; a one-line error for unknown names."""
+        presets = cls.presets()
+        if name not in presets:
+            raise ValueError(f"unknown training preset {name!r} for {cls.kind}; choose one of: {', '.join(presets)}")
+        fields = {f.name for f in dataclasses.fields(cls.train_config)}
+        unknown = sorted(set(overrides) - fields)
+        if unknown:
+            raise ValueError(f"{cls.kind} has no training option {', '.join(unknown)}")
+        return presets[name].replace(**overrides)
+
+    @classmethod
+    @abstractmethod
+    def training_task(cls, config: Any, data: str | Path) -> TrainingTask:
+        """The training run of ``config`` on the train split of ``data`` (validated: one-line errors)."""
+
+    # -------------------------------------------------------------------------- description
+    @property
+    def title(self) -> str:
+        """Display name (``PocoLoco``, ``POP``, ``CloSET``, ...)."""
+        return self.kind
+
+    @property
+    def num_parameters(self) -> int:
+        return int(sum(p.numel() for p in self.model.parameters()))
+
+    @property
+    def device(self):
+        return next(self.model.parameters()).device
+
+    def info(self) -> dict[str, Any]:
+        """What reports say about this checkpoint."""
+        return {"checkpoint": str(self.path), "step": self.step, "preset": self.config.preset, "model_kind": self.kind,
+                "model_title": self.title, "num_parameters": self.num_parameters,
+                "deterministic": self.deterministic}  # fmt: skip
+
+    # ------------------------------------------------------------------------------ outfits
+    def outfit_names(self) -> list[str]:
+        """Names of the outfits the model knows (ids in this order); [] without outfit codes."""
+        return []
+
+    def outfit_id(self, outfit: str | int | None) -> int | None:
+        """An outfit name or id (as given on the command line) -> its id; one-line error if the
+        model never learnt it. Methods without outfit codes refuse any outfit (None -> None)."""
+        if outfit is not None:
+            raise ValueError(f"--outfit applies to methods with outfit codes; this {self.title} checkpoint has none")
+        return None
+
+    def default_outfit(self, pose: Pose) -> int | None:
+        """The outfit to use when none is given: the pose's dataset subject (methods with outfits)."""
+        return None
+
+    # -------------------------------------------------------------------------------- poses
+    @abstractmethod
+    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None) -> Pose:
+        """The pose ``--joints`` names (see :mod:`pocoloco.data.poses`); ``outfit`` picks the body
+        an anny pose file is posed with (methods that need the body)."""
+
+    def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
+        """The pose of a dataset frame file (``frame``: the already read ``Frame``, if any)."""
+        return Pose(np.asarray(frame.joints, np.float32), subject=subject, source=str(path))
+
+    def save(self, root: str | Path, extra: dict[str, Any] | None = None) -> Path:
+        """Write the model as a new checkpoint (weights only, no training state) into the
+        checkpoints folder ``root``, atomically; ``extra``: more ``meta.json`` entries."""
+        keep = {k: v for k, v in self.meta.items() if k not in _META_OWN}
+        return save_checkpoint(root, self.step, model_kind=self.kind, preset=self.config.preset,
+                               config=self.config.to_dict(), normalisation=self.normalisation,
+                               model_state=self.model.state_dict(), extra={**keep, **(extra or {})})  # fmt: skip
+
+    # ---------------------------------------------------------------------------- predicting
+    @abstractmethod
+    def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
+                options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
+        """One cloud of ``num_points`` points per seed for ``pose`` (and ``outfit``), in the frame
+        of the pose (metres). Cloud k depends only on ``seeds[k]``."""
+
+    def check_options(self, options: SamplerOptions) -> None:
+        """One-line ValueError if ``options`` cannot be used with this model (before any work)."""
+
+    def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
+        """Method-specific entries of ``sample.json``."""
+        return {}

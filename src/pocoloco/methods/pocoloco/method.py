@@ -1,0 +1,104 @@
+"""PocoLoco (Seth et al.) behind the :class:`~pocoloco.methods.base.Method` interface: a template-free,
+pose-conditioned point-cloud diffusion model, p(X | K) with K the 24 joints only."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from pocoloco.data.poses import Pose, load_joints
+from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
+from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
+from pocoloco.engine.trainer import TrainingTask
+from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
+from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig
+from pocoloco.methods.pocoloco.sampling import sample_clouds
+from pocoloco.methods.pocoloco.training import PocoLocoTask
+from pocoloco.models.pocoloco import PocoLocoDenoiser
+
+__all__ = ["LoadedDenoiser", "PocoLocoMethod", "load_denoiser"]
+
+
+class PocoLocoMethod(Method):
+    """A trained PocoLoco denoiser (EMA weights by default) with its normalisation and train config
+    (``config.denoiser`` the architecture, ``config.schedule`` / ``prediction_type`` what the
+    samplers need). ``weights``: "ema" or "raw"."""
+
+    kind = "pocoloco"
+    deterministic = False
+    needs_body = False
+    train_config = PocoLocoTrainConfig
+
+    def __init__(self, *args, weights: str = "ema", **kwargs):
+        super().__init__(*args, **kwargs)
+        self.weights = weights
+
+    @classmethod
+    def from_checkpoint(cls, ck: Checkpoint, device: str = "cpu", use_ema: bool = True) -> PocoLocoMethod:
+        try:
+            config = PocoLocoTrainConfig.from_dict(ck.config)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{ck.path / META_FILE}: corrupt train config ({e})") from None
+        model = PocoLocoDenoiser(config.denoiser)
+        ema = use_ema and ck.ema_state is not None
+        try:
+            model.load_state_dict(ck.ema_state if ema else ck.model_state)
+        except RuntimeError as e:
+            raise ValueError(f"{ck.path}: weights do not match the stored config ({one_line(e)})") from None
+        with contextlib.suppress(AttributeError):
+            model.prediction_type = config.prediction_type
+        weights = "ema" if use_ema else "raw"
+        return cls(model.to(device).eval(), config, ck.normalisation, ck.path, ck.step, ck.meta, weights=weights)
+
+    @classmethod
+    def presets(cls) -> dict[str, PocoLocoTrainConfig]:
+        return TRAIN_PRESETS
+
+    @classmethod
+    def training_task(cls, config: PocoLocoTrainConfig, data: str | Path) -> TrainingTask:
+        return PocoLocoTask(config, data)
+
+    @property
+    def title(self) -> str:
+        return "PocoLoco"
+
+    def check_options(self, options: SamplerOptions) -> None:
+        check_sampler(options.sampler, options.steps, self.config.num_timesteps)
+
+    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None) -> Pose:
+        joints = load_joints(spec, frame_id, self.config.denoiser.num_joints)
+        return Pose(joints, source=str(spec))
+
+    def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
+                options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
+        self.outfit_id(outfit)  # PocoLoco has no outfit codes: any outfit is a one-line error
+        return sample_clouds(self.model, self.normalisation, self.config, np.asarray(pose.joints), len(seeds),
+                             num_points, sampler=options.sampler, steps=options.steps, seeds=list(seeds),
+                             batch_size=options.batch_size, progress=options.progress, clip=options.clip,
+                             bf16=options.bf16)  # fmt: skip
+
+    def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
+        steps = options.steps if options.steps is not None else SAMPLER_STEPS[options.sampler]
+        return {"preset": self.config.preset, "weights": self.weights, "sampler": options.sampler, "steps": steps,
+                "batch_size": options.batch_size, "clip": options.clip, "bf16": options.bf16}  # fmt: skip
+
+
+class LoadedDenoiser(NamedTuple):
+    """What :func:`load_denoiser` returns; unpacks as ``model, normalisation, config``."""
+
+    model: Any
+    normalisation: Any
+    config: PocoLocoTrainConfig
+
+
+def load_denoiser(path: str | Path, use_ema: bool = True, device: str = "cpu") -> LoadedDenoiser:
+    """The trained PocoLoco denoiser of a checkpoint / run folder (EMA weights by default), its
+    normalisation and train config: the three things :func:`~pocoloco.methods.pocoloco.sample_clouds`
+    and the apps take. (``pocoloco.methods.load_method`` gives the same as a :class:`PocoLocoMethod`.)"""
+    m = PocoLocoMethod.from_checkpoint(load_checkpoint(path, expect_model="pocoloco", training_state=False),
+                                       device=device, use_ema=use_ema)  # fmt: skip
+    return LoadedDenoiser(m.model, m.normalisation, m.config)

@@ -1,0 +1,125 @@
+"""PocoLoco's training task for the shared loop (:mod:`pocoloco.engine.trainer`).
+
+The model learns p(X | K) with the DDPM objective (PocoLoco paper, Eq. 7; Ho et al. 2020,
+Eq. 14): each step draws a batch of B clouds X (B, N, 3) with their joints K (B, J, 3), one
+timestep t (B,) and noise per sample, and regresses the denoiser's output on the target of the
+chosen parametrisation (:func:`pocoloco.diffusion.diffusion_loss`).
+
+Randomness: the frames of step s and their point subsets come from
+:class:`~pocoloco.data.step_batches.StepBatches`; t and the noise from a generator seeded by
+``seed_of(seed, 2, step, rank)``. The optimiser is AdamW (weight decay only on matrices; 0 in the
+``paper`` preset, i.e. Adam). Previews: DDIM samples of the EMA model for two test frames.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from pocoloco.data.dataset import Normalisation, PointCloudDataset
+from pocoloco.data.step_batches import StepBatches
+from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, diffusion_loss, sample_ddim
+from pocoloco.engine.checkpoint import Checkpoint
+from pocoloco.engine.trainer import TrainingTask
+from pocoloco.methods.pocoloco.config import RESUMABLE_CHANGES, PocoLocoTrainConfig
+from pocoloco.models.pocoloco import PocoLocoDenoiser
+from pocoloco.utils.seeding import seed_of
+from pocoloco.viz.render import render_grid
+
+__all__ = ["PocoLocoTask"]
+
+
+class PocoLocoTask(TrainingTask):
+    """Train the PocoLoco denoiser of ``config`` on the ``train`` split of the dataset at ``data``."""
+
+    kind = "pocoloco"
+    resumable_changes = RESUMABLE_CHANGES
+
+    def __init__(self, config: PocoLocoTrainConfig, data: str | Path):
+        self.config, self.data = config, data
+        self.dataset = PointCloudDataset(data, "train", num_points=None, with_normals=config.denoiser.point_channels == 6,
+                                         random_subsample=False)  # fmt: skip
+        self.normalisation = self.dataset.normalisation
+        self.schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
+        self.generator: torch.Generator | None = None
+        self._preview_frames: list[dict[str, Any]] | None = None
+
+    def build_model(self) -> nn.Module:
+        return PocoLocoDenoiser(self.config.denoiser)
+
+    def make_optimizer(self, model: nn.Module) -> torch.optim.Optimizer:
+        c = self.config
+        decay, no_decay = [], []
+        for p in model.parameters():
+            (decay if p.ndim >= 2 else no_decay).append(p)
+        return torch.optim.AdamW([{"params": decay, "weight_decay": c.weight_decay},
+                                  {"params": no_decay, "weight_decay": 0.0}],
+                                 lr=c.lr, betas=c.adam_betas, eps=c.adam_eps)  # fmt: skip
+
+    def step_batches(self, model: nn.Module, rank: int, world: int) -> StepBatches:
+        c = self.config
+        return StepBatches(self.dataset, c.batch_size, c.num_points, c.seed, c.steps, rank, world)
+
+    def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
+        c = self.config
+        x0, joints = batch["points"], batch["joints"]  # (B, N, C), (B, J, 3)
+        if self.generator is None or self.generator.device != x0.device:
+            self.generator = torch.Generator(x0.device)
+        self.generator.manual_seed(seed_of(c.seed, 2, step, rank))
+        weighting = "min_snr" if c.min_snr_gamma is not None else "none"
+        loss, logs = diffusion_loss(net, x0, joints, self.schedule, c.prediction_type, weighting,
+                                    c.min_snr_gamma or 5.0, generator=self.generator)  # fmt: skip
+        return loss, {"loss": logs["loss"], **{k: v for k, v in logs.items() if k.startswith("mse")}}
+
+    def check_resume(self, ck: Checkpoint) -> None:
+        if ck.normalisation != self.normalisation:
+            raise ValueError(f"{self.data}: dataset normalisation differs from the checkpoint's ({ck.path})")
+
+    def preview(self, model: nn.Module, step: int, out: Path, device: torch.device) -> Path:
+        if self._preview_frames is None:
+            self._preview_frames = _sample_frames(self.data, self.config, self.dataset)
+        return _render_samples(model, self.schedule, self.config, self.normalisation, self._preview_frames, out, step,
+                               device)  # fmt: skip
+
+
+def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDataset) -> list[dict[str, Any]]:
+    """Two frames (test split if it has any, else train) with fixed point subsets, for the periodic samples."""
+    try:
+        ds = PointCloudDataset(data, "test", num_points=None, random_subsample=False)
+    except ValueError:
+        ds = train_set
+    picks = sorted({0, len(ds) // 2})
+    frames = []
+    for i in picks:
+        item = ds[i]
+        n = item["points"].shape[0]
+        sel = np.random.default_rng([config.seed, 3, i]).choice(n, min(n, config.num_points), replace=False)
+        frames.append({"points": item["points"][sel], "joints": item["joints"], "root": item["root"],
+                       "key": item["frame_key"]})  # fmt: skip
+    return frames
+
+
+@torch.no_grad()
+def _render_samples(model: PocoLocoDenoiser, schedule: NoiseSchedule, config: PocoLocoTrainConfig, norm: Normalisation,
+                    frames: list[dict[str, Any]], out: Path, step: int, device: torch.device) -> Path:  # fmt: skip
+    """DDIM samples (``config.sample_steps`` steps, fixed seeds) from ``model`` for ``frames``; a PNG grid."""
+    C = config.denoiser.point_channels
+    joints = torch.stack([f["joints"] for f in frames]).to(device)  # (B, J, 3)
+    rng = PerSampleRNG([config.seed * 1000 + k for k in range(len(frames))], device=device)
+    noise = rng.randn((config.num_points, C), device=device)  # (B, N, C)
+    was_training = model.training
+    model.eval()
+    x = sample_ddim(model, schedule, noise, joints, prediction_type=config.prediction_type,
+                    steps=config.sample_steps, rng=rng)  # fmt: skip
+    model.train(was_training)
+    clouds = []
+    for k, f in enumerate(frames):
+        root = f["root"].numpy()
+        gt = norm.denormalise(f["points"].numpy(), root)
+        pred = norm.denormalise(x[k, :, :3].float().cpu().numpy(), root)
+        clouds += [(gt, None, None, f"data {f['key']}"), (pred, None, None, f"sample, step {step}")]
+    return Path(render_grid(clouds, out / "samples" / f"step_{step:06d}.png", views=("front", "side"), ncols=2))

@@ -1,0 +1,143 @@
+"""POP (Ma et al. 2021) behind the :class:`~pocoloco.methods.base.Method` interface, and its training
+task for the shared loop.
+
+Prediction: the query points are the valid pixels of the UV query map; to give N points POP uses
+the training map (resolution Rq) if it has >= N valid pixels, else the smallest finer map that
+does (its decoder takes any UV), and keeps N of them drawn without replacement (seeded).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from pocoloco.body.surface import BodySurface, largest_component_faces
+from pocoloco.data.poses import Pose
+from pocoloco.methods.pop.data import collate_pop, make_optimizer, pop_sample_from_frame
+from pocoloco.methods.pop.fitting import POPFit, fit_unseen_outfit
+from pocoloco.methods.pop.losses import check_scan, normal_weight_at, pop_losses
+from pocoloco.methods.skinned import SkinnedMethod, SkinnedTask, SkinnedTrainConfig
+from pocoloco.models.pop import POP, POPBatch, POPQuery
+
+__all__ = ["POPMethod", "POPTask", "pop_query_for"]
+
+
+def pop_query_for(model: POP, num_points: int, seed: int) -> tuple[POPQuery, int]:
+    """N POP query points: the valid pixels of the training UV query map, or of the smallest
+    finer map with >= N valid pixels, of which N are drawn without replacement (seeded).
+    Returns the query and the map resolution used."""
+    q = model.query_points()
+    R = model.config.query_resolution
+    while len(q) < num_points:
+        if R >= 4096:
+            raise ValueError(f"--points {num_points}: POP's UV map gives at most {len(q)} points")
+        R = int(math.ceil(R * math.sqrt(num_points / max(len(q), 1)) * 1.02))
+        q = model.query_points(R)
+    idx = np.sort(np.random.default_rng([int(seed), 5]).choice(len(q), num_points, replace=False))
+    return q.subset(idx), R
+
+
+class POPMethod(SkinnedMethod):
+    """A trained POP: UV position-map UNet + geometric feature tensor per outfit + point decoder."""
+
+    kind = "pop"
+
+    @classmethod
+    def _model_from_state(cls, config: SkinnedTrainConfig, state: dict[str, torch.Tensor], meta: dict[str, Any]) -> POP:
+        return POP.from_state(config.net_config(), state, int(meta["num_vertices"]))
+
+    @classmethod
+    def training_task(cls, config: SkinnedTrainConfig, data: str | Path) -> POPTask:
+        return POPTask(config, data)
+
+    @property
+    def title(self) -> str:
+        return "POP"
+
+    @property
+    def needs_mean_shape(self) -> bool:
+        return self.config.net.get("pose_input") == "mean_shape"
+
+    def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, geom: torch.Tensor | None = None):
+        body, vt = self.body_tensors(pose)
+        outfit_t = torch.tensor([int(outfit)], dtype=torch.long, device=body.device)
+        if self.needs_mean_shape:
+            if pose.mean_shape is None:
+                raise ValueError(f"{pose.source}: POP needs the posed mean-shape body for its pose input")
+            pv = torch.from_numpy(np.asarray(pose.mean_shape, np.float32))[None].to(body.device)
+        else:
+            pv = body
+        query, _ = pop_query_for(self.model, num_points, seed)
+        return self.model(POPBatch(pv, body, vt, outfit_t), geom=geom, query=query)
+
+    # ------------------------------------------------------------------- unseen outfits (Eq. 7)
+    fits_outfits = True
+
+    def fit_outfit(self, scan_points: np.ndarray, scan_normals: np.ndarray, pose: Pose, steps: int = 400,
+                   lr: float | None = None, progress=None) -> POPFit:  # fmt: skip
+        """Fit a new outfit to one scan (world frame of ``pose``, with unit normals): only a new
+        geometric feature tensor is optimised, from the mean of the trained outfits; the network is
+        frozen (:func:`~pocoloco.methods.pop.fitting.fit_unseen_outfit`)."""
+        root = np.asarray(pose.joints[0], np.float32)
+        pv = pose.mean_shape if self.needs_mean_shape else pose.body_vertices - root
+        return fit_unseen_outfit(self.model, scan_points - root, scan_normals, pv, pose.body_vertices - root,
+                                 pose.vtransf, steps=steps, lr=lr, progress=progress)  # fmt: skip
+
+    def mean_outfit_code(self) -> torch.Tensor:
+        """The mean of the trained outfits' feature tensors (1, Cg, Ri, Ri): where fitting starts."""
+        return self.model.geom.detach().mean(0, keepdim=True)
+
+    def add_outfit(self, code: torch.Tensor, entry: dict[str, Any]) -> int:
+        """Append a fitted outfit (its features and its ``meta.json`` entry); returns its id."""
+        new_id = self.model.add_outfit(code)
+        self.outfits.append({"id": new_id, **entry})
+        self.meta["outfits"] = self.outfits
+        return new_id
+
+    def sample_settings(self, options, num_points: int) -> dict[str, Any]:
+        return {"query_points": "N of the valid pixels of the UV query map (finer than the training map if needed), "
+                                "without replacement"}  # fmt: skip
+
+
+class POPTask(SkinnedTask):
+    """POP's training: paper Eq. 3 (:func:`~pocoloco.methods.pop.losses.pop_losses`), Adam 3e-4 for
+    the network and 5e-4 for the geometric features; the normal term from ``normal_start``. The pose
+    encoder sees the posed mean-shape body (presets ``small`` / ``paper``; ``tiny`` feeds the
+    subject's own body so tests need no anny)."""
+
+    method = POPMethod
+
+    def build_model(self) -> nn.Module:
+        first = self.assets[next(iter(self.assets))]
+        faces = np.asarray(first.faces, np.int64)
+        surface = BodySurface(faces, first.uv, np.asarray(first.uv_faces, np.int64), largest_component_faces(faces))
+        return POP(self.config.net_config(), surface, len(self.assets), int(first.template.shape[0]))
+
+    def make_optimizer(self, model: nn.Module) -> torch.optim.Optimizer:
+        return make_optimizer(model)
+
+    def make_batch(self, items, step: int):
+        c = self.config
+        need_mean = c.net.get("pose_input") == "mean_shape"
+        samples = []
+        for subject, path, fr, g in items:
+            mean = self.mean_cache.get(path.parent.parent / "motion.npz", int(fr.frame_index)) if need_mean else None
+            rng = np.random.default_rng([c.seed, 1, g])
+            samples.append(pop_sample_from_frame(fr, self.outfits[subject], c.num_points, rng, mean,
+                                                 num_vertices=int(self.model.num_vertices), src=os.fspath(path)))  # fmt: skip
+        return collate_pop(samples)
+
+    def loss(self, net: nn.Module, batch: POPBatch, step: int, rank: int):
+        config = self.model.config
+        wn = normal_weight_at(config, step)
+        check_scan(batch.scan_points, batch.scan_normals, batch.body_vertices.shape[0], need_normals=True)
+        out = net(batch)
+        losses = pop_losses(out, batch.scan_points, batch.scan_normals, config, normal_weight=wn)
+        logs = losses.as_floats()
+        return losses.total, {"loss": logs.pop("total"), **logs}

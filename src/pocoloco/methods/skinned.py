@@ -1,0 +1,465 @@
+"""What POP and CloSET share: point regressors on the skinned body surface, one outfit code per
+dataset subject, trained with the scan as ground truth.
+
+* :class:`SkinnedTrainConfig`: their training config (one dataclass for both, as stored in their
+  checkpoints) and the named presets of each (:data:`SKINNED_PRESETS`).
+* :class:`SkinnedTask`: the shared part of their :class:`~pocoloco.engine.trainer.TrainingTask`
+  (subjects -> outfits, the frames of each step, resume checks, previews, checkpoint metadata).
+* :class:`SkinnedMethod`: the shared part of their :class:`~pocoloco.methods.base.Method`
+  (outfits, poses with the posed body, one deterministic cloud per pose and outfit).
+
+Data. One outfit per subject of the dataset (ids in sorted subject order; stored in the
+checkpoint's ``meta.json`` under ``outfits`` with each subject's anny phenotype). A frame gives
+the posed body (``body_vertices`` (V, 3), ``vtransf`` (V, 3, 3)), the joints (root = joints[0]:
+both methods work pelvis-centred) and the scan (``points`` / ``normals``, ``num_points`` drawn per
+frame). Everything random in a step is a pure function of (seed, step): the frames
+(:class:`~pocoloco.data.step_batches.StepBatches` order), the scan-point subsets
+(``default_rng([seed, 1, position])``) and CloSET's query points on the template; the model is
+initialised from ``torch.manual_seed(seed)``. So ``--resume`` continues exactly.
+
+Schedule. Adam 3e-4 for the networks and 5e-4 for the outfit codes, batch 4, constant lr; the
+normal term is switched on at 62.5 % of the run (POP's epoch 250 of 400), ``normal_start``.
+Neither paper uses EMA, clipping or bf16: they are off by default (``ema_decay``, ``grad_clip``,
+``bf16`` turn them on; POP's fused decoder runs in float32, so ``bf16`` applies to CloSET only).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from abc import abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from pocoloco.data.dataset import Normalisation, PointCloudDataset
+from pocoloco.data.format import DatasetLayout, read_card, read_frame, read_subject
+from pocoloco.data.poses import (
+    MeanShapeCache,
+    Pose,
+    dataset_frame_path,
+    pose_from_anny_file,
+    pose_from_frame,
+    pose_spec_kind,
+    subject_of_spec,
+)
+from pocoloco.data.step_batches import StepBatches
+from pocoloco.engine.checkpoint import Checkpoint, one_line
+from pocoloco.engine.trainer import TrainingTask
+from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
+from pocoloco.models.closet import CLOSET_PRESETS, CloSETConfig, CloSETLossWeights
+from pocoloco.models.pop import POP_PRESETS, POPConfig
+from pocoloco.viz.render import render_grid
+
+__all__ = ["NORMAL_START_FRACTION", "SKINNED_PRESETS", "SkinnedMethod", "SkinnedTask", "SkinnedTrainConfig",
+           "read_subjects", "skinned_preset"]  # fmt: skip
+
+SKINNED_KINDS = ("pop", "closet")
+#: SkinnedTrainConfig fields that may change when resuming (they do not affect the optimisation)
+RESUMABLE_CHANGES = frozenset({"steps", "ckpt_every", "sample_every", "log_every", "keep_checkpoints"})
+#: the paper switches POP's normal loss on at epoch 250 of 400
+NORMAL_START_FRACTION = 250 / 400
+
+
+# ------------------------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class SkinnedTrainConfig:
+    """A POP or CloSET training run (the data folder and the device excepted).
+
+    model: "pop" or "closet". preset: the preset name. net: the network config as a dict
+    (``POPConfig.to_dict()`` / ``CloSETConfig.to_dict()``). steps: optimiser steps. batch_size:
+    frames per step. num_points: scan points drawn per frame (the loss's ground truth).
+    query_points: CloSET's surface points per training step (POP uses its UV query map).
+    lr / lr_codes: Adam rates of the networks and of the auto-decoded outfit codes (POP's
+    geometric features, CloSET's garment codes). normal_start: first step with the normal loss.
+    closet_weights: ``CloSETLossWeights`` as a dict (CloSET only). subjects: train on these
+    subjects only (one outfit each; None = all), e.g. to hold one out for ``pocoloco fit``.
+    seed: everything random.
+    ckpt_every / sample_every / log_every: periods in steps (0 disables checkpoints / renders).
+    keep_checkpoints: step folders kept. ema_decay: EMA of the weights (None: off, as the papers);
+    grad_clip: max gradient L2 norm (None: off); bf16: bf16 autocast (CloSET only).
+    """
+
+    model: str = "pop"
+    preset: str = "small"
+    net: dict[str, Any] = field(default_factory=dict)
+    steps: int = 10_000
+    batch_size: int = 4
+    num_points: int = 8192
+    query_points: int = 8192
+    lr: float = 3e-4
+    lr_codes: float = 5e-4
+    normal_start: int = 6250
+    closet_weights: dict[str, float] = field(default_factory=dict)
+    subjects: list[str] | None = None
+    seed: int = 0
+    ckpt_every: int = 250
+    sample_every: int = 1000
+    log_every: int = 10
+    keep_checkpoints: int = 3
+    ema_decay: float | None = None
+    grad_clip: float | None = None
+    bf16: bool = False
+
+    def __post_init__(self):
+        if self.model not in SKINNED_KINDS:
+            raise ValueError(f"unknown model {self.model!r} for a SkinnedTrainConfig; choose one of: "
+                             f"{', '.join(SKINNED_KINDS)}")  # fmt: skip
+        for name in ("steps", "batch_size", "num_points", "query_points", "log_every", "keep_checkpoints"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        for name in ("normal_start", "ckpt_every", "sample_every"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("lr", "lr_codes"):
+            v = getattr(self, name)
+            if not (v > 0 and math.isfinite(v)):
+                raise ValueError(f"{name} must be a positive number, got {v}")
+        if self.ema_decay is not None and not 0 <= self.ema_decay < 1:
+            raise ValueError(f"ema_decay must be in [0, 1) or None, got {self.ema_decay}")
+        if self.grad_clip is not None and not self.grad_clip > 0:
+            raise ValueError(f"grad_clip must be > 0 or None, got {self.grad_clip}")
+        if self.bf16 and self.model == "pop":
+            raise ValueError("bf16 is not available for POP: its fused BatchNorm + softplus decoder runs in float32")
+        if self.subjects is not None:
+            if not self.subjects or len(set(self.subjects)) != len(self.subjects):
+                raise ValueError(f"subjects must be distinct names, got {self.subjects!r}")
+            object.__setattr__(self, "subjects", sorted(str(x) for x in self.subjects))
+        if self.model == "pop":
+            net = POPConfig.from_dict(self.net).to_dict() if self.net else POPConfig().to_dict()
+            # the POP config's own training fields follow the run's (one source of truth)
+            net.update(lr=self.lr, lr_features=self.lr_codes, batch_size=self.batch_size,
+                       num_scan_points=self.num_points, normal_start=self.normal_start)  # fmt: skip
+            POPConfig.from_dict(net)  # validate
+            object.__setattr__(self, "closet_weights", {})
+        else:
+            net = CloSETConfig.from_dict(self.net).to_dict() if self.net else CLOSET_PRESETS["paper"].to_dict()
+            w = dataclasses.asdict(CloSETLossWeights(**self.closet_weights))
+            object.__setattr__(self, "closet_weights", w)
+        object.__setattr__(self, "net", json.loads(json.dumps(net)))  # plain JSON types (tuples -> lists)
+
+    def net_config(self) -> POPConfig | CloSETConfig:
+        """The ``POPConfig`` or ``CloSETConfig``."""
+        return POPConfig.from_dict(self.net) if self.model == "pop" else CloSETConfig.from_dict(self.net)
+
+    def replace(self, **changes) -> SkinnedTrainConfig:
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SkinnedTrainConfig:
+        """Inverse of :meth:`to_dict`; unknown keys raise; missing keys take their defaults
+        (checkpoints written before ``ema_decay`` / ``grad_clip`` / ``bf16`` existed)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown SkinnedTrainConfig fields {unknown}")
+        return cls(**d)
+
+
+def _pop_net(name: str, **kw) -> dict[str, Any]:
+    return dataclasses.replace(POP_PRESETS[name], **kw).to_dict()
+
+
+SKINNED_PRESETS: dict[tuple[str, str], SkinnedTrainConfig] = {
+    # POP paper: 128^2 input, 256^2 query map, batch 4, 40K scan points, Adam 3e-4 / 5e-4
+    ("pop", "paper"): SkinnedTrainConfig(model="pop", preset="paper", net=_pop_net("paper"), steps=100_000,
+                                         batch_size=4, num_points=40_000, normal_start=62_500, ckpt_every=2000,
+                                         sample_every=5000, log_every=50),
+    # CPU: POP's small network with a 64^2 query map (~2.5K points per frame at training; any
+    # number at test time from finer maps) so a step takes about a second on one core
+    ("pop", "small"): SkinnedTrainConfig(model="pop", preset="small", net=_pop_net("small", query_resolution=64),
+                                         steps=10_000, batch_size=4, num_points=4096, normal_start=6250),
+    # tests: the UNet sees the subject's own body (no anny needed)
+    ("pop", "tiny"): SkinnedTrainConfig(model="pop", preset="tiny", net=_pop_net("tiny", pose_input="subject"),
+                                        steps=20, batch_size=2, num_points=512, normal_start=10, lr=1e-3,
+                                        lr_codes=1e-3, ckpt_every=10, sample_every=0, log_every=1),
+    ("closet", "paper"): SkinnedTrainConfig(model="closet", preset="paper", net=CLOSET_PRESETS["paper"].to_dict(),
+                                            steps=100_000, batch_size=4, num_points=40_000, query_points=40_000,
+                                            normal_start=62_500, ckpt_every=2000, sample_every=5000, log_every=50),
+    # CPU: as many query points per frame as POP's small preset
+    ("closet", "small"): SkinnedTrainConfig(model="closet", preset="small", net=CLOSET_PRESETS["small"].to_dict(),
+                                            steps=10_000, batch_size=4, num_points=4096, query_points=2560,
+                                            normal_start=6250),
+    ("closet", "tiny"): SkinnedTrainConfig(model="closet", preset="tiny", net=CLOSET_PRESETS["tiny"].to_dict(),
+                                           steps=20, batch_size=2, num_points=512, query_points=512, normal_start=10,
+                                           lr=1e-3, lr_codes=1e-3, ckpt_every=10, sample_every=0, log_every=1),
+}  # fmt: skip
+
+
+def skinned_preset(model: str, name: str, decomposition: bool | None = None, **overrides) -> SkinnedTrainConfig:
+    """The preset ``name`` of ``model`` with field overrides. Changing ``steps`` without giving
+    ``normal_start`` moves the normal-loss switch to the same fraction (62.5 %) of the new run.
+    ``decomposition=False``: CloSET's single-decoder ablation."""
+    if model not in SKINNED_KINDS:
+        raise ValueError(f"unknown model {model!r}; choose one of: {', '.join(SKINNED_KINDS)}")
+    names = [n for m, n in SKINNED_PRESETS if m == model]
+    if (model, name) not in SKINNED_PRESETS:
+        raise ValueError(f"unknown training preset {name!r} for {model}; choose one of: {', '.join(names)}")
+    base = SKINNED_PRESETS[(model, name)]
+    if "steps" in overrides and "normal_start" not in overrides:
+        overrides["normal_start"] = int(round(NORMAL_START_FRACTION * overrides["steps"]))
+    if decomposition is not None:
+        if model != "closet":
+            raise ValueError("--no-decomposition applies to --model closet only")
+        overrides["net"] = {**base.net, "decomposition": bool(decomposition)}
+    return base.replace(**overrides)
+
+
+# -------------------------------------------------------------------------------- subjects
+def read_subjects(data: str | Path, names: Sequence[str]) -> dict[str, Any]:
+    """Subject name -> ``SubjectAsset`` of ``names`` (one body topology, else a one-line error)."""
+    layout = DatasetLayout(data)
+    assets = {s: read_subject(layout.subject_path(s)) for s in names}
+    first = assets[names[0]]
+    for s, a in assets.items():
+        if a.template.shape != first.template.shape or not np.array_equal(a.faces, first.faces):
+            raise ValueError(f"{data}: subject {s!r} has another body topology than {names[0]!r}; "
+                             "POP / CloSET need one mesh topology")  # fmt: skip
+    return assets
+
+
+def _outfits_meta(assets: dict[str, Any], source: str) -> list[dict[str, Any]]:
+    return [{"id": i, "name": s, "phenotype": dict(assets[s].phenotype), "source": source}
+            for i, s in enumerate(assets)]  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------ training
+class SkinnedBatches(torch.utils.data.Dataset):
+    """The frames of each step (``StepBatches`` order over the train split, all subjects) turned
+    into a method's batch by ``make_batch(items, step)``; item ``step`` is a pure function of
+    (seed, step, rank)."""
+
+    def __init__(self, task: SkinnedTask, rank: int = 0, world: int = 1):
+        c = task.config
+        self.task = task
+        self.dataset = PointCloudDataset(task.data, "train", num_points=None, subjects=list(task.outfits),
+                                         random_subsample=False)  # fmt: skip
+        self.order = StepBatches(self.dataset, c.batch_size, c.num_points, c.seed, c.steps, rank, world)
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+    def frames(self, step: int) -> list[tuple[str, Path, Any, int]]:
+        """[(subject, frame path, Frame, global position)] of the step."""
+        g, idx = self.order.frame_indices(step)
+        out = []
+        for gk, i in zip(g, idx, strict=True):
+            subject, _, path = self.dataset.frames[int(i)]
+            fr = read_frame(path, ["points", "normals", "joints", "frame_index", "body_vertices", "vtransf"],
+                            allow_missing=True)  # fmt: skip
+            out.append((subject, Path(path), fr, int(gk)))
+        return out
+
+    def __getitem__(self, step: int):
+        return self.task.make_batch(self.frames(int(step)), int(step))
+
+
+class SkinnedTask(TrainingTask):
+    """The shared training task of POP and CloSET; subclasses give ``build_model``,
+    ``make_optimizer``, ``make_batch`` and ``loss``."""
+
+    resumable_changes = RESUMABLE_CHANGES
+    ddp_find_unused = True  # e.g. the normal head before the normal loss is on
+    method: type[SkinnedMethod]
+
+    def __init__(self, config: SkinnedTrainConfig, data: str | Path):
+        self.config, self.data, self.kind = config, data, config.model
+        card = read_card(data)
+        self.normalisation = Normalisation.from_card(card)
+        names = DatasetLayout(data).subjects()
+        if config.subjects is not None:
+            unknown = [x for x in config.subjects if x not in names]
+            if unknown:
+                raise ValueError(f"{data}: unknown subjects {unknown}; the dataset has {names}")
+            names = list(config.subjects)
+        if not names:
+            raise ValueError(f"{data}: no subjects")
+        self.assets = read_subjects(data, names)
+        self.outfits = {s: i for i, s in enumerate(names)}
+        self.model: nn.Module | None = None
+        self.mean_cache = MeanShapeCache()
+
+    @abstractmethod
+    def make_batch(self, items: list[tuple[str, Path, Any, int]], step: int):
+        """The method's batch from the step's frames (:meth:`SkinnedBatches.frames`)."""
+
+    def step_batches(self, model: nn.Module, rank: int, world: int) -> SkinnedBatches:
+        self.model = model
+        return SkinnedBatches(self, rank, world)
+
+    def check_resume(self, ck: Checkpoint) -> None:
+        names = list(self.outfits)
+        if [o["name"] for o in ck.meta.get("outfits", [])] != names:
+            raise ValueError(f"{self.data}: subjects {names} differ from the checkpoint's outfits ({ck.path})")
+
+    def checkpoint_extra(self, model: nn.Module) -> dict[str, Any]:
+        return {"outfits": _outfits_meta(self.assets, "dataset subject"), "num_vertices": int(model.num_vertices)}
+
+    def log_extra(self, step: int) -> dict[str, Any]:
+        return {"normal_on": step >= self.config.normal_start}
+
+    def preview(self, model: nn.Module, step: int, out: Path, device: torch.device) -> Path | None:
+        """GT next to the model's prediction for two frames (test split if any): ``samples/step_XXXXXX.png``."""
+        config = self.config
+        layout = DatasetLayout(self.data)
+        frames = layout.iter_frames("test") or layout.iter_frames("train")
+        frames = [frames[i] for i in sorted({0, len(frames) // 2})]
+        method = self.method(model, config, Normalisation.identity(), out, step,
+                             {"outfits": [{"id": i, "name": s} for s, i in self.outfits.items()]})  # fmt: skip
+        panels = []
+        was_training = model.training
+        try:
+            for subject, seq, path in frames:
+                if subject not in self.outfits:
+                    continue
+                fr = read_frame(path, ["points", "joints", "frame_index", "body_vertices", "vtransf"],
+                                allow_missing=True)  # fmt: skip
+                pose = method.pose_from_frame(path, subject, frame=fr)
+                pred = method.predict(pose, 2048, seeds=(0,), outfit=self.outfits[subject])
+                sel = np.random.default_rng([config.seed, 3]).choice(len(fr.points), min(2048, len(fr.points)),
+                                                                     replace=False)  # fmt: skip
+                panels += [(fr.points[sel], None, None, f"data {subject}/{seq}"),
+                           (pred.points[0], None, None, f"{config.model}, step {step}")]  # fmt: skip
+        finally:
+            model.train(was_training)
+        if not panels:
+            return None
+        return Path(render_grid(panels, out / "samples" / f"step_{step:06d}.png", views=("front", "side"), ncols=2))
+
+
+# ------------------------------------------------------------------------------------- the model
+class SkinnedMethod(Method):
+    """A trained POP / CloSET: ``outfits`` (list of {"id", "name", "phenotype", "source"} from
+    ``meta.json``); predictions are deterministic (a seed only picks the query points)."""
+
+    deterministic = True
+    needs_body = True
+    train_config = SkinnedTrainConfig
+
+    def __init__(self, model: nn.Module, config: SkinnedTrainConfig, normalisation: Normalisation, path: Path,
+                 step: int, meta: dict[str, Any]):  # fmt: skip
+        super().__init__(model, config, normalisation, path, step, meta)
+        self.outfits = list(meta.get("outfits", []))
+
+    # ------------------------------------------------------------------ loading and training
+    @classmethod
+    @abstractmethod
+    def _model_from_state(cls, config: SkinnedTrainConfig, state: dict[str, torch.Tensor], meta: dict[str, Any]):
+        """The network of a checkpoint's config and weights."""
+
+    @classmethod
+    def from_checkpoint(cls, ck: Checkpoint, device: str = "cpu", use_ema: bool = True) -> SkinnedMethod:
+        state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
+        try:
+            config = SkinnedTrainConfig.from_dict(ck.config)
+            outfits = list(ck.meta["outfits"])
+            model = cls._model_from_state(config, state, ck.meta)
+        except (KeyError, TypeError, RuntimeError) as e:
+            raise ValueError(f"{ck.path}: corrupt {cls.kind} checkpoint ({one_line(e)})") from None
+        if len(outfits) != int(model.num_outfits):
+            raise ValueError(f"{ck.path}: meta lists {len(outfits)} outfits but the weights hold {model.num_outfits}")
+        return cls(model.to(device).eval(), config, ck.normalisation, ck.path, ck.step, ck.meta)
+
+    @classmethod
+    def presets(cls) -> dict[str, SkinnedTrainConfig]:
+        return {n: c for (m, n), c in SKINNED_PRESETS.items() if m == cls.kind}
+
+    @classmethod
+    def preset(cls, name: str, decomposition: bool | None = None, **overrides) -> SkinnedTrainConfig:
+        return skinned_preset(cls.kind, name, decomposition=decomposition, **overrides)
+
+    @property
+    def needs_mean_shape(self) -> bool:
+        return False
+
+    # ------------------------------------------------------------------------------ outfits
+    def outfit_names(self) -> list[str]:
+        return [o["name"] for o in self.outfits]
+
+    def outfit_id(self, outfit: str | int | None) -> int | None:
+        if outfit is None:
+            return None
+        names = self.outfit_names()
+        s = str(outfit)
+        if s in names:
+            return names.index(s)
+        if s.lstrip("-").isdigit() and 0 <= int(s) < len(names):
+            return int(s)
+        raise ValueError(f"{self.path}: outfit {s!r} was never trained (this {self.kind} checkpoint has "
+                         f"{', '.join(f'{i}={n}' for i, n in enumerate(names))})")  # fmt: skip
+
+    def default_outfit(self, pose: Pose) -> int:
+        if pose.subject is None or pose.subject not in self.outfit_names():
+            raise ValueError(f"--outfit is required (this {self.kind} checkpoint has outfits "
+                             f"{', '.join(self.outfit_names())})")  # fmt: skip
+        return self.outfit_names().index(pose.subject)
+
+    # -------------------------------------------------------------------------------- poses
+    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None) -> Pose:
+        """``--joints`` for POP / CloSET: a dataset frame ``DATASET:subject/split/sequence/index`` (or
+        a frame ``.npz`` of a dataset), or an ``.npz`` with anny ``joint_rotvecs`` (posed with the
+        phenotype of ``outfit``'s subject); bare joints are a one-line error (they need the body)."""
+        if frame_id is not None:
+            raise ValueError(f"{spec}: --frame-id only applies to PocoLoco checkpoints")
+        spec = str(spec)
+        kind = pose_spec_kind(spec)
+        if kind == "dataset":
+            return pose_from_frame(dataset_frame_path(spec), subject_of_spec(spec), self.needs_mean_shape)
+        if kind == "anny":
+            pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
+            return pose_from_anny_file(spec, pheno, self.needs_mean_shape)
+        path = Path(spec)
+        return pose_from_frame(path, path.parent.parent.parent.parent.name, self.needs_mean_shape)
+
+    def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
+        return pose_from_frame(path, subject, self.needs_mean_shape, cache=cache, frame=frame)
+
+    # ---------------------------------------------------------------------------- predicting
+    @abstractmethod
+    def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, geom: torch.Tensor | None = None):
+        """The network's output (``points`` (1, N, 3), ``normals`` (1, N, 3), pelvis-centred) in eval mode."""
+
+    @torch.no_grad()
+    def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
+                options: SamplerOptions = SamplerOptions(), geom: torch.Tensor | None = None) -> SampledClouds:  # fmt: skip
+        """One deterministic cloud of ``num_points`` for ``pose`` and ``outfit`` (default: the pose's
+        subject), metres, in the frame of ``pose`` (the root joint added back). ``seeds``: one seed,
+        which picks the query points. ``geom``: outfit features to use instead of ``outfit``'s
+        (POP's unseen-outfit fitting)."""
+        if num_points < 1:
+            raise ValueError(f"num_points must be >= 1, got {num_points}")
+        if len(seeds) != 1:
+            raise ValueError(f"{self.title} is deterministic (one cloud per pose and outfit): pass one seed, "
+                             f"got {len(seeds)}")  # fmt: skip
+        if not pose.has_body:
+            raise ValueError(f"{pose.source}: {self.title} needs the posed body (body_vertices / vtransf)")
+        outfit = self.default_outfit(pose) if outfit is None else int(outfit)
+        model = self.model
+        was_training = model.training
+        model.eval()
+        try:
+            out = self._predict_one(pose, outfit, num_points, int(seeds[0]), geom=geom)
+        finally:
+            model.train(was_training)
+        root = np.asarray(pose.joints[0], np.float32)
+        pts = (out.points[0].cpu().numpy() + root).astype(np.float32)
+        nrm = out.normals[0].cpu().numpy().astype(np.float32)
+        return SampledClouds(pts[None], nrm[None])
+
+    def body_tensors(self, pose: Pose) -> tuple[torch.Tensor, torch.Tensor]:
+        """The pose's pelvis-centred body (1, V, 3) and skinning transforms (1, V, 3, 3) on the model's device."""
+        dev = self.device
+        root = np.asarray(pose.joints[0], np.float32)
+        body = torch.from_numpy(np.asarray(pose.body_vertices, np.float32) - root)[None].to(dev)
+        vt = torch.from_numpy(np.asarray(pose.vtransf, np.float32))[None].to(dev)
+        return body, vt
