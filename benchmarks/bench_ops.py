@@ -34,7 +34,7 @@ from pocoloco.ops import (
     knn_numpy,
     knn_reference,
 )
-from pocoloco.ops.sampling import _fpsample_available
+from pocoloco.ops.sampling import fpsample_available
 from pocoloco.utils.atomic import write_json_atomic
 
 
@@ -65,7 +65,7 @@ def bench(n: int, reference_max: int, repeats: int) -> list[dict]:
         ("chamfer", "scipy", lambda: _scipy_chamfer(xn, yn)),
         (f"fps ->{num}", "torch", lambda: farthest_point_sampling(x, num, backend="torch")),
     ]
-    if _fpsample_available():
+    if fpsample_available():
         cases.append((f"fps ->{num}", "fpsample", lambda: farthest_point_sampling(x, num, backend="fpsample")))
     if ref:
         cases += [
@@ -96,7 +96,7 @@ def main() -> None:
         print(f"{r['op']:<12} {r['impl']:<10} {r['num_points']:>7} {r['median_s']:>10.4f}")
     result = {
         "benchmark": "pocoloco.ops knn / chamfer / fps, batch 1, float32 (scipy: float64), uniform cube",
-        "torch_threads": torch.get_num_threads(), "fpsample": _fpsample_available(),
+        "torch_threads": torch.get_num_threads(), "fpsample": fpsample_available(),
         "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
         "load_avg_1min": os.getloadavg()[0], "rows": rows,
     }

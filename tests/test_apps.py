@@ -285,6 +285,14 @@ def test_cli_complete_edit_animate_write_their_outputs(run, seq, tmp_path, capsy
     assert main(["animate", *common, "--motion", spec, "--frames", "0:2", "--points", "32", "--no-render",
                  "--out", str(out)]) == 0  # fmt: skip
     assert sorted(p.name for p in out.glob("frame_*.ply")) == ["frame_0000.ply", "frame_0001.ply"]
+    # README's recommended method by its name: chain-world = chain --anchor world (the same clouds)
+    args = [*common, "--motion", spec, "--frames", "0:2", "--points", "32", "--t", "50", "--no-render"]
+    assert main(["animate", *args, "--method", "chain-world", "--out", str(tmp_path / "w1")]) == 0
+    assert main(["animate", *args, "--method", "chain", "--anchor", "world", "--out", str(tmp_path / "w2")]) == 0
+    m1 = json.loads((tmp_path / "w1" / "animation.json").read_text())
+    assert (m1["method"], m1["anchor"]) == ("chain", "world")
+    np.testing.assert_array_equal(read_ply(tmp_path / "w1" / "frame_0001.ply").points,
+                                  read_ply(tmp_path / "w2" / "frame_0001.ply").points)  # fmt: skip
 
 
 def test_cli_bad_inputs_one_line_and_nothing_written(run, seq, tmp_path, capsys):
@@ -314,6 +322,8 @@ def test_cli_bad_inputs_one_line_and_nothing_written(run, seq, tmp_path, capsys)
         (["animate", "--motion", str(tmp_path / "m22.npy")], "the skeleton has 22 joints, the model expects 24"),
         (["animate", "--motion", spec, "--method", "morph"], "unknown --method 'morph'"),
         (["animate", "--motion", spec, "--frames", "3:1"], "selects no frame"),
+        (["animate", "--motion", spec, "--method", "chain-world", "--anchor", "root"], "means --anchor world"),
+        (["animate", "--motion", spec, "--threads", "0"], "--threads must be >= 1"),
     ]
     for argv, message in cases:
         code = main([*argv, *common])

@@ -16,7 +16,7 @@ from pocoloco.ops import (
     knn_reference,
     sample_surface,
 )
-from pocoloco.ops.sampling import _fpsample_available
+from pocoloco.ops.sampling import fpsample_available
 
 
 def _rand(*shape, seed=0, dtype=torch.float64):
@@ -116,7 +116,7 @@ def test_fps_picks_extremes_on_a_line():
     assert farthest_point_sampling(pts, 3, 0, backend="torch").tolist() == [[0, 3, 2]]
 
 
-@pytest.mark.skipif(not _fpsample_available(), reason="fpsample not installed (optional)")
+@pytest.mark.skipif(not fpsample_available(), reason="fpsample not installed (optional)")
 def test_fps_fpsample_backend_matches_torch():
     pts = _rand(2, 500, 3, seed=15, dtype=torch.float32)
     a = farthest_point_sampling(pts, 64, 3, backend="fpsample")

@@ -348,3 +348,51 @@ def test_describe_checkpoint_names_shipped_and_relative_paths(tmp_path, monkeypa
     monkeypatch.chdir(tmp_path)
     assert describe_checkpoint(tmp_path / "runs" / "a") == "runs/a"
     assert describe_checkpoint("/elsewhere/ckpt") == "/elsewhere/ckpt"
+
+
+# ------------------------------------------------------------------ what the shared loop adds
+def _ddp_peer_worker(rank: int, world: int, port: int, data: str, out: str, model: str) -> None:
+    import os
+
+    import torch.distributed as dist
+
+    torch.set_num_threads(1)
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    dist.init_process_group("gloo", rank=rank, world_size=world)
+    try:
+        res = train(tiny(model, steps=3, ckpt_every=0, ema_decay=0.5), data, out, progress=False)
+        # parameters (BatchNorm running statistics are each rank's own until rank 0's are broadcast
+        # at the next forward; the checkpoint is rank 0's)
+        params = lambda m: {k: v.detach().clone() for k, v in m.named_parameters()}  # noqa: E731
+        torch.save({"model": params(res.model), "ema": params(res.ema)}, f"{out}.rank{rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.mark.parametrize("model", ["pop", "closet"])
+def test_peers_train_with_ddp_and_ema_through_the_shared_loop(tiny_dataset, tmp_path, model):
+    """POP and CloSET gain the loop's DDP and EMA: two gloo processes keep identical parameters, the
+    checkpoint (rank 0) holds EMA weights that differ from the raw ones, and the EMA is what loads."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "run"
+    torch.multiprocessing.spawn(_ddp_peer_worker, args=(2, port, str(tiny_dataset), str(out), model), nprocs=2)
+    r0, r1 = (torch.load(f"{out}.rank{r}.pt", weights_only=True) for r in range(2))
+    for key in ("model", "ema"):
+        assert all(torch.equal(r0[key][k], r1[key][k]) for k in r0[key]), key
+    ck = ckpt_io.load_checkpoint(out, expect_model=model)
+    assert ck.step == 3 and ck.meta["world_size"] == 2 and ck.ema_state is not None
+    assert max(float((ck.ema_state[k].float() - ck.model_state[k].float()).abs().max())
+               for k in ck.model_state if ck.model_state[k].is_floating_point()) > 1e-6  # fmt: skip
+    loaded = load_method(out)
+    assert all(torch.equal(v.cpu(), ck.ema_state[k]) for k, v in loaded.model.state_dict().items())
+
+
+def test_closet_trains_under_bf16_and_pop_refuses_it(tiny_dataset, tmp_path):
+    res = train(tiny("closet", steps=2, ckpt_every=0, bf16=True), tiny_dataset, tmp_path / "c", progress=False)
+    assert res.step == 2 and np.isfinite(res.final_loss)
+    with pytest.raises(ValueError, match="bf16 is not available for POP"):
+        tiny("pop", bf16=True)

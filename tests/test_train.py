@@ -152,6 +152,41 @@ def test_resume_is_exact(tiny_dataset, tmp_path):
     assert _states_equal(straight.model.state_dict(), other.model.state_dict()) > 1e-4
 
 
+def test_resume_after_a_kill_cleans_temporaries_and_skips_a_damaged_checkpoint(tiny_dataset, tmp_path, capsys):
+    """What ``kill -9`` leaves: a half-written ``.tmp-step_*`` folder (removed on start) and, after a
+    disk fault, a truncated newest checkpoint: ``--resume`` and ``sample`` fall back to the newest
+    intact one with a one-line warning naming the skipped one, and the resumed run is still exact."""
+    from pocoloco.cli import main as cli_main
+
+    cfg = tiny(steps=4, ckpt_every=1, keep_checkpoints=5)
+    straight = train(cfg, tiny_dataset, tmp_path / "a", progress=False)
+    run = tmp_path / "b"
+    train(cfg.replace(steps=3), tiny_dataset, run, progress=False)
+    root = run / "checkpoints"
+    stale = root / ".tmp-step_000004-deadbeef"
+    stale.mkdir()
+    (stale / "model.safetensors").write_bytes(b"half a file")
+    weights = root / "step_000003" / "ema.safetensors"
+    weights.write_bytes(weights.read_bytes()[:100])  # the newest checkpoint, truncated
+
+    with pytest.warns(ckpt_io.CheckpointFallbackWarning, match=r"step_000003 .*; using .*step_000002"):
+        ck = ckpt_io.load_checkpoint(run, expect_model="pocoloco")
+    assert ck.step == 2
+    with pytest.raises(ValueError, match="corrupt weights file"):  # asked for by name: no fallback
+        ckpt_io.load_checkpoint(root / "step_000003")
+    code = cli_main(["sample", "--ckpt", str(run), "--joints", "demo:skirt", "--num", "1", "--steps", "2",
+                     "--points", "32", "--no-render", "--out", str(tmp_path / "s")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 0 and err.startswith("pocoloco: warning: skipped damaged checkpoint step_000003")
+    assert len(err.splitlines()) == 1 and json.loads((tmp_path / "s" / "sample.json").read_text())["step"] == 2
+
+    with pytest.warns(ckpt_io.CheckpointFallbackWarning):
+        resumed = train(cfg, tiny_dataset, run, resume=True, progress=False)
+    assert not stale.exists()
+    assert resumed.step == 4 and _states_equal(straight.model.state_dict(), resumed.model.state_dict()) == 0.0
+    assert _states_equal(straight.ema.state_dict(), resumed.ema.state_dict()) == 0.0
+
+
 def test_resume_with_other_config_or_without_flag_raises(tiny_dataset, tmp_path):
     cfg = tiny(steps=2)
     train(cfg, tiny_dataset, tmp_path / "run", progress=False)

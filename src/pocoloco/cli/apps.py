@@ -313,7 +313,7 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=400, help="Adam steps (default 400, as the paper)")
     parser.add_argument("--lr", type=float, help="learning rate (default: the model's feature lr)")
     parser.add_argument("--points", type=int, help="scan points used by the loss (default: the model's)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the scan points used and scored (default 0)")
     add_threads_argument(parser)
     parser.add_argument("--out", required=True, help="new folder: the checkpoint with the added outfit + fit.json")
 

@@ -37,6 +37,9 @@ clearly planted does not skate (< 1 cm/frame; some slip remains in the brief
 double support of a walk, where both feet touch while the legs still move).
 
 Train and test motions differ in content (documented in ``generate_motion``).
+
+Why this module is long: every motion kind is a short closed-form function of time, and they are
+kept together with the chaining, cross-fades and foot locking that make them one motion model.
 """
 
 from __future__ import annotations

@@ -13,6 +13,11 @@
 - **POP packed npz** files, one per frame (:func:`read_pop_npz`, :func:`write_pop_npz`).
 
 Every reader raises a one-line ``ValueError("<file>: <problem>")`` on malformed input.
+
+Why this module is long: it is the one place that knows the published formats, and each reader
+carries the checks that turn a malformed or truncated file into a one-line error (PLY headers of
+three encodings, joints text files, POP's packed arrays); its writers are the readers' inverses,
+kept next to them so a round trip is tested in one place.
 """
 
 from __future__ import annotations

@@ -40,7 +40,7 @@ from pocoloco.diffusion.schedules import (
     PREDICTION_TYPES,
     NoiseSchedule,
     PredictionType,
-    _pred_to_eps_x0,
+    pred_to_eps_x0,
 )
 
 Spacing = Literal["trailing", "linspace"]
@@ -252,7 +252,7 @@ class _Run:
         if out.shape != x.shape:
             raise ValueError(f"denoiser output shape {tuple(out.shape)} does not match x shape {tuple(x.shape)}")
         a, s = self.ab[i] ** 0.5, (1.0 - self.ab[i]) ** 0.5
-        eps, x0 = _pred_to_eps_x0(out.to(torch.float64), x, a, s, self.prediction_type)
+        eps, x0 = pred_to_eps_x0(out.to(torch.float64), x, a, s, self.prediction_type)
         if self.clip is not None:
             x0 = x0.clamp(-self.clip, self.clip)
             eps = (x - a * x0) / s

@@ -206,10 +206,10 @@ class NoiseSchedule:
         self._check_t(t, x_t)
         a = self._gather(self.sqrt_alphas_cumprod, t, x_t)
         s = self._gather(self.sqrt_one_minus_alphas_cumprod, t, x_t)
-        return _pred_to_eps_x0(model_out, x_t, a, s, prediction_type)
+        return pred_to_eps_x0(model_out, x_t, a, s, prediction_type)
 
 
-def _pred_to_eps_x0(
+def pred_to_eps_x0(
     model_out: torch.Tensor,
     x_t: torch.Tensor,
     a: torch.Tensor | float,

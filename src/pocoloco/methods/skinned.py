@@ -269,7 +269,6 @@ class SkinnedTask(TrainingTask):
     ``make_optimizer``, ``make_batch`` and ``loss``."""
 
     resumable_changes = RESUMABLE_CHANGES
-    ddp_find_unused = True  # e.g. the normal head before the normal loss is on
     method: type[SkinnedMethod]
 
     def __init__(self, config: SkinnedTrainConfig, data: str | Path):

@@ -29,7 +29,7 @@ def _check_fps(points: torch.Tensor, num: int, start_index: int) -> None:
         raise ValueError(f"start_index must be in [0, N={n}), got {start_index}")
 
 
-def _fpsample_available() -> bool:
+def fpsample_available() -> bool:
     try:
         import fpsample  # noqa: F401
     except ImportError:
@@ -53,7 +53,7 @@ def farthest_point_sampling(
     _check_fps(points, num, start_index)
     if backend not in ("auto", "torch", "fpsample"):
         raise ValueError(f"backend must be 'auto', 'torch' or 'fpsample', got {backend!r}")
-    use_lib = backend == "fpsample" or (backend == "auto" and points.device.type == "cpu" and _fpsample_available())
+    use_lib = backend == "fpsample" or (backend == "auto" and points.device.type == "cpu" and fpsample_available())
     if use_lib:
         import fpsample
 

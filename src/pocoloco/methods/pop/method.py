@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+from torch.nn.parallel import DistributedDataParallel
 
 from pocoloco.body.surface import BodySurface, largest_component_faces
 from pocoloco.data.poses import Pose
@@ -140,4 +141,9 @@ class POPTask(SkinnedTask):
         out = net(batch)
         losses = pop_losses(out, batch.scan_points, batch.scan_normals, config, normal_weight=wn)
         logs = losses.as_floats()
-        return losses.total, {"loss": logs.pop("total"), **logs}
+        total = losses.total
+        if wn == 0 and isinstance(net, DistributedDataParallel):
+            # DDP all-reduces every parameter's gradient: before the normal term is on, the normal
+            # head gets an explicit zero one (single-process runs leave it None, as they always did)
+            total = total + 0.0 * out.normals.sum()
+        return total, {"loss": logs.pop("total"), **logs}

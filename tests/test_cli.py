@@ -1,0 +1,149 @@
+"""The command line as a new user meets it: --version, help for every option, defaults in help,
+--threads where torch works, every command README shows parses as written, the first line of a
+failing command is its error, and no CUDA-driver noise from warp on a CPU machine."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pocoloco import __version__
+from pocoloco.cli import build_parser, main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _subparsers(parser: argparse.ArgumentParser, prefix: str = "") -> dict[str, argparse.ArgumentParser]:
+    """Every (sub)command's parser by its command line (``data synth``, ``train``, ...)."""
+    out = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                out.update(_subparsers(sub, f"{prefix}{name} ") or {f"{prefix}{name}": sub})
+    return out
+
+
+def test_version_exits_0(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"pocoloco {__version__}"
+
+
+def test_every_option_of_every_command_has_help():
+    missing = []
+    commands = _subparsers(build_parser())
+    assert {"data synth", "data info", "data preview", "data export", "data import", "train", "sample", "complete",
+            "edit", "animate", "fit", "mesh", "eval", "bench quality", "render", "view", "export-model",
+            "uvmap"} <= set(commands)  # fmt: skip
+    for name, parser in commands.items():
+        for action in parser._actions:
+            if not isinstance(action, argparse._HelpAction) and not (action.help or "").strip():
+                missing.append(f"{name} {'/'.join(action.option_strings) or action.dest}")
+    assert not missing, missing
+
+
+def test_train_help_shows_defaults():
+    parser = _subparsers(build_parser())["train"]
+    undocumented = [a.option_strings[0] for a in parser._actions
+                    if a.option_strings and not a.required and not isinstance(a, (argparse._HelpAction,))
+                    and a.dest not in ("resume", "no_progress", "bf16", "no_decomposition")
+                    and "default" not in (a.help or "")]  # fmt: skip
+    assert not undocumented, undocumented
+    text = parser.format_help()
+    assert "pocoloco 20000" in text and "pop 10000" in text  # the presets' steps
+
+
+@pytest.mark.parametrize("command", ["sample", "complete", "edit", "animate", "eval", "train", "fit", "bench quality"])
+def test_commands_doing_torch_work_take_threads(command):
+    parser = _subparsers(build_parser())[command]
+    assert any("--threads" in a.option_strings for a in parser._actions)
+
+
+def _readme_commands() -> list[str]:
+    """The ``pocoloco ...`` command lines of README's code blocks: continuations joined, ``&&`` chains
+    split, optional parts ``[--flag X]`` included, alternatives ``a|b|c`` taken at their first."""
+    text = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```(?:bash|sh)?\n(.*?)```", text, flags=re.S)
+    commands = []
+    for block in blocks:
+        for line in block.replace("\\\n", " ").splitlines():
+            for part in line.split("&&"):
+                part = re.sub(r"[\[\]]", " ", part.strip())
+                words = shlex.split(part, comments=True)
+                if not words:
+                    continue
+                if words[0] in ("pocoloco", ".venv/bin/pocoloco"):
+                    rest = words[1:]
+                elif words[0] == "torchrun" and "-m" in words and words[words.index("-m") + 1] == "pocoloco":
+                    rest = words[words.index("-m") + 2:]
+                else:
+                    continue
+                commands.append(shlex.join(w.split("|")[0] if "|" in w and not w.startswith("-") else w for w in rest))
+    return commands
+
+
+def test_every_readme_command_line_parses_as_written():
+    commands = _readme_commands()
+    assert len(commands) >= 20, commands
+    parser = build_parser()
+    failed = []
+    for cmd in commands:
+        try:
+            parser.parse_args(shlex.split(cmd))
+        except SystemExit:
+            failed.append(cmd)
+    assert not failed, failed
+
+
+def test_a_failing_train_prints_its_error_first(tiny_run, tiny_dataset, capsys):
+    """A user error (here: a run folder that already holds checkpoints) is the only output: no banner first."""
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(tiny_run), "--preset", "tiny", "--no-progress"])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == ""
+    assert captured.err.strip().splitlines() == [captured.err.strip()]
+    assert captured.err.startswith("pocoloco: error:") and "already holds checkpoints" in captured.err
+
+
+def test_dataset_without_normalisation_names_the_command_to_fix_it(tiny_dataset, tmp_path, capsys):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    card = json.loads((data / "card.json").read_text())
+    card.pop("normalisation")
+    (data / "card.json").write_text(json.dumps(card))
+    code = main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--preset", "tiny", "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "`pocoloco data synth`" in err, err
+
+
+def test_warp_starts_quietly_on_a_cpu_machine():
+    """No 'CUDA driver' warning from warp's native code on every run (anny and newton load warp)."""
+    code = "from pocoloco.body.anny_body import quiet_warp; quiet_warp(); import warp; warp.init(); print('ok')"
+    env = {k: v for k, v in os.environ.items() if k != "POCOLOCO_VERBOSE_WARP"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
+    assert "CUDA driver" not in r.stderr and "Warp CUDA warning" not in r.stderr, r.stderr
+
+
+def test_readme_python_examples_run(tmp_path, monkeypatch):
+    """README's Python snippets run as written (on the shipped model)."""
+    import contextlib
+    import io
+
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S)
+    assert blocks
+    monkeypatch.chdir(tmp_path)
+    for code in blocks:
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            exec(compile(code, "README.md", "exec"), {})
+    assert "(2, 2048, 3)" in out.getvalue()
