@@ -306,6 +306,65 @@ def test_refresh_card_counts_and_normalisation(tmp_path):
     assert fmt.read_card(tmp_path) == card
 
 
+# --------------------------------------------------------------------------- integrity
+def _recorded_dataset(root, rng):
+    """Subject "a": train sequence "q" with frames 0, 1, 3 (2 rejected), test sequence "r" with frame 0."""
+    lay = fmt.DatasetLayout(root)
+    fmt.write_card(root, fmt.make_card(subjects={"a": {}}))
+    for split, seq, frames, num, rejected in [("train", "q", (0, 1, 3), 4, [2]), ("test", "r", (0,), 1, [])]:
+        for i in frames:
+            fmt.write_frame(lay.frame_path("a", split, seq, i), random_frame(rng, index=i))
+        fmt.write_sequence_meta(lay.sequence_meta_path("a", split, seq),
+                                {"num_frames": num, "rejected_frames": [{"frame": f, "reason": "x"} for f in rejected]})  # fmt: skip
+    return fmt.refresh_card(root), lay
+
+
+def test_refresh_card_records_frame_files(tmp_path):
+    card, lay = _recorded_dataset(tmp_path, np.random.default_rng(30))
+    assert sorted(card["frame_files"]) == ["a/test/r", "a/train/q"]
+    assert sorted(card["frame_files"]["a/train/q"]) == ["000000.npz", "000001.npz", "000003.npz"]
+    f = lay.frame_path("a", "train", "q", 3)
+    assert card["frame_files"]["a/train/q"]["000003.npz"] == [f.stat().st_size, fmt.file_crc32(f)]
+    report = fmt.verify_dataset(tmp_path)
+    assert report.ok and report.frames == report.recorded == 4 and report.records == card["frame_files"]
+    assert fmt.check_frames(tmp_path, splits=("test",)).frames == 1
+
+
+def test_scan_finds_a_rejected_frame_on_disk_and_a_malformed_sequence_json(tmp_path):
+    rng = np.random.default_rng(31)
+    _, lay = _recorded_dataset(tmp_path, rng)
+    fmt.write_frame(lay.frame_path("a", "train", "q", 2), random_frame(rng, index=2))  # the rejected one
+    lay.sequence_meta_path("a", "test", "r").write_text("{not json")
+    report = fmt.scan_frames(tmp_path)
+    assert [(p.kind, p.path.name) for p in report.problems] == [("unreadable", "sequence.json"), ("extra", "000002.npz")]
+    assert report.kinds() == {"extra": 1, "unreadable": 1}
+    assert report.summary().startswith("2 bad frame files (1 extra, 1 unreadable); first: ")
+    with pytest.raises(ValueError, match=r"r/sequence.json: malformed JSON .*; run `pocoloco data verify"):
+        fmt.check_frames(tmp_path)
+
+
+def test_scan_refuses_malformed_records_in_one_line(tmp_path):
+    card, _ = _recorded_dataset(tmp_path, np.random.default_rng(32))
+    card["frame_files"]["a/train/q"]["000001.npz"] = "big"
+    (tmp_path / "card.json").write_text(json.dumps(card))
+    with pytest.raises(ValueError, match=r"card.json: malformed frame_files record a/train/q/000001.npz: 'big'"):
+        fmt.check_frames(tmp_path)
+    card["frame_files"] = ["a list"]
+    (tmp_path / "card.json").write_text(json.dumps(card))
+    with pytest.raises(ValueError, match="'frame_files' must be"):
+        fmt.read_card(tmp_path)
+
+
+def test_refresh_card_refuses_to_record_a_truncated_frame(tmp_path):
+    _, lay = _recorded_dataset(tmp_path, np.random.default_rng(33))
+    f = lay.frame_path("a", "test", "r", 0)
+    f.write_bytes(f.read_bytes()[:-5])
+    before = (tmp_path / "card.json").read_bytes()
+    with pytest.raises(ValueError, match=rf"{f}: corrupt or truncated npz"):
+        fmt.refresh_card(tmp_path)
+    assert (tmp_path / "card.json").read_bytes() == before
+
+
 # --------------------------------------------------------------------------- export
 def test_export_frame_ply_and_pop(tmp_path):
     lay = fmt.DatasetLayout(tmp_path)

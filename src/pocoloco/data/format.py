@@ -22,6 +22,18 @@ data imported from published scans): ``labels``, ``parts``,
 
 Every reader validates at the boundary and raises a one-line
 ``ValueError("<path>: <problem>")``.
+
+Integrity: the card records the size and CRC-32 of every frame file (``frame_files``, written by
+:func:`refresh_card`). :func:`check_frames` (what training and evaluation call) compares the frame
+files present with the card's records and each ``sequence.json`` using only directory listings and
+file sizes; :func:`verify_dataset` (``pocoloco data verify``) also reads every byte. Cards written
+before ``frame_files`` existed stay valid: their frames are "not recorded", checked against
+``sequence.json`` and by reading them, never reported as corrupt for lacking a record.
+
+Why this module is long: it is the one place that knows the on-disk format: the writers, the
+validating readers, the card, and the checks that compare the card with the files. The card's
+per-frame records are written by :func:`refresh_card` and read by the checks, so the record format
+lives in one module rather than two that must agree.
 """
 
 from __future__ import annotations
@@ -30,7 +42,9 @@ import datetime
 import json
 import os
 import re
-from collections.abc import Iterable, Mapping, Sequence
+import zipfile
+import zlib
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -44,9 +58,11 @@ from ..utils.atomic import save_npz_atomic, write_json_atomic
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "SPLITS", "LABEL_UNKNOWN", "FRAME_KEYS", "REQUIRED_FRAME_KEYS",
     "OPTIONAL_FRAME_KEYS", "Frame", "write_frame", "read_frame", "DatasetLayout", "make_card",
-    "read_card", "write_card", "compute_normalisation", "refresh_card",
+    "read_card", "write_card", "compute_normalisation", "refresh_card", "card_from_disk",
     "SubjectAsset", "write_subject", "read_subject", "Motion", "write_motion", "read_motion",
     "write_sequence_meta", "read_sequence_meta",
+    "PROBLEM_KINDS", "FrameProblem", "FrameReport", "file_crc32", "frame_record", "scan_frames", "check_frames",
+    "verify_dataset",
 ]  # fmt: skip
 
 FORMAT_NAME = "pocoloco-dataset"
@@ -416,6 +432,12 @@ class DatasetLayout:
         d = self.split_dir(subject, split)
         return sorted(p.name for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
 
+    @staticmethod
+    def sequence_key(subject: str, split: str, sequence: str) -> str:
+        """``"<subject>/<split>/<sequence>"``: how the card's ``frame_files`` names a sequence."""
+        _check_split(split)
+        return f"{subject}/{split}/{sequence}"
+
     def frame_indices(self, subject: str, split: str, sequence: str) -> list[int]:
         """Indices of the frame files present, sorted (temporary files are ignored)."""
         d = self.frames_dir(subject, split, sequence)
@@ -496,6 +518,10 @@ def _validate_card(src: str, card: Any) -> None:
         if not ok:
             want = "{'mean': [3 floats], 'std': float > 0, ...}"
             raise ValueError(f"{src}: 'normalisation' must be {want}, got {norm!r}")
+    files = card.get("frame_files")
+    if files is not None and not (isinstance(files, dict) and all(isinstance(v, dict) for v in files.values())):
+        raise ValueError(f"{src}: 'frame_files' must be {{'<subject>/<split>/<sequence>': {{'<frame>.npz': "
+                         f"[bytes, crc32]}}}}")  # fmt: skip
 
 
 def read_card(root: str | os.PathLike) -> dict[str, Any]:
@@ -562,31 +588,314 @@ def compute_normalisation(frame_paths: Iterable[str | os.PathLike], root_joint: 
             "num_frames": num_frames, "num_points": int(count)}  # fmt: skip
 
 
-def refresh_card(root: str | os.PathLike, normalise_on: str = "train") -> dict[str, Any]:
-    """Recount sequences/frames/rejected frames per subject and split from disk and
-    recompute the normalisation on ``normalise_on``; write and return the card.
+def refresh_card(
+    root: str | os.PathLike, normalise_on: str = "train", *, rehash: Iterable[str] = ()
+) -> dict[str, Any]:
+    """Recount the card from disk (:func:`card_from_disk`), write it and return it."""
+    card = card_from_disk(root, read_card(root), normalise_on=normalise_on, rehash=rehash)
+    write_card(root, card)
+    return card
 
-    Rejected-frame counts come from each ``sequence.json``'s ``rejected_frames`` list.
+
+def card_from_disk(
+    root: str | os.PathLike, card: Mapping[str, Any], normalise_on: str = "train", *, rehash: Iterable[str] = ()
+) -> dict[str, Any]:
+    """A copy of ``card`` with what it says about the files recomputed from the folder ``root``
+    (nothing is written): ``counts`` (sequences, frames, rejected frames per subject and split),
+    ``normalisation`` on the ``normalise_on`` split, and ``frame_files``, the size and CRC-32 of
+    every frame file.
+
+    Rejected-frame counts come from each ``sequence.json``'s ``rejected_frames`` list. A frame
+    file the card already records with the same size keeps its record (not read again) unless its
+    sequence is in ``rehash`` (``"<subject>/<split>/<sequence>"`` keys: sequences just rewritten);
+    any other frame file is checked to be a readable npz (a truncated one raises a one-line
+    ``ValueError``) and hashed.
     """
     layout = DatasetLayout(root)
-    card = read_card(root)
+    card = dict(card)
+    _validate_card(os.fspath(layout.card_path), card)
+    rehash = set(rehash)
+    old_files = card.get("frame_files") or {}
     counts: dict[str, Any] = {}
+    files: dict[str, dict[str, list]] = {}
     for s in card["subjects"]:
         counts[s] = {}
         for split in SPLITS:
             seqs = layout.sequences(s, split)
             frames = rejected = 0
             for seq in seqs:
-                frames += len(layout.frame_indices(s, split, seq))
+                indices = layout.frame_indices(s, split, seq)
+                frames += len(indices)
                 meta_path = layout.sequence_meta_path(s, split, seq)
                 if os.path.isfile(meta_path):
                     rejected += len(read_sequence_meta(meta_path).get("rejected_frames", []))
+                key = layout.sequence_key(s, split, seq)
+                before = {} if key in rehash else old_files.get(key, {})
+                records = {}
+                for i in indices:
+                    path = layout.frame_path(s, split, seq, i)
+                    rec = before.get(path.name)
+                    keep = _is_record(rec) and rec[0] == path.stat().st_size
+                    records[path.name] = list(rec) if keep else frame_record(path)
+                files[key] = records
             counts[s][split] = {"sequences": len(seqs), "frames": frames, "rejected_frames": rejected}
     card["counts"] = counts
+    card["frame_files"] = files
     paths = [p for _, _, p in layout.iter_frames(normalise_on, list(card["subjects"]))]
     if paths:
         stats = compute_normalisation(paths)
         card["normalisation"] = {"root_joint": stats["root_joint"], "mean": stats["mean"],
                                  "std": stats["std"], "computed_on": normalise_on}  # fmt: skip
-    write_card(root, card)
     return card
+
+
+# --------------------------------------------------------------------------- integrity
+#: What can be wrong with a frame file, in the order reports list them.
+PROBLEM_KINDS: tuple[str, ...] = ("missing", "extra", "size", "checksum", "unreadable")
+
+
+@dataclass(frozen=True)
+class FrameProblem:
+    """One frame file (or ``sequence.json``) that disagrees with what the dataset says about it.
+
+    kind: ``missing`` (the card's records or ``sequence.json`` expect it, it is not on disk),
+    ``extra`` (on disk, expected by neither), ``size`` (its size differs from the card's record:
+    truncated or overwritten), ``checksum`` (same size, different CRC-32: corrupt),
+    ``unreadable`` (not a readable frame npz, or a malformed ``sequence.json``).
+    path: the file. detail: one line.
+    """
+
+    kind: str
+    path: Path
+    detail: str
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.detail}"
+
+
+@dataclass
+class FrameReport:
+    """What :func:`scan_frames` found.
+
+    frames: frame files examined (present on disk). recorded: those the card records (size and
+    CRC-32); the others were checked against ``sequence.json`` and by reading them only.
+    card_records: whether the card has ``frame_files`` at all (False: a dataset written before
+    them). contents: whether file contents were checked (checksums, full reads) or only sizes.
+    problems: sorted by path. records: with ``contents``, ``frame_files`` as computed from disk.
+    """
+
+    root: Path
+    card_records: bool
+    contents: bool
+    frames: int = 0
+    recorded: int = 0
+    problems: list[FrameProblem] = field(default_factory=list)
+    records: dict[str, dict[str, list]] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def kinds(self) -> dict[str, int]:
+        """Number of problems of each kind (kinds with none left out), in ``PROBLEM_KINDS`` order."""
+        out = {k: sum(p.kind == k for p in self.problems) for k in PROBLEM_KINDS}
+        return {k: n for k, n in out.items() if n}
+
+    def summary(self) -> str:
+        """One line: ``2 bad frame files (1 missing, 1 size); first: <problem>`` or ``960 frame files OK``."""
+        if self.ok:
+            return f"{self.frames} frame files OK"
+        kinds = ", ".join(f"{n} {k}" for k, n in self.kinds().items())
+        n = len(self.problems)
+        return f"{n} bad frame file{'s' if n != 1 else ''} ({kinds}); first: {self.problems[0]}"
+
+
+def file_crc32(path: str | os.PathLike) -> str:
+    """CRC-32 (``zlib.crc32``) of a whole file as 8 lowercase hex digits, read in 1 MiB blocks."""
+    crc = 0
+    with open(path, "rb") as f:
+        while block := f.read(1 << 20):
+            crc = zlib.crc32(block, crc)
+    return f"{crc:08x}"
+
+
+def _npz_directory_error(path: Path) -> str | None:
+    """Why ``path`` is not a readable zip (npz) archive, from its central directory only; None if it is."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            if not z.namelist():
+                return "corrupt npz (empty archive)"
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as e:
+        return f"corrupt or truncated npz ({type(e).__name__}: {' '.join(str(e).split())})"
+    return None
+
+
+def frame_record(path: str | os.PathLike) -> list:
+    """``[bytes, crc32]``: the card's record of a frame file, after checking the file is a readable
+    npz archive (a truncated or corrupt one raises ``ValueError("<path>: ...")``)."""
+    path = Path(path)
+    error = _npz_directory_error(path)
+    if error:
+        raise ValueError(f"{path}: {error}")
+    return [path.stat().st_size, file_crc32(path)]
+
+
+def _is_record(rec: Any) -> bool:
+    return (isinstance(rec, list) and len(rec) == 2 and isinstance(rec[0], int) and not isinstance(rec[0], bool)
+            and isinstance(rec[1], str))  # fmt: skip
+
+
+def _expected_by_meta(layout: DatasetLayout, subject: str, split: str, seq: str,
+                      problems: list[FrameProblem]) -> set[int] | None:  # fmt: skip
+    """Frame indices ``sequence.json`` promises (``range(num_frames)`` minus rejected frames); None
+    without a ``sequence.json`` (a sequence being generated); a malformed one is a problem."""
+    meta_path = layout.sequence_meta_path(subject, split, seq)
+    if not meta_path.is_file():
+        return None
+    try:
+        meta = read_sequence_meta(meta_path)
+    except ValueError as e:
+        problems.append(FrameProblem("unreadable", meta_path, str(e).split(": ", 1)[-1]))
+        return None
+    rejected = {r.get("frame") for r in meta.get("rejected_frames", []) if isinstance(r, dict)}
+    return set(range(meta["num_frames"])) - rejected
+
+
+def _sequences_to_scan(layout: DatasetLayout, card: Mapping[str, Any], splits: Sequence[str],
+                       subjects: Sequence[str] | None) -> list[tuple[str, str, str]]:  # fmt: skip
+    """(subject, split, sequence) on disk or in the card's records, sorted."""
+    files = card.get("frame_files") or {}
+    chosen = sorted(set(card["subjects"]) | set(layout.subjects())) if subjects is None else sorted(subjects)
+    out = set()
+    for s in chosen:
+        for split in splits:
+            out |= {(s, split, q) for q in layout.sequences(s, split)}
+            out |= {(s, split, k.split("/", 2)[2]) for k in files if k.startswith(f"{s}/{split}/")}
+    return sorted(out)
+
+
+def scan_frames(
+    root: str | os.PathLike,
+    *,
+    splits: Sequence[str] = SPLITS,
+    subjects: Sequence[str] | None = None,
+    contents: bool = False,
+    card: Mapping[str, Any] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> FrameReport:
+    """Compare the frame files of ``splits`` (of ``subjects``; None: every subject of the card or
+    on disk) with the card's ``frame_files`` records and each ``sequence.json``.
+
+    Always: a frame file the card records, or ``sequence.json`` promises (``range(num_frames)``
+    minus its rejected frames), but absent is ``missing``; one present that either of them does
+    not list is ``extra``; a recorded one of another size is ``size``. Without ``contents``
+    (cheap: listings and sizes) a frame the card does not record is checked to open as a zip
+    archive (its central directory, at the end: truncation shows). With ``contents`` every byte
+    is read: recorded frames must match their CRC-32, the others must pass :func:`read_frame`,
+    and ``report.records`` holds the ``frame_files`` of what is on disk.
+    ``progress(done, total)`` is called after each frame file.
+    """
+    root = Path(root)
+    card = read_card(root) if card is None else card
+    for split in splits:
+        _check_split(split)
+    layout = DatasetLayout(root)
+    files = card.get("frame_files")
+    report = FrameReport(root, card_records=files is not None, contents=contents)
+    plan = []
+    for s, split, seq in _sequences_to_scan(layout, card, splits, subjects):
+        key = layout.sequence_key(s, split, seq)
+        recorded = None
+        if files is not None:
+            recorded = {}
+            for name, rec in files.get(key, {}).items():
+                m = _FRAME_NAME.match(name)
+                if m is None or not _is_record(rec):
+                    raise ValueError(f"{layout.card_path}: malformed frame_files record {key}/{name}: {rec!r}")
+                recorded[int(m.group(1))] = rec
+        plan.append((s, split, seq, key, recorded, layout.frame_indices(s, split, seq)))
+    total = sum(len(present) for *_, present in plan)
+    done = 0
+    for s, split, seq, key, recorded, present_list in plan:
+        problems: list[FrameProblem] = []
+        present = set(present_list)
+        by_meta = _expected_by_meta(layout, s, split, seq, problems)
+        for i in sorted((by_meta or set()) | set(recorded or {})):
+            if i not in present:
+                why = "card.json records it" if recorded and i in recorded else "sequence.json lists it"
+                problems.append(FrameProblem("missing", layout.frame_path(s, split, seq, i), f"missing ({why})"))
+        records = {}
+        for i in present_list:
+            p = layout.frame_path(s, split, seq, i)
+            done += 1
+            report.frames += 1
+            if recorded is not None and i not in recorded:
+                problems.append(FrameProblem("extra", p, "not recorded in card.json"))
+            elif by_meta is not None and i not in by_meta:
+                problems.append(FrameProblem("extra", p, "not one of sequence.json's frames (rejected or beyond "
+                                                         "num_frames)"))  # fmt: skip
+            else:
+                problem, record = _check_frame_file(p, recorded.get(i) if recorded else None, contents)
+                report.recorded += bool(recorded and i in recorded)
+                if problem is not None:
+                    problems.append(problem)
+                elif record is not None:
+                    records[p.name] = record
+            if progress is not None:
+                progress(done, total)
+        if contents:
+            report.records[key] = records
+        report.problems += sorted(problems, key=lambda q: str(q.path))
+    return report
+
+
+def _check_frame_file(path: Path, rec: list | None, contents: bool) -> tuple[FrameProblem | None, list | None]:
+    """(problem or None, the file's [bytes, crc32] when ``contents``) for one present frame file."""
+    size = path.stat().st_size
+    if rec is not None and size != rec[0]:
+        what = "truncated" if size < rec[0] else "overwritten"
+        return FrameProblem("size", path, f"{size} bytes, card.json records {rec[0]} ({what})"), None
+    if not contents:
+        error = None if rec is not None else _npz_directory_error(path)
+        return (FrameProblem("unreadable", path, error) if error else None), None
+    crc = file_crc32(path)
+    if rec is not None:
+        if crc != rec[1]:
+            return FrameProblem("checksum", path, f"CRC-32 {crc}, card.json records {rec[1]} (corrupt)"), None
+        return None, [size, crc]
+    try:
+        read_frame(path)
+    except ValueError as e:
+        return FrameProblem("unreadable", path, str(e).split(": ", 1)[-1]), None
+    return None, [size, crc]
+
+
+def check_frames(
+    root: str | os.PathLike,
+    *,
+    splits: Sequence[str] = SPLITS,
+    subjects: Sequence[str] | None = None,
+    card: Mapping[str, Any] | None = None,
+) -> FrameReport:
+    """The cheap :func:`scan_frames` (listings and sizes) training and evaluation run first; any
+    missing, extra, truncated or unreadable frame raises one line naming the first one."""
+    report = scan_frames(root, splits=splits, subjects=subjects, card=card)
+    if not report.ok:
+        raise ValueError(f"{report.summary()}; run `pocoloco data verify {os.fspath(root)}` for the full list")
+    return report
+
+
+def verify_dataset(
+    root: str | os.PathLike, *, record: bool = False, progress: Callable[[int, int], None] | None = None
+) -> FrameReport:
+    """Every frame file of the dataset at ``root`` checked, reading every byte (:func:`scan_frames`
+    with ``contents``): recorded frames against their CRC-32, unrecorded ones by :func:`read_frame`.
+
+    ``record``: when nothing is wrong and the card has no ``frame_files`` (a dataset written before
+    them), write the sizes and checksums just computed into the card (nothing else changes).
+    """
+    card = read_card(root)
+    report = scan_frames(root, contents=True, card=card, progress=progress)
+    if record and report.ok and not report.card_records:
+        write_card(root, {**card, "frame_files": report.records})
+    return report
