@@ -241,6 +241,91 @@ def test_import_loose_style_writes_our_format(tmp_path):
     assert seq_dir == lay.sequence_dir("loose1", "train", "walk")
 
 
+def _snapshot(root):
+    """Every file's bytes and every folder under ``root`` (None for folders): equal means unchanged."""
+    return {q.relative_to(root).as_posix(): (q.read_bytes() if q.is_file() else None) for q in sorted(root.rglob("*"))}
+
+
+def _bad_ply_in_the_middle(folder):
+    (folder / "frame_000011.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\n")
+
+
+def test_import_records_frames_and_reimport_replaces_the_sequence(tmp_path):
+    rng = np.random.default_rng(20)
+    _, _, jtxt = _make_loose_sequence(tmp_path / "raw" / "walk", rng)
+    out = tmp_path / "ds"
+    import_loose_style(tmp_path / "raw" / "walk", jtxt, out, subject="a", split="train")
+    card = fmt.read_card(out)
+    recs = card["frame_files"]["a/train/walk"]
+    assert sorted(recs) == ["000000.npz", "000001.npz", "000002.npz"]
+    frame0 = fmt.DatasetLayout(out).frame_path("a", "train", "walk", 0)
+    assert recs["000000.npz"] == [frame0.stat().st_size, fmt.file_crc32(frame0)]
+    assert fmt.verify_dataset(out).ok and [q.name for q in out.iterdir()] == ["card.json", "subjects"]
+    # the same sequence again, shorter and with other points of the same size: replaced, no stale frame
+    _, _, jtxt2 = _make_loose_sequence(tmp_path / "raw2" / "walk", rng, ids=(4, 5))
+    import_loose_style(tmp_path / "raw2" / "walk", jtxt2, out, subject="a", split="train")
+    assert fmt.DatasetLayout(out).frame_indices("a", "train", "walk") == [0, 1]
+    card = fmt.read_card(out)
+    assert card["counts"]["a"]["train"]["frames"] == 2 and card["frame_files"]["a/train/walk"]["000000.npz"] != recs["000000.npz"]
+    assert fmt.verify_dataset(out).ok and not list(out.glob(".import-*"))
+
+
+@pytest.mark.parametrize("case", ["bad ply", "joint count", "missing frame id"])
+def test_failed_import_into_a_new_folder_leaves_nothing(tmp_path, case):
+    rng = np.random.default_rng(21)
+    raw = tmp_path / "raw" / "walk"
+    _, joints, jtxt = _make_loose_sequence(raw, rng)
+    if case == "bad ply":
+        _bad_ply_in_the_middle(raw)
+    elif case == "joint count":
+        write_joints_txt(jtxt, np.array([10, 11, 13]), joints[:, :23])
+    else:
+        write_joints_txt(jtxt, np.array([10, 11, 12, 13]), np.concatenate([joints, joints[:1]]))
+    before = _snapshot(tmp_path)
+    with pytest.raises(ValueError):
+        import_loose_style(raw, jtxt, tmp_path / "new" / "deeper" / "ds", subject="a", split="train")
+    with pytest.raises(ValueError):
+        import_loose_style(raw, jtxt, tmp_path / "ds", subject="a", split="train")
+    assert _snapshot(tmp_path) == before  # no dataset, no card, no parent folder, no temporary
+
+
+@pytest.mark.parametrize("case", ["bad ply", "joint count", "missing frame id", "card"])
+def test_failed_import_into_a_dataset_changes_nothing(tmp_path, case):
+    rng = np.random.default_rng(22)
+    _, _, jtxt = _make_loose_sequence(tmp_path / "raw" / "walk", rng)
+    out = tmp_path / "ds"
+    import_loose_style(tmp_path / "raw" / "walk", jtxt, out, subject="a", split="train")
+    raw = tmp_path / "raw2" / "walk"  # the same sequence name: it would replace the one in the dataset
+    _, joints, jtxt2 = _make_loose_sequence(raw, rng)
+    if case == "bad ply":
+        _bad_ply_in_the_middle(raw)
+    elif case == "joint count":
+        write_joints_txt(jtxt2, np.array([10, 11, 13]), joints[:, :23])
+    elif case == "missing frame id":
+        write_joints_txt(jtxt2, np.array([10, 11, 12, 13]), np.concatenate([joints, joints[:1]]))
+    else:  # every frame is written and moved in, then recounting the card fails on another sequence's frame
+        import_loose_style(tmp_path / "raw" / "walk", jtxt, out, subject="a", split="train", sequence="run")
+        frame = fmt.DatasetLayout(out).frame_path("a", "train", "run", 1)
+        frame.write_bytes(frame.read_bytes()[:-100])
+    before = _snapshot(out)
+    for subject in ("a", "new_subject"):
+        with pytest.raises(ValueError):
+            import_loose_style(raw, jtxt2, out, subject=subject, split="train")
+        assert _snapshot(out) == before, subject  # not a byte changed: card, frames, folders
+
+
+def test_import_refuses_a_folder_that_is_not_a_dataset(tmp_path):
+    rng = np.random.default_rng(23)
+    _, _, jtxt = _make_loose_sequence(tmp_path / "raw" / "walk", rng)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="other: exists and is not a pocoloco dataset"):
+        import_loose_style(tmp_path / "raw" / "walk", jtxt, tmp_path / "other", subject="a", split="train")
+    (tmp_path / "empty").mkdir()  # an empty folder is fine
+    import_loose_style(tmp_path / "raw" / "walk", jtxt, tmp_path / "empty", subject="a", split="test")
+    assert fmt.read_card(tmp_path / "empty")["counts"]["a"]["test"]["frames"] == 3
+
+
 # --------------------------------------------------------------------------- POP npz
 def _pop_arrays(rng, v=30, n=50, four=False):
     return {

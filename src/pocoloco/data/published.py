@@ -9,7 +9,7 @@
 - **LOOSE / DynaCap style** sequences: a folder of one ``.ply`` per frame plus
   a joints text file, one line per frame: a frame id then 3J floats
   (:func:`read_joints_txt`, :func:`write_joints_txt`, :class:`LooseStyleSequence`,
-  and :func:`import_loose_style` to convert into the pocoloco format).
+  and :func:`import_loose_style` to convert into the pocoloco format, all or nothing).
 - **POP packed npz** files, one per frame (:func:`read_pop_npz`, :func:`write_pop_npz`).
 
 Every reader raises a one-line ``ValueError("<file>: <problem>")`` on malformed input.
@@ -17,13 +17,17 @@ Every reader raises a one-line ``ValueError("<file>: <problem>")`` on malformed 
 Why this module is long: it is the one place that knows the published formats, and each reader
 carries the checks that turn a malformed or truncated file into a one-line error (PLY headers of
 three encodings, joints text files, POP's packed arrays); its writers are the readers' inverses,
-kept next to them so a round trip is tested in one place.
+kept next to them so a round trip is tested in one place; and the import stages a sequence in a
+temporary folder and puts everything back if any step fails.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import shutil
+import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -518,7 +522,6 @@ def import_loose_style(
     split: str,
     sequence: str | None = None,
     fps: float | None = None,
-    update_card: bool = True,
     **sequence_kwargs: Any,
 ) -> Path:
     """Convert a LOOSE-style sequence into the pocoloco format; returns the sequence folder.
@@ -526,37 +529,108 @@ def import_loose_style(
     Writes frames with points, normals, joints and frame_index (0..T-1 in
     joints-file order); labels, parts, body_vertices, vtransf and
     garment_vertices are absent. ``sequence.json`` records the source folder
-    and the original ``source_frame_ids``. If ``out_root`` has no card a
-    minimal one is created; the subject is added to it (garment_kind
-    "unknown", source "imported"). With ``update_card`` the counts and the
-    train-split normalisation are recomputed (:func:`format.refresh_card`).
-    Joints must have 24 joints (the pocoloco skeleton order).
+    and the original ``source_frame_ids``. ``out_root`` is a dataset (the
+    sequence is added, or replaces the one of the same name) or a new or
+    empty folder (a dataset with a minimal card is made). The subject is added
+    to the card (garment_kind "unknown", source "imported") and the card's
+    counts, train-split normalisation and frame records are recomputed
+    (:func:`format.card_from_disk`). Joints must have 24 joints (the pocoloco
+    skeleton order).
+
+    All or nothing: the sequence is written into a temporary folder first and
+    moved into place only once every frame is written; the card is written
+    last. Any error (a malformed PLY in the middle of the folder, ...) leaves
+    ``out_root`` as it was, byte for byte, and raises a one-line ``ValueError``.
     """
     seq = LooseStyleSequence(ply_dir, joints_txt, num_joints=NUM_JOINTS, **sequence_kwargs)
     sequence = sequence or os.path.basename(os.path.normpath(os.fspath(ply_dir)))
     if not re.fullmatch(r"[A-Za-z0-9_.\-]+", subject) or not re.fullmatch(r"[A-Za-z0-9_.\-]+", sequence):
         raise ValueError(f"subject and sequence names must be [A-Za-z0-9_.-]+, got {subject!r}, {sequence!r}")
-    layout = fmt.DatasetLayout(out_root)
-    if os.path.isfile(layout.card_path):
-        card = fmt.read_card(out_root)
+    if split not in fmt.SPLITS:
+        raise ValueError(f"unknown split {split!r}; expected one of {fmt.SPLITS}")
+    out = Path(out_root)
+    existing = fmt.DatasetLayout(out).card_path.is_file()
+    if existing:
+        card = fmt.read_card(out)
+    elif out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"{out}: exists and is not a pocoloco dataset (no card.json); import into a dataset, "
+                         "a new folder or an empty one")  # fmt: skip
     else:
         card = fmt.make_card(subjects={}, generation_config={"source": "import_loose_style"})
     card["subjects"].setdefault(subject, {"garment_kind": "unknown", "phenotype": None, "source": "imported"})
-    fmt.write_card(out_root, card)
-    for i in range(len(seq)):
-        fr = seq[i]
-        fmt.write_frame(layout.frame_path(subject, split, sequence, i),
-                        fmt.Frame(points=fr.points, normals=fr.normals, joints=fr.joints, frame_index=i))  # fmt: skip
     meta = {
         "num_frames": len(seq), "fps": fps, "rejected_frames": [], "motion": [],
         "source": {"kind": "loose-style", "ply_dir": os.path.abspath(seq.ply_dir),
                    "joints_txt": os.path.abspath(seq.joints_txt),
                    "source_frame_ids": [int(x) for x in seq.frame_ids]},
     }  # fmt: skip
-    fmt.write_sequence_meta(layout.sequence_meta_path(subject, split, sequence), meta)
-    if update_card:
-        fmt.refresh_card(out_root)
-    return layout.sequence_dir(subject, split, sequence)
+    created: list[Path] = []
+    staging, done = None, False
+    try:
+        if not existing:
+            created = _make_folders(out.absolute().parent)
+        # the staging folder is on the destination's filesystem: moving it into place is a rename
+        staging = Path(tempfile.mkdtemp(prefix=".import-" if existing else f".{out.name}.import-",
+                                        dir=out if existing else out.absolute().parent))  # fmt: skip
+        stage = fmt.DatasetLayout(staging)
+        for i in range(len(seq)):
+            fr = seq[i]
+            fmt.write_frame(stage.frame_path(subject, split, sequence, i),
+                            fmt.Frame(points=fr.points, normals=fr.normals, joints=fr.joints, frame_index=i))  # fmt: skip
+        fmt.write_sequence_meta(stage.sequence_meta_path(subject, split, sequence), meta)
+        if existing:
+            _move_sequence_in(staging, out, card, subject, split, sequence)
+        else:
+            fmt.write_card(staging, fmt.card_from_disk(staging, card))
+            os.replace(staging, out)  # POSIX: also replaces an empty folder
+        done = True
+    finally:
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
+        if not done:
+            for folder in reversed(created):
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
+    return fmt.DatasetLayout(out).sequence_dir(subject, split, sequence)
+
+
+def _make_folders(folder: Path) -> list[Path]:
+    """``mkdir -p folder``; returns the folders it created, outermost first."""
+    missing = []
+    while not folder.exists():
+        missing.append(folder)
+        folder = folder.parent
+    for f in reversed(missing):
+        f.mkdir()
+    return missing[::-1]
+
+
+def _move_sequence_in(staging: Path, out: Path, card: dict[str, Any], subject: str, split: str, sequence: str) -> None:
+    """Move the staged sequence into the dataset ``out`` (a sequence of the same name is set aside
+    in ``staging``), then write the recounted card; on any error put everything back."""
+    layout, stage = fmt.DatasetLayout(out), fmt.DatasetLayout(staging)
+    target = layout.sequence_dir(subject, split, sequence)
+    replaced = staging / "replaced"
+    created = _make_folders(target.parent)
+    staged = stage.sequence_dir(subject, split, sequence)
+    moved_old = moved_new = False
+    try:
+        if target.exists():
+            os.rename(target, replaced)
+            moved_old = True
+        os.rename(staged, target)
+        moved_new = True
+        key = layout.sequence_key(subject, split, sequence)
+        fmt.write_card(out, fmt.card_from_disk(out, card, rehash=[key]))  # the commit (an atomic rename)
+    except BaseException:
+        if moved_new:
+            os.rename(target, staged)
+        if moved_old:
+            os.rename(replaced, target)
+        for folder in reversed(created):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
 
 
 # --------------------------------------------------------------------------- POP packed npz
