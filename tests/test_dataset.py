@@ -154,3 +154,16 @@ def test_unlabelled_frames_get_unknown_label(tmp_path):
     item = PointCloudDataset(tmp_path, num_points=20)[0]
     assert torch.all(item["labels"] == fmt.LABEL_UNKNOWN)
     assert json.loads((tmp_path / "card.json").read_text())["normalisation"]["std"] > 0
+
+
+def test_a_missing_or_truncated_frame_is_refused_in_one_line(tmp_path):
+    lay = make_dataset(tmp_path, np.random.default_rng(7), n=50)
+    gone = lay.frame_path("bob", "test", "q1", 1)  # another split than the one asked for counts too
+    gone.unlink()
+    with pytest.raises(ValueError, match=rf"{gone}: missing \(card.json records it\); run `pocoloco data verify"):
+        PointCloudDataset(tmp_path, "train")
+    assert len(PointCloudDataset(tmp_path, "train", num_points=10, subjects=["anna"])) == 8  # bob is not used
+    short = lay.frame_path("anna", "train", "q0", 0)
+    short.write_bytes(short.read_bytes()[:100])
+    with pytest.raises(ValueError, match=rf"{short}: 100 bytes, card.json records \d+ \(truncated\)"):
+        PointCloudDataset(tmp_path, "train", subjects=["anna"])

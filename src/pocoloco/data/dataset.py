@@ -102,6 +102,10 @@ class PointCloudDataset(Dataset):
     per worker by ``DataLoader``), so epochs and workers differ;
     ``random_subsample=False`` draws a fixed subset per index from
     ``seed``. A frame with fewer than ``num_points`` points raises.
+
+    A dataset whose frame files (of any split of these subjects) disagree with its card or
+    ``sequence.json`` files (a missing, extra, truncated or unreadable frame;
+    :func:`pocoloco.data.format.check_frames`) is refused with a one-line ``ValueError``.
     """
 
     def __init__(
@@ -136,6 +140,7 @@ class PointCloudDataset(Dataset):
         self.normalisation = Normalisation.from_card(self.card) if normalise else Normalisation.identity()
         self.layout = fmt.DatasetLayout(self.root)
         chosen = self.subject_names if subjects is None else sorted(subjects)
+        fmt.check_frames(self.root, subjects=chosen, card=self.card)  # every split: one line on a bad frame
         self.frames = self.layout.iter_frames(split, chosen)  # list of (subject, sequence, path)
         if not self.frames:
             raise ValueError(f"{self.root}: no frames in split {split!r} for subjects {chosen}")

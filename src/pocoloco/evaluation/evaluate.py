@@ -173,6 +173,7 @@ def evaluate(
         unknown = [s for s in subjects if s not in card["subjects"]]
         if unknown:
             raise ValueError(f"{data}: unknown subjects {unknown}; the card lists {sorted(card['subjects'])}")
+    fmt.check_frames(data, subjects=subjects, card=card)  # a missing or damaged frame: one line, before any work
     all_frames = layout.iter_frames(settings.split, subjects or layout.subjects())
     if not all_frames:
         raise ValueError(f"{data}: no frames in split {settings.split!r}")

@@ -39,7 +39,13 @@ import torch
 from torch import nn
 
 from pocoloco.data.dataset import Normalisation, PointCloudDataset
-from pocoloco.data.format import DatasetLayout, read_card, read_frame, read_subject
+from pocoloco.data.format import (
+    DatasetLayout,
+    check_frames,
+    read_card,
+    read_frame,
+    read_subject,
+)
 from pocoloco.data.poses import (
     MeanShapeCache,
     Pose,
@@ -283,6 +289,7 @@ class SkinnedTask(TrainingTask):
             names = list(config.subjects)
         if not names:
             raise ValueError(f"{data}: no subjects")
+        check_frames(data, subjects=names, card=card)  # a missing or damaged frame: one line, before training
         self.assets = read_subjects(data, names)
         self.outfits = {s: i for i, s in enumerate(names)}
         self.model: nn.Module | None = None
