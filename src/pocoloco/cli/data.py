@@ -1,5 +1,5 @@
-"""``pocoloco data synth | info | preview | export | import``: the synthetic capture pipeline and the
-dataset tools."""
+"""``pocoloco data synth | info | verify | preview | export | import``: the synthetic capture pipeline
+and the dataset tools."""
 
 from __future__ import annotations
 
@@ -7,9 +7,16 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from pocoloco.cli.common import console
+from pocoloco.cli.common import console, progress_bar
 from pocoloco.data.config import SYNTH_PRESETS, synth_preset
-from pocoloco.data.format import SPLITS, DatasetLayout, read_card
+from pocoloco.data.format import (
+    SPLITS,
+    DatasetLayout,
+    FrameReport,
+    read_card,
+    scan_frames,
+    verify_dataset,
+)
 from pocoloco.data.published import export_frame, import_loose_style
 from pocoloco.viz.preview import preview_dataset
 
@@ -63,12 +70,33 @@ def cmd_data_info(args: argparse.Namespace) -> None:
     print_card(read_card(Path(args.path)), Path(args.path))
 
 
+def _files_status(card: dict, path: Path, report: FrameReport) -> tuple[str, str]:
+    """(title words, a line under the tables) saying what can be vouched for about the frame files."""
+    from rich.markup import escape
+
+    status = card.get("status", "complete")
+    if not report.ok:
+        kinds = ", ".join(f"{n} {k}" for k, n in report.kinds().items())
+        line = f"[red]{escape(report.summary())}\nrun `pocoloco data verify {escape(str(path))}` for the full list[/]"
+        return f"DAMAGED: {kinds}", line
+    if report.card_records:
+        line = (f"files: {report.frames} frame files present with the sizes card.json records; "
+                f"`pocoloco data verify {path}` checks their contents")  # fmt: skip
+        return f"{status}, {report.frames} frames recorded", escape(line)
+    line = (f"files: {report.frames} frame files present; card.json records no sizes or checksums (an older "
+            f"dataset): `pocoloco data verify {path} --record` checks every frame and records them")  # fmt: skip
+    return f"{status}, {report.frames} frames, not recorded", escape(line)
+
+
 def print_card(card: dict, path: Path) -> None:
-    """The dataset card as rich tables."""
+    """The dataset card as rich tables, and what a cheap check of the frame files (listings, sizes) found."""
+    from rich.markup import escape
     from rich.table import Table
 
     con = console()
-    table = Table(title=f"dataset {path} ({card.get('status', 'complete')}): frames per split")
+    title, files_line = _files_status(card, path, scan_frames(path, card=card))
+    con.print(escape(f"dataset {path} ({title})"))
+    table = Table(title="frames per split")
     for col in ("subject", "garment", "train", "test", "rejected", "loose %", "pen. max/mean mm"):
         table.add_column(col, justify="right" if col != "subject" else "left")
     for name, s in card.get("subjects", {}).items():
@@ -97,8 +125,42 @@ def print_card(card: dict, path: Path) -> None:
         per = gen["cpu_seconds_per_frame"]
         con.print("generation: " + ", ".join(f"{k} {v:.3f} s/frame" for k, v in per.items())
                   + f"; wall {gen['wall_seconds_last_run']:.0f} s with {gen['workers']} worker(s)")  # fmt: skip
+    con.print(files_line)
     if card.get("status", "complete") != "complete":
         con.print("[yellow]incomplete: rerun the same `pocoloco data synth` command to resume[/]")
+
+
+def cmd_data_verify(args: argparse.Namespace) -> None:
+    """Read every frame file; a table of the bad ones, then a one-line error (exit 2) if any."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    root = Path(args.path)
+    if args.max_rows < 0:
+        raise ValueError(f"--max-rows must be >= 0, got {args.max_rows}")
+    read_card(root)
+    with progress_bar("verify") as update:
+        report = verify_dataset(root, record=args.record, progress=update)
+    con = console()
+    if not report.ok:
+        table = Table(title=escape(f"dataset {root}: bad frame files"))
+        for col in ("problem", "file", "detail"):
+            table.add_column(col)
+        for p in report.problems[: args.max_rows or None]:
+            table.add_row(p.kind, escape(str(p.path.relative_to(root) if p.path.is_relative_to(root) else p.path)),
+                          escape(p.detail))  # fmt: skip
+        con.print(table)
+        if args.max_rows and len(report.problems) > args.max_rows:
+            con.print(f"... and {len(report.problems) - args.max_rows} more")
+        raise ValueError(f"{root}: {report.summary()}")
+    unrecorded = report.frames - report.recorded
+    how = ([f"{report.recorded} by CRC-32"] if report.recorded else []) + (
+        [f"{unrecorded} read and validated, no record in card.json"] if unrecorded else [])  # fmt: skip
+    con.print(escape(f"{root}: {report.frames} frame files OK ({'; '.join(how) or 'none'})"))
+    if args.record and not report.card_records:
+        con.print(f"recorded the size and CRC-32 of {report.frames} frame files in {root / 'card.json'}")
+    elif unrecorded and not report.card_records:
+        con.print(f"card.json records no sizes or checksums: `pocoloco data verify {root} --record` adds them")
 
 
 def cmd_data_preview(args: argparse.Namespace) -> None:
@@ -124,14 +186,16 @@ def cmd_data_export(args: argparse.Namespace) -> None:
 
 
 def cmd_data_import(args: argparse.Namespace) -> None:
+    """All or nothing: a failed import leaves ``--out`` as it was."""
     seq = import_loose_style(args.ply_dir, args.joints, args.out, subject=args.subject, split=args.split,
                              sequence=args.sequence)  # fmt: skip
-    print(f"imported into {seq}")
+    frames = len(DatasetLayout(args.out).frame_indices(args.subject, args.split, seq.name))
+    print(f"imported {frames} frames into {seq}")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    data = sub.add_parser("data", help="synthetic data: generate, inspect, preview, export, import").add_subparsers(
-        dest="data_command", required=True, metavar="{synth,info,preview,export,import}")  # fmt: skip
+    data = sub.add_parser("data", help="synthetic data: generate, inspect, verify, preview, export, import").add_subparsers(
+        dest="data_command", required=True, metavar="{synth,info,verify,preview,export,import}")  # fmt: skip
 
     s = data.add_parser("synth", help="generate (or resume) a synthetic capture dataset")
     s.add_argument("--preset", default="small", help=f"one of {', '.join(SYNTH_PRESETS)} (default: small)")
@@ -147,9 +211,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--points", type=int, help="points stored per frame (default: the preset's)")
     s.set_defaults(func=cmd_data_synth)
 
-    s = data.add_parser("info", help="print a dataset's card as tables")
+    s = data.add_parser("info", help="print a dataset's card as tables (and whether its frame files are all there)")
     s.add_argument("path", help="dataset folder (holds card.json)")
     s.set_defaults(func=cmd_data_info)
+
+    s = data.add_parser("verify", help="check every frame file against the card: missing, extra, truncated or "
+                                       "corrupt frames (exit 2 if any)")  # fmt: skip
+    s.add_argument("path", help="dataset folder (holds card.json)")
+    s.add_argument("--record", action="store_true",
+                   help="if every frame is fine and card.json records no checksums (an older dataset), record them")  # fmt: skip
+    s.add_argument("--max-rows", type=int, default=20, help="bad frames listed in the table (default 20, 0 = all)")
+    s.set_defaults(func=cmd_data_verify)
 
     s = data.add_parser("preview", help="PNG grid of rendered frames coloured by label")
     s.add_argument("path", help="dataset folder")
@@ -172,7 +244,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s = data.add_parser("import", help="convert a LOOSE/DynaCap-style sequence (one .ply per frame + a joints text file)")
     s.add_argument("ply_dir", help="folder with one .ply per frame (frame id = last integer in the file name)")
     s.add_argument("--joints", required=True, help="text file: per line a frame id then 3 x 24 floats")
-    s.add_argument("--out", required=True, help="dataset folder (created or extended)")
+    s.add_argument("--out", required=True, help="dataset folder (created or extended; left as it was if the import fails)")
     s.add_argument("--subject", required=True, help="subject name in the dataset")
     s.add_argument("--split", default="train", choices=SPLITS, help="split to import into (default train)")
     s.add_argument("--sequence", help="sequence name (default: the ply folder's name)")
