@@ -134,13 +134,26 @@ def test_no_import_cycles_between_modules():
     assert not cycles, cycles
 
 
-def test_no_private_names_imported_across_modules():
+def test_no_private_names_used_across_modules():
+    """Neither ``from pocoloco.x import _private`` nor ``x._private`` on an imported pocoloco module."""
+    names = {m for m, _ in _modules()}
+    private = lambda n: n.startswith("_") and not n.startswith("__")  # noqa: E731
     bad = []
     for module, path in _modules():
-        for node in ast.walk(ast.parse(path.read_text())):
+        tree = ast.parse(path.read_text())
+        aliases = {}  # local name -> pocoloco module it is bound to
+        for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and _resolve(module, path, node).startswith("pocoloco"):
-                bad += [f"{module}: from {_resolve(module, path, node)} import {a.name}" for a in node.names
-                        if a.name.startswith("_") and not a.name.startswith("__")]  # fmt: skip
+                base = _resolve(module, path, node)
+                bad += [f"{module}: from {base} import {a.name}" for a in node.names if private(a.name)]
+                aliases.update({a.asname or a.name: f"{base}.{a.name}" for a in node.names
+                                if f"{base}.{a.name}" in names})  # fmt: skip
+            elif isinstance(node, ast.Import):
+                aliases.update({a.asname: a.name for a in node.names if a.asname and a.name.startswith("pocoloco")})
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and private(node.attr) and isinstance(node.value, ast.Name) \
+                    and node.value.id in aliases:  # fmt: skip
+                bad.append(f"{module}: {node.value.id}.{node.attr} ({aliases[node.value.id]})")
     assert not bad, bad
 
 

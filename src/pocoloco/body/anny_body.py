@@ -148,7 +148,7 @@ class AnnyBody:
         self.uv = self.model.texture_coordinates.cpu().numpy().astype(np.float32)
         self.uv_faces = self.model.face_texture_coordinate_indices.cpu().numpy().astype(np.int64)
 
-        zero = self._run_anny(torch.zeros(1, NUM_JOINTS, 3))
+        zero = self.run_anny(torch.zeros(1, NUM_JOINTS, 3))
         # anny's posed output has the pelvis at the origin; shift the bind pose to match
         origin = zero["rest_bone_poses"][0, self.bone_of_joint[0], :3, 3]
         self.template = (zero["rest_vertices"][0] - origin).numpy().astype(np.float32)
@@ -177,7 +177,7 @@ class AnnyBody:
         heaviest = idx[np.arange(len(idx)), w.argmax(1)]
         return bone_to_joint[heaviest]
 
-    def _run_anny(self, joint_rotvecs: torch.Tensor) -> dict[str, torch.Tensor]:
+    def run_anny(self, joint_rotvecs: torch.Tensor) -> dict[str, torch.Tensor]:
         """joint_rotvecs (T, J, 3) -> anny's raw output (bones not in the skeleton keep zero rotation)."""
         t = joint_rotvecs.shape[0]
         pose = torch.eye(4).expand(t, self.num_bones, 4, 4).clone()
@@ -188,7 +188,7 @@ class AnnyBody:
 
     def _forward(self, joint_rotvecs: torch.Tensor, root_translation: torch.Tensor) -> PosedBody:
         """joint_rotvecs (T, J, 3), root_translation (T, 3) -> PosedBody."""
-        out = self._run_anny(joint_rotvecs)
+        out = self.run_anny(joint_rotvecs)
         bone_poses = out["bone_poses"]  # (T, B, 4, 4)
         skin = bone_poses @ torch.linalg.inv(out["rest_bone_poses"])  # A_k, (T, B, 4, 4)
         w = self.model.vertex_bone_weights  # (V, 9)
@@ -208,7 +208,7 @@ class AnnyBody:
         rot = torch.as_tensor(np.asarray(joint_rotvecs, dtype=np.float32))
         out = []
         for i in range(0, rot.shape[0], chunk):
-            bone_poses = self._run_anny(rot[i : i + chunk])["bone_poses"]  # (t, B, 4, 4)
+            bone_poses = self.run_anny(rot[i : i + chunk])["bone_poses"]  # (t, B, 4, 4)
             out.append(bone_poses[:, self.bone_of_joint, :3, 3].numpy().astype(np.float32))
         return np.concatenate(out)
 

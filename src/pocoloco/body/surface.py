@@ -477,7 +477,7 @@ def pose_mean_shape_vertices(joint_rotvecs, chunk: int = 32) -> np.ndarray:
         raise ValueError(f"joint_rotvecs must have shape (T, 24, 3), got {tuple(rot.shape)}")
     out = []
     for i in range(0, rot.shape[0], chunk):
-        r = body._run_anny(rot[i : i + chunk])
+        r = body.run_anny(rot[i : i + chunk])
         root = r["bone_poses"][:, body.bone_of_joint[0], :3, 3]  # (t, 3)
         out.append((r["vertices"] - root[:, None]).numpy().astype(np.float32))
     return np.concatenate(out)

@@ -204,7 +204,7 @@ def write_frame(path: str | os.PathLike, frame: Frame, compress: bool = False) -
     save_npz_atomic(path, compress=compress, **arrays)
 
 
-def _load_npz(path: str, keys: Iterable[str] | None) -> tuple[set[str], dict[str, np.ndarray]]:
+def load_npz(path: str, keys: Iterable[str] | None) -> tuple[set[str], dict[str, np.ndarray]]:
     """Read ``keys`` (all if None; missing ones skipped) from an npz; errors become one-line ValueErrors."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: no such file")
@@ -239,7 +239,7 @@ def read_frame(path: str | os.PathLike, keys: Sequence[str] | None = None, *, al
         unknown = [k for k in keys if k not in FRAME_KEYS]
         if unknown:
             raise ValueError(f"read_frame: unknown frame keys {unknown}; known: {list(FRAME_KEYS)}")
-    names, raw = _load_npz(src, keys)
+    names, raw = load_npz(src, keys)
     needed = REQUIRED_FRAME_KEYS if keys is None else [
         k for k in keys if not (allow_missing and k in OPTIONAL_FRAME_KEYS)
     ]  # fmt: skip
@@ -305,7 +305,7 @@ def write_subject(path: str | os.PathLike, subject: SubjectAsset) -> None:
 def read_subject(path: str | os.PathLike) -> SubjectAsset:
     """Read ``subject.npz``; a missing key or bad phenotype JSON raises ``ValueError`` naming the file."""
     src = os.fspath(path)
-    names, raw = _load_npz(src, None)
+    names, raw = load_npz(src, None)
     for k in ("template", "faces", "uv", "uv_faces", "vertex_joint", "phenotype"):
         if k not in names:
             raise ValueError(f"{src}: missing key '{k}'")
@@ -343,7 +343,7 @@ def write_motion(path: str | os.PathLike, motion: Motion) -> None:
 def read_motion(path: str | os.PathLike) -> Motion:
     """Read ``motion.npz`` with the same checks as :func:`write_motion`."""
     src = os.fspath(path)
-    names, raw = _load_npz(src, ("joint_rotvecs", "root_translation"))
+    names, raw = load_npz(src, ("joint_rotvecs", "root_translation"))
     for k in ("joint_rotvecs", "root_translation"):
         if k not in names:
             raise ValueError(f"{src}: missing key '{k}'")

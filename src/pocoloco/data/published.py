@@ -679,7 +679,7 @@ def read_pop_npz(
     unknown = [k for k in require if k not in POP_KEYS]
     if unknown:
         raise ValueError(f"read_pop_npz: unknown POP keys {unknown}; known: {list(POP_KEYS)}")
-    names, raw = fmt._load_npz(src, list(POP_KEYS))
+    names, raw = fmt.load_npz(src, list(POP_KEYS))
     for k in require:
         if k not in names:
             raise ValueError(f"{src}: missing key '{k}'")
