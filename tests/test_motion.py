@@ -38,7 +38,8 @@ def _limits_array():
 
 
 def test_limits_table_is_complete_and_mirrored():
-    assert MOTION_KINDS == ("walk", "turn", "dance", "arm_swing", "squat", "kick", "spin")
+    assert M.CLASSIC_KINDS == ("walk", "turn", "dance", "arm_swing", "squat", "kick", "spin")
+    assert MOTION_KINDS == M.CLASSIC_KINDS + ("reach", "crouch", "jump", "run", "bend", "turn_in_place")
     assert set(JOINT_LIMITS) == set(JOINT_NAMES)
     lim = _limits_array()
     assert (lim[..., 0] < lim[..., 1]).all()
@@ -212,3 +213,37 @@ def test_generate_motion_errors(kwargs, match):
     args = dict(seed=0, num_frames=10) | kwargs
     with pytest.raises(ValueError, match=match):
         generate_motion(**args)
+
+
+@pytest.mark.parametrize("kind", ["reach", "crouch", "jump", "run", "bend", "turn_in_place"])
+def test_new_kinds_stay_in_limits_grounded_and_do_what_they_say(body, kind):
+    """The data-v2 kinds: within joint limits, feet never below the ground (<= 5 mm), and each one's
+    signature: arms held forward, a deep crouch, real flight, fast travel, a deep bend, a turn."""
+    lim = _limits_array()
+    rest = body.zero_pose.joints[0, CONTACT, 2]
+    for split in ("train", "test"):
+        m = generate_motion(5, 150, split=split, kinds=(kind,), body=body)
+        assert np.isfinite(m.joint_rotvecs).all() and np.isfinite(m.root_translation).all()
+        local = m.joint_rotvecs[:, 1:]
+        assert (local >= lim[1:, :, 0] - 1e-5).all() and (local <= lim[1:, :, 1] + 1e-5).all()
+        j = pose_joints(body, m.joint_rotvecs) + m.root_translation[:, None]
+        low = (j[:, CONTACT, 2] - rest).min(1)  # lowest contact above its rest height (m)
+        assert low.min() > -0.005, (kind, split, low.min())
+        r = m.joint_rotvecs
+        left_shoulder, left_hip = JOINT_NAMES.index("left_shoulder"), JOINT_NAMES.index("left_hip")
+        pelvis_drop = j[0, 0, 2] - j[:, 0, 2].min()
+        if kind == "reach":  # an arm held forward (shoulder flexion) for a third of the segment or more
+            forward = -np.minimum(r[:, left_shoulder, 0], r[:, JOINT_NAMES.index("right_shoulder"), 0])
+            assert (forward > 0.7).mean() > 0.3, forward.max()
+        elif kind == "crouch":
+            assert pelvis_drop > 0.2 and -r[:, left_hip, 0].min() > 1.0
+        elif kind == "jump":
+            assert low.max() > 0.05  # both feet off the ground
+        elif kind == "run":
+            assert np.linalg.norm(m.root_translation[-1, :2] - m.root_translation[0, :2]) > 2.0
+        elif kind == "bend":
+            spine = JOINT_NAMES.index("spine1")
+            assert np.abs(r[:, spine, :2]).max() > 0.1
+        else:
+            heading = np.unwrap(pelvis_euler(r)[:, 2])
+            assert np.abs(heading - heading[0]).max() > 0.6 * np.pi / 2

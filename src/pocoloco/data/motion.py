@@ -54,7 +54,11 @@ from scipy.spatial.transform import Rotation
 from ..body.anny_body import AnnyBody
 from ..body.skeleton import JOINT_NAMES, NUM_JOINTS
 
-MOTION_KINDS: tuple[str, ...] = ("walk", "turn", "dance", "arm_swing", "squat", "kick", "spin")
+#: The motion kinds of the first datasets (``tiny``, ``small``): ``generate_motion``'s default.
+CLASSIC_KINDS: tuple[str, ...] = ("walk", "turn", "dance", "arm_swing", "squat", "kick", "spin")
+#: Every motion kind: the classic ones plus reaching / arms held forward, crouching and sitting-like
+#: poses, jumps (with flight), running, bending over, and turning in place on the spot.
+MOTION_KINDS: tuple[str, ...] = CLASSIC_KINDS + ("reach", "crouch", "jump", "run", "bend", "turn_in_place")
 SPLITS: tuple[str, ...] = ("train", "test")
 
 #: Seconds of the smoothstep cross-fade between consecutive segments.
@@ -282,9 +286,10 @@ def _envelope(t: np.ndarray, duration: float) -> np.ndarray:
 # ----------------------------------------------------------------------------
 # Motion kinds: each maps local times t (n,) seconds (0 = segment start; may be
 # negative / beyond `duration` inside the cross-fades) to local angles (n, J, 3)
-# and a heading rate (n,) rad/s.
+# and a heading rate (n,) rad/s; kinds that leave the ground (jump, run) also give a lift (n,)
+# metres added to the grounded root height and a forward speed (n,) m/s along the heading.
 
-_Segment = tuple[np.ndarray, np.ndarray]
+_Segment = tuple[np.ndarray, ...]
 
 
 def _gait(t: np.ndarray, p: _Params, heading_rate: np.ndarray) -> _Segment:
@@ -444,6 +449,175 @@ def _kick(t: np.ndarray, p: _Params, duration: float) -> _Segment:
     return local, np.zeros(len(t))
 
 
+def _plateau(t: np.ndarray, duration: float, ramp: float) -> np.ndarray:
+    """0 -> 1 over the first ``ramp`` share of the segment, 1, then back to 0 over the last (C1)."""
+    u = np.clip(t / duration, 0.0, 1.0)
+    return _smoothstep(u / ramp) * _smoothstep((1.0 - u) / ramp)
+
+
+def _reach(t: np.ndarray, p: _Params, duration: float) -> _Segment:
+    """Reach forward and hold: one or both arms raised forward to a height between the waist and
+    above the head, elbows more or less straight, the trunk leaning into a low reach; held for
+    most of the segment (the pose that made a first model dress tight subjects)."""
+    local = np.zeros((len(t), NUM_JOINTS, 3))
+    s = _plateau(t, duration, p(0.15, 0.35))
+    both = p.rng.random() < 0.5
+    first = p.sign()
+    height = p(0.8, 2.3)  # shoulder flexion (rad): 0.8 = to the waist ... 2.3 = above the head
+    for side in (1, -1):
+        on = 1.0 if both or side == first else 0.0
+        spread = p(-0.35, 0.25)
+        _side(local, side, "shoulder", x=-(0.1 + on * height * s), y=on * spread * s)
+        _elbow(local, side, 0.3 - on * p(0.0, 0.5) * s)  # straighter when reaching
+        _side(local, side, "wrist", x=on * p(-0.3, 0.3) * s)
+    lean = p(0.0, 0.5) * max(0.0, 1.6 - height) / 0.8  # low reaches lean the trunk forward
+    _spine(local, bend=lean * s, twist=0.0 if both else -first * p(0.0, 0.3) * s)
+    for side in (1, -1):
+        _side(local, side, "hip", x=-0.3 * lean * s)
+        _side(local, side, "knee", x=0.05 + 0.2 * lean * s)
+    _flat_feet(local)
+    local[:, _J["neck"], 0] = -0.3 * lean * s
+    return local, np.zeros(len(t))
+
+
+def _crouch(t: np.ndarray, p: _Params, duration: float) -> _Segment:
+    """Go down into a deep crouch or a sitting-like pose (thighs near horizontal), hold, come up;
+    arms forward for balance or resting on the thighs."""
+    local = np.zeros((len(t), NUM_JOINTS, 3))
+    s = _plateau(t, duration, p(0.2, 0.35))
+    hip, knee = p(1.1, 1.9), p(1.3, 2.3)
+    pitch, bend = p(0.05, 0.3), p(0.1, 0.45)
+    arms_forward = p.rng.random() < 0.5
+    for side in (1, -1):
+        _side(local, side, "hip", x=-hip * s, y=-p(0.0, 0.3) * s)
+        _side(local, side, "knee", x=knee * s)
+        if arms_forward:
+            _side(local, side, "shoulder", x=-p(0.8, 1.5) * s)
+            _elbow(local, side, 0.2 * s)
+        else:
+            _side(local, side, "shoulder", x=-0.5 * s, y=0.3 * s)
+            _elbow(local, side, 0.9 * s)
+    local[:, 0, 0] = pitch * s
+    _flat_feet(local)
+    _spine(local, bend=bend * s)
+    local[:, _J["neck"], 0] = -0.4 * (pitch + bend) * s
+    return local, np.zeros(len(t))
+
+
+def _jump(t: np.ndarray, p: _Params, duration: float) -> _Segment:
+    """Repeated jumps on the spot or forward: a counter-movement dip, push-off with the toes, a
+    flight of 8-25 cm (the body leaves the ground) with the arms swung up, and a landing dip."""
+    local = np.zeros((len(t), NUM_JOINTS, 3))
+    period, dip, height = p(1.0, 1.6), p(0.5, 1.1), p(0.08, 0.25)
+    u = (t / period) % 1.0
+    # phases of one jump: dip [0, .35), push [.35, .5), flight [.5, .75), landing [.75, 1)
+    down = np.zeros_like(u)
+    m = u < 0.35
+    down[m] = np.sin(_PI / 2 * u[m] / 0.35) ** 2
+    m = (u >= 0.35) & (u < 0.5)
+    down[m] = np.cos(_PI / 2 * (u[m] - 0.35) / 0.15) ** 2
+    m = u >= 0.75
+    down[m] = 0.7 * np.sin(_PI * (u[m] - 0.75) / 0.25) ** 2
+    flight = np.where((u >= 0.5) & (u < 0.75), np.sin(_PI * (u - 0.5) / 0.25), 0.0)
+    push = np.where((u >= 0.35) & (u < 0.75), np.sin(_PI * (u - 0.35) / 0.4) ** 2, 0.0)
+    env = _plateau(t, duration, 0.1)
+    for side in (1, -1):
+        _side(local, side, "hip", x=-(0.9 * dip * down + 0.1 * flight))
+        _side(local, side, "knee", x=1.6 * dip * down + 0.15 * flight)
+        _side(local, side, "shoulder", x=0.4 * down - p(1.0, 2.2) * push)
+        _elbow(local, side, 0.3 + 0.3 * down)
+    _flat_feet(local, 1 - push, 1 - push)
+    for side in (1, -1):
+        _side(local, side, "ankle", x=0.5 * push)  # toes point at push-off and in the air
+    _spine(local, bend=0.4 * dip * down)
+    local *= env[:, None, None]
+    forward = p(0.0, 0.6) if p.rng.random() < 0.5 else 0.0
+    lift = height * flight * env
+    return local, np.zeros(len(t)), lift, forward * push * env
+
+
+def _run(t: np.ndarray, p: _Params, duration: float) -> _Segment:
+    """Running: a faster, higher-stepping gait (1.3-1.7 strides/s) with bent elbows, a forward lean
+    and a short flight phase at every step."""
+    local = np.zeros((len(t), NUM_JOINTS, 3))
+    cadence = p(1.3, 1.7)
+    hip_amp, knee_amp = p(0.5, 0.8), p(1.2, 1.9)
+    arm_amp, elbow, lean = p(0.5, 0.9), p(1.1, 1.5), p(0.1, 0.25)
+    phi = 2 * _PI * cadence * t + p.phase()
+    swings = [_bump(phi), _bump(phi + _PI)]
+    for side, ph, swing in ((1, phi, swings[0]), (-1, phi + _PI, swings[1])):
+        _side(local, side, "hip", x=-(0.15 + hip_amp * np.sin(ph)))
+        _side(local, side, "knee", x=0.2 + knee_amp * swing)
+        _side(local, side, "shoulder", x=-(0.1 + arm_amp * np.sin(ph + _PI)), y=0.2)
+        _elbow(local, side, elbow)
+    _flat_feet(local, 1 - swings[0], 1 - swings[1])
+    for side, swing in ((1, swings[0]), (-1, swings[1])):
+        _side(local, side, "ankle", x=-0.2 * swing)
+    _spine(local, bend=lean, twist=0.15 * np.sin(phi))
+    local[:, 0, 0] = 0.5 * lean
+    local[:, 0, 1] = 0.05 * np.sin(phi)
+    local[:, _J["neck"], 0] = -0.6 * lean
+    env = _plateau(t, duration, 0.1)
+    lift = p(0.02, 0.06) * np.abs(np.sin(phi)) ** 4 * env  # a short flight at every step
+    return local, np.full(len(t), p(-0.3, 0.3)), lift, np.zeros(len(t))
+
+
+def _bend(t: np.ndarray, p: _Params, duration: float) -> _Segment:
+    """Bend over and come back: forward to pick something up (hips and spine flexed, arms hanging
+    towards the floor) or sideways (lateral trunk bend, one arm sliding down the leg)."""
+    local = np.zeros((len(t), NUM_JOINTS, 3))
+    s = _plateau(t, duration, p(0.25, 0.4))
+    if p.rng.random() < 0.6:
+        hip, spine, knees = p(0.5, 1.3), p(0.6, 1.4), p(0.05, 0.6)
+        for side in (1, -1):
+            _side(local, side, "hip", x=-hip * s)
+            _side(local, side, "knee", x=knees * s)
+            _side(local, side, "shoulder", x=-(hip + 0.5 * spine) * s * p(0.6, 1.0))
+            _elbow(local, side, 0.1 * s)
+        local[:, 0, 0] = p(0.0, 0.25) * s
+        _spine(local, bend=spine * s)
+        local[:, _J["neck"], 0] = -0.3 * spine * s
+    else:
+        side, amount = p.sign(), p(0.4, 0.85)
+        _spine(local, lateral=side * amount * s)
+        _side(local, int(side), "shoulder", y=0.3 * s)
+        _side(local, int(-side), "shoulder", y=-p(0.3, 1.2) * s)
+        local[:, _J["head"], 1] = -0.3 * side * amount * s
+    _flat_feet(local)
+    return local, np.zeros(len(t))
+
+
+def _turn_in_place(t: np.ndarray, p: _Params, duration: float) -> _Segment:
+    """Step around on the spot through a quarter to three quarters of a turn, or pivot on both feet
+    with the trunk leading (a look over the shoulder turning into a turn)."""
+    if p.rng.random() < 0.6:
+        local = np.zeros((len(t), NUM_JOINTS, 3))
+        angle = p.sign() * p(0.5 * _PI, 1.5 * _PI) * min(1.0, duration / 2.5)
+        lift, cadence = p(0.2, 0.45), p(0.9, 1.4)
+        phi = 2 * _PI * cadence * t + p.phase()
+        swings = []
+        for side, ph in ((1, phi), (-1, phi + _PI)):
+            lift_t = lift * _bump(ph)
+            swings.append(_bump(ph))
+            _side(local, side, "hip", x=-lift_t)
+            _side(local, side, "knee", x=0.05 + 1.8 * lift_t)
+            _side(local, side, "shoulder", x=-0.15 * np.sin(ph + _PI), y=0.15)
+            _elbow(local, side, 0.5)
+        _flat_feet(local, 1 - swings[0], 1 - swings[1])
+        return local, angle * _envelope(t, duration) / (duration / 2)
+    local = np.zeros((len(t), NUM_JOINTS, 3))
+    angle = p.sign() * p(0.3 * _PI, 0.7 * _PI)
+    env = _envelope(t, duration)
+    lead = np.sign(angle) * np.sin(_PI * np.clip(t / duration, 0, 1))  # trunk leads, hips follow
+    _spine(local, twist=0.6 * lead)
+    local[:, _J["neck"], 2] = 0.5 * lead
+    for side in (1, -1):
+        _side(local, side, "shoulder", x=-0.2, y=0.2)
+        _elbow(local, side, 0.6)
+    _flat_feet(local)
+    return local, angle * env / (duration / 2)
+
+
 _KIND_FUNCTIONS: dict[str, Callable[[np.ndarray, _Params, float], _Segment]] = {
     "walk": _walk,
     "turn": _turn,
@@ -452,6 +626,12 @@ _KIND_FUNCTIONS: dict[str, Callable[[np.ndarray, _Params, float], _Segment]] = {
     "squat": _squat,
     "kick": _kick,
     "spin": _spin,
+    "reach": _reach,
+    "crouch": _crouch,
+    "jump": _jump,
+    "run": _run,
+    "bend": _bend,
+    "turn_in_place": _turn_in_place,
 }
 
 
@@ -562,7 +742,8 @@ def generate_motion(
         num_frames: T > 0.
         split: "train" or "test".
         fps: frames per second (> 0).
-        kinds: subset of ``MOTION_KINDS`` to draw from (default: all).
+        kinds: subset of ``MOTION_KINDS`` to draw from (default: ``CLASSIC_KINDS``, the kinds of
+            the ``tiny`` / ``small`` datasets).
         body: the subject used to ground the motion; default ``AnnyBody()``.
     Returns:
         Motion with joint_rotvecs (T, 24, 3) and root_translation (T, 3).
@@ -575,7 +756,7 @@ def generate_motion(
         raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be positive, got {fps!r}")
-    kinds = tuple(MOTION_KINDS if kinds is None else kinds)
+    kinds = tuple(CLASSIC_KINDS if kinds is None else kinds)
     if not kinds:
         raise ValueError("kinds must not be empty")
     unknown = [k for k in kinds if k not in MOTION_KINDS]
@@ -590,6 +771,8 @@ def generate_motion(
     frames = np.arange(num_frames)
     local = np.zeros((num_frames, NUM_JOINTS, 3))
     rate = np.zeros(num_frames)
+    lift = np.zeros(num_frames)  # metres above the grounded height (flight of jumps and runs)
+    speed = np.zeros(num_frames)  # m/s along the heading while airborne / pushing off
     segments = []
     for i, (kind, start, end) in enumerate(plan):
         a, b = max(0, start - fade // 2 - 1), min(num_frames, end + fade // 2 + 1)
@@ -598,16 +781,20 @@ def generate_motion(
         fall = 1.0 if i == len(plan) - 1 else 1.0 - _smoothstep((f - end + fade / 2 + 0.5) / fade)
         w = np.broadcast_to(rise * fall, f.shape)  # (n,); partition of unity across segments
         t = (f - start) / fps
-        seg_local, seg_rate = _KIND_FUNCTIONS[kind](t, params, (end - start) / fps)
+        seg = _KIND_FUNCTIONS[kind](t, params, (end - start) / fps)
+        seg_local, seg_rate = seg[0], seg[1]
         name = kind
         if split == "test" and len(kinds) > 1 and rng.random() < 0.5:
             others = [k for k in kinds if k != kind]
             upper = others[int(rng.integers(len(others)))]
-            upper_local, _ = _KIND_FUNCTIONS[upper](t, params, (end - start) / fps)
+            upper_local = _KIND_FUNCTIONS[upper](t, params, (end - start) / fps)[0]
             seg_local[:, _UPPER] = upper_local[:, _UPPER]
             name = f"{kind}+{upper}"
         local[a:b] += w[:, None, None] * seg_local
         rate[a:b] += w * seg_rate
+        if len(seg) > 2:
+            lift[a:b] += w * seg[2]
+            speed[a:b] += w * seg[3]
         segments.append((name, start, end))
 
     local = clamp_to_limits(local)
@@ -616,6 +803,11 @@ def generate_motion(
     rotvecs = _compose_root(local, heading)
     body = body if body is not None else AnnyBody()
     trans = ground_translation(body, rotvecs)
+    if lift.any() or speed.any():
+        trans[:, 2] += lift
+        step = speed / fps  # forward travel of the airborne phases, along the heading (faces -Y at 0)
+        trans[:, 0] += np.cumsum(step * np.sin(heading))
+        trans[:, 1] += np.cumsum(-step * np.cos(heading))
     return Motion(f"{split}_seed{seed}", float(fps), rotvecs, trans, segments)
 
 
