@@ -396,3 +396,27 @@ def test_atomic_files_get_normal_permissions(tmp_path):
     finally:
         os.umask(old)
     assert (tmp_path / "p.json").stat().st_mode & 0o777 == 0o644
+
+
+def test_card_reports_test_pose_coverage_and_info_prints_it(tiny_dataset, capsys):
+    """card["pose_coverage"]: per subject, each test frame's RMS root-aligned joint distance to the
+    nearest training frame (checked against a plain double loop), shown by ``data info``."""
+    from pocoloco.cli import main
+
+    card = fmt.read_card(tiny_dataset)
+    layout = fmt.DatasetLayout(tiny_dataset)
+    cov = fmt.pose_coverage(tiny_dataset, layout.subjects())
+    assert set(cov) == set(layout.subjects()) and card["pose_coverage"].keys() == cov.keys()
+    for s, c in cov.items():
+        joints = {sp: [fmt.read_frame(p, ["joints"]).joints.astype(np.float64) for _, _, p in layout.iter_frames(sp, [s])]
+                  for sp in fmt.SPLITS}  # fmt: skip
+        ref = []
+        for q in joints["test"]:
+            best = min(np.sqrt((((q - q[0]) - (k - k[0])) ** 2).sum(-1).mean()) for k in joints["train"])
+            ref.append(100 * best)
+        assert c["test_frames"] == len(ref)
+        np.testing.assert_allclose([c["median_cm"], c["p90_cm"], c["max_cm"]],
+                                   [np.median(ref), np.quantile(ref, 0.9), max(ref)], rtol=1e-9)  # fmt: skip
+    assert main(["data", "info", str(tiny_dataset)]) == 0
+    out = capsys.readouterr().out
+    assert "nearest training pose" in out and "p90" in out

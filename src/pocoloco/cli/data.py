@@ -113,6 +113,14 @@ def print_card(card: dict, path: Path) -> None:
             f"{pen['max_mm']:.1f} / {pen['mean_mm']:.2f}" if pen else "-",
         )
     con.print(table)
+    coverage = card.get("pose_coverage")
+    if coverage:
+        cov = Table(title="test poses: RMS distance of the root-aligned joints to the nearest training pose (cm)")
+        for col in ("subject", "test frames", "median", "p90", "max"):
+            cov.add_column(col, justify="right" if col != "subject" else "left")
+        for name, c in coverage.items():
+            cov.add_row(name, str(c["test_frames"]), f"{c['median_cm']:.1f}", f"{c['p90_cm']:.1f}", f"{c['max_cm']:.1f}")
+        con.print(cov)
     cfg = card.get("generation_config", {})
     keys = ("train_sequences", "test_sequences", "frames_per_sequence", "fps", "num_points", "capture_cameras", "seed")
     con.print("config: " + ", ".join(f"{k}={cfg.get(k)}" for k in keys))

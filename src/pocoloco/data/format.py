@@ -58,7 +58,7 @@ from ..utils.atomic import save_npz_atomic, write_json_atomic
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "SPLITS", "LABEL_UNKNOWN", "FRAME_KEYS", "REQUIRED_FRAME_KEYS",
     "OPTIONAL_FRAME_KEYS", "Frame", "write_frame", "read_frame", "DatasetLayout", "make_card",
-    "read_card", "write_card", "compute_normalisation", "refresh_card", "card_from_disk",
+    "read_card", "write_card", "compute_normalisation", "refresh_card", "card_from_disk", "pose_coverage",
     "SubjectAsset", "write_subject", "read_subject", "Motion", "write_motion", "read_motion",
     "write_sequence_meta", "read_sequence_meta",
     "PROBLEM_KINDS", "FrameProblem", "FrameReport", "file_crc32", "frame_record", "scan_frames", "check_frames",
@@ -646,7 +646,37 @@ def card_from_disk(
         stats = compute_normalisation(paths)
         card["normalisation"] = {"root_joint": stats["root_joint"], "mean": stats["mean"],
                                  "std": stats["std"], "computed_on": normalise_on}  # fmt: skip
+    card["pose_coverage"] = pose_coverage(root, list(card["subjects"]))
     return card
+
+
+def pose_coverage(root: str | os.PathLike, subjects: Sequence[str], root_joint: int = 0) -> dict[str, Any]:
+    """How far the test poses are from the training poses, per subject: for every test frame, the
+    RMS distance (cm) between its root-aligned joints and those of the nearest training frame of the
+    same subject; the distribution as ``{"test_frames", "median_cm", "p90_cm", "max_cm"}``
+    (subjects without train or test frames are left out). Small values mean the test split only
+    re-samples training poses; tens of centimetres mean poses no training frame covers."""
+    layout = DatasetLayout(root)
+    out: dict[str, Any] = {}
+    for s in subjects:
+        joints = {}
+        for split in SPLITS:
+            frames = layout.iter_frames(split, [s])
+            if not frames:
+                break
+            j = np.stack([read_frame(p, ["joints"]).joints for _, _, p in frames]).astype(np.float64)  # (F, J, 3)
+            joints[split] = j - j[:, root_joint : root_joint + 1]
+        if len(joints) < len(SPLITS):
+            continue
+        train, test = joints["train"], joints["test"]
+        nearest = np.empty(len(test))
+        for a in range(0, len(test), 256):  # (t, F) squared RMS over joints, 256 test frames at a time
+            d2 = ((test[a : a + 256, None] - train[None]) ** 2).sum(-1).mean(-1)
+            nearest[a : a + 256] = np.sqrt(d2.min(1))
+        cm = 100.0 * nearest
+        out[s] = {"test_frames": int(len(cm)), "median_cm": float(np.median(cm)),
+                  "p90_cm": float(np.quantile(cm, 0.9)), "max_cm": float(cm.max())}  # fmt: skip
+    return out
 
 
 # --------------------------------------------------------------------------- integrity
