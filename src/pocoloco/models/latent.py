@@ -1,11 +1,13 @@
 """A latent read / compute / write denoiser whose cost is linear in the number of points N.
 
 Drop-in for :class:`~pocoloco.models.pocoloco.PocoLocoDenoiser` (same ``forward(x, t, joints)``,
-same config conventions), built on the idea of PointInfinity (Huang et al., CVPR 2024, Sec. 3.2
-"the two-stream Transformer") and Perceiver IO (Jaegle et al., ICLR 2022, Sec. 2 "encode,
-process, decode"): instead of N point tokens attending to each other (O(N^2) per layer, PocoLoco
-paper Sec. 5.1), a fixed set of M learned latent tokens does the global reasoning and the points
-talk only to the latents. Written from the papers' descriptions; no code of those projects.
+same config conventions), built on the idea of PointInfinity (Huang et al., CVPR 2024: the
+"two-stream block", a fixed-size latent stream and a variable-size data stream joined by
+lightweight read / write modules) and Perceiver IO (Jaegle et al., ICLR 2022: encode, process,
+decode through a latent array): instead of N point tokens attending to each other (O(N^2) per
+layer, PocoLoco paper Sec. 5.1), a fixed set of M learned latent tokens does the global reasoning
+and the points talk only to the latents. Written from the papers' descriptions; no code of those
+projects (their licences forbid it).
 
 Two streams (shape letters: B batch, N points, J joints, M latents, L = M + 1 + J latent-stream
 tokens, D latent width, P = ``point_width`` point width, C point channels):
@@ -16,7 +18,9 @@ tokens, D latent width, P = ``point_width`` point width, C point channels):
 * latent stream z = LN([Z; tau(t); Linear(posenc(k_j)) + E_j])                   (B, L, D)
   Z (M, D) learned latents, tau(t) the timestep token, the J joint tokens of PocoLoco: the time
   and the skeleton are ordinary members of the latent self-attention ("the latents see time and
-  joints"), as conditioning tokens are in PointInfinity and RIN.
+  joints"), like the conditioning tokens RIN (Jabri et al., ICML 2023) appends to its latents.
+  They also read and are read like the latents, so every point can attend to the joints directly
+  in each write (PocoLoco's per-layer cross-attention to the joints, at no extra cost).
 * ``depth`` blocks, each with pre-LayerNorm residual updates:
 
     read     z <- z + CrossAttn(LN(z), LN(p))                  latents attend to points, O(N L)
@@ -27,16 +31,20 @@ tokens, D latent width, P = ``point_width`` point width, C point channels):
 * output = Linear(LN(p)) to C channels, zero-initialised (point-e / DiT), so the untrained model
   predicts 0.
 
-Cost per block is O(N L (P + head dims) + N P^2 + L^2 D + L D^2): linear in N. Memory is linear in
-N as well: attention uses SDPA (never an N x L score matrix on the CPU flash kernel), and even the
+Cost per block is O(N L P + N P^2 + L^2 D + L D^2) (read / write attention and projections,
+per-point MLP, latent self-attention, latent MLP): linear in N. Memory is linear in N as well:
+attention uses SDPA (no N x L score matrix is kept on the CPU flash kernel), and even the
 ``"dense"`` reference only materialises (B, H, N, L) scores, linear in N since L is fixed. The
-per-point work (write attention and MLP) is independent across points and small (P <= D), so no
-chunking is needed at 50K points (the (B, N, 4P) MLP hidden at B = 1, N = 50K, P = 256 is 200 MB).
+per-point work (write attention and MLP) is independent across points and narrow (P <= D), so it
+is not chunked: the (B, N, 4P) MLP hidden of ``small`` at B = 1, N = 50K is 100 MB, and a no-grad
+50K-point forward of ``small`` peaks at 0.4 GiB above the process's resting RSS
+(``benchmarks/bench_latent.py``).
 
-The two streams may have different widths (``point_width`` P < D, as the interface / data tokens
-of RIN and PointInfinity are narrower than the latents): the point stream is the part whose cost
-grows with N, so it is kept narrow, while the latents (where the model's capacity is) keep the
-paper's width.
+The two streams may have different widths (``point_width`` P < D; our choice, in the spirit of
+PointInfinity's "lightweight" read / write modules): the point stream is the part whose cost grows
+with N, so it is kept narrow (P = 128 in ``paper``), while the latents, where the depth and most
+parameters are, keep the paper's width 512. With P = D the speed-ups roughly halve
+(``benchmarks/bench_latent.py --ablation`` times P = 256).
 
 Why the network is resolution-free in practice (trained on 1-2K points, sampled at 10K-50K):
 
@@ -52,13 +60,12 @@ Why the network is resolution-free in practice (trained on 1-2K points, sampled 
   a 1/N-less aggregation would drift with N instead.
 * No positional index or learned per-point embedding: the network is permutation-equivariant over
   points and accepts any N >= 1.
-* What does change with N is the *sharpness* of what a latent can single out: with many more
-  points, a query matching a small region gets more points in it at the same total weight; this is
-  the density the model was trained on, just sampled more finely.
+* What N does change is the Monte-Carlo noise of the read: a model trained on 1-2K points sees
+  noisier latents than it meets when sampling 50K; PointInfinity finds this shift harmless, even
+  helpful. The exact invariance is tested: feeding every point twice changes no output.
 
-Parameter counts (3-channel points): ``paper`` 29,655,043 (PocoLoco ``paper``: 34,218,499), ``small``
-4,701,443 (PocoLoco ``small``: 1,135,491),
-``tiny`` 43,747 (see ``LATENT_PRESETS``).
+Parameter counts (3-channel points, ``LATENT_PRESETS``): ``paper`` 29,655,043 (PocoLoco ``paper``
+34,218,499), ``small`` 4,701,443 (PocoLoco ``small`` 1,135,491), ``tiny`` 43,747.
 """
 
 from __future__ import annotations
