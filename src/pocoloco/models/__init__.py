@@ -1,5 +1,11 @@
-"""Networks: the PocoLoco denoiser and shared layers (attention, positional encodings)."""
+"""Networks: the PocoLoco denoiser, its linear-in-N latent variant and shared layers (attention, encodings)."""
 
+from pocoloco.models.latent import (
+    LATENT_PRESETS,
+    LatentDenoiser,
+    LatentDenoiserConfig,
+    latent_preset,
+)
 from pocoloco.models.layers import (
     attention,
     dense_attention,
@@ -18,11 +24,15 @@ from pocoloco.models.pocoloco import (
 
 __all__ = [
     "DENOISER_PRESETS",
+    "LATENT_PRESETS",
+    "LatentDenoiser",
+    "LatentDenoiserConfig",
     "PocoLocoDenoiser",
     "PocoLocoDenoiserConfig",
     "attention",
     "dense_attention",
     "denoiser_preset",
+    "latent_preset",
     "nerf_encoding",
     "positional_encoding",
     "positional_encoding_dim",
