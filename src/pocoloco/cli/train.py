@@ -118,7 +118,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="method to train (default pocoloco: the diffusion model; pop / closet: its peers)")  # fmt: skip
     parser.add_argument("--data", required=True, help="pocoloco dataset folder (trains on its train split)")
     parser.add_argument("--preset", default=None,
-                        help="training preset: tiny (tests), small (this CPU), paper (the paper's settings) "
+                        help="training preset: tiny (tests), small (this CPU), paper (the paper's settings); pocoloco also "
+                             "latent_tiny, latent_small, latent_paper (the linear-in-N latent network) "
                              "(default small; with --resume, the checkpoint's config)")  # fmt: skip
     parser.add_argument("--out", required=True, help="run folder (checkpoints, logs, samples)")
     parser.add_argument("--resume", action="store_true",

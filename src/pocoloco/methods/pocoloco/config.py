@@ -12,6 +12,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
+from pocoloco.models.denoisers import ARCHITECTURES, denoiser_config_from_dict
+from pocoloco.models.latent import LATENT_PRESETS, LatentDenoiserConfig
 from pocoloco.models.pocoloco import DENOISER_PRESETS, PocoLocoDenoiserConfig
 
 __all__ = ["LR_SCHEDULES", "SCHEDULE_KINDS", "TRAIN_PRESETS", "PocoLocoTrainConfig", "train_preset"]
@@ -38,10 +40,14 @@ class PocoLocoTrainConfig:
     ckpt_every / sample_every / log_every: periods in steps (0 disables checkpoints / samples).
     sample_steps: DDIM steps of the periodic samples. keep_checkpoints: how many step folders to
     keep. num_workers: DataLoader worker processes (0 = load in the main process).
+    architecture: the denoiser network (:mod:`pocoloco.models.denoisers`): ``"transformer"`` (the
+    paper's, O(N^2) attention over points) or ``"latent"`` (read / compute / write through latent
+    tokens, linear in N); ``denoiser`` is that network's config.
     """
 
     preset: str = "small"
-    denoiser: PocoLocoDenoiserConfig = dataclasses.field(default_factory=lambda: DENOISER_PRESETS["small"])
+    denoiser: PocoLocoDenoiserConfig | LatentDenoiserConfig = dataclasses.field(
+        default_factory=lambda: DENOISER_PRESETS["small"])
     model: str = "pocoloco"
     steps: int = 20_000
     batch_size: int = 16
@@ -66,12 +72,17 @@ class PocoLocoTrainConfig:
     sample_steps: int = 25
     keep_checkpoints: int = 3
     num_workers: int = 0
+    architecture: str = "transformer"
 
     def __post_init__(self):
         if self.model != "pocoloco":
             raise ValueError(f"model must be 'pocoloco' for a PocoLocoTrainConfig, got {self.model!r}")
-        if not isinstance(self.denoiser, PocoLocoDenoiserConfig):
-            raise ValueError(f"denoiser must be a PocoLocoDenoiserConfig, got {type(self.denoiser).__name__}")
+        if self.architecture not in ARCHITECTURES:
+            raise ValueError(f"architecture must be one of {tuple(ARCHITECTURES)}, got {self.architecture!r}")
+        want = ARCHITECTURES[self.architecture][0]
+        if not isinstance(self.denoiser, want):
+            raise ValueError(f"denoiser must be a {want.__name__} for architecture {self.architecture!r}, "
+                             f"got {type(self.denoiser).__name__}")  # fmt: skip
         positive = ("steps", "batch_size", "num_points", "num_timesteps", "log_every", "sample_steps",
                     "keep_checkpoints")
         for name in positive:
@@ -121,8 +132,8 @@ class PocoLocoTrainConfig:
         unknown = sorted(set(d) - names)
         if unknown:
             raise ValueError(f"unknown TrainConfig fields {unknown}")
-        if "denoiser" in d:
-            d["denoiser"] = PocoLocoDenoiserConfig(**d["denoiser"])
+        if "denoiser" in d:  # checkpoints written before "architecture" existed hold the transformer
+            d["denoiser"] = denoiser_config_from_dict(d.get("architecture", "transformer"), d["denoiser"])
         if "adam_betas" in d:
             d["adam_betas"] = tuple(d["adam_betas"])
         return cls(**d)
@@ -141,6 +152,24 @@ TRAIN_PRESETS: dict[str, PocoLocoTrainConfig] = {
         preset="small", denoiser=DENOISER_PRESETS["small"], steps=20_000, batch_size=16, num_points=512,
         lr=5e-4, weight_decay=0.01, warmup_steps=200, lr_schedule="constant", grad_clip=1.0, ema_decay=0.999,
         ckpt_every=250, sample_every=1000, log_every=10, sample_steps=25,
+    ),
+    # the latent read / compute / write network (linear in N) at the paper's width and depth budget,
+    # trained at 2K points (it samples any N)
+    "latent_paper": PocoLocoTrainConfig(
+        preset="latent_paper", architecture="latent", denoiser=LATENT_PRESETS["paper"], steps=1_000_000,
+        batch_size=16, num_points=2048, lr=2e-4, weight_decay=0.0, warmup_steps=0, grad_clip=None,
+        ema_decay=0.9999, ckpt_every=5000, sample_every=5000, log_every=50, sample_steps=50,
+    ),
+    # the latent network sized for this CPU
+    "latent_small": PocoLocoTrainConfig(
+        preset="latent_small", architecture="latent", denoiser=LATENT_PRESETS["small"], steps=20_000,
+        batch_size=16, num_points=1024, lr=5e-4, weight_decay=0.01, warmup_steps=200, lr_schedule="constant",
+        grad_clip=1.0, ema_decay=0.999, ckpt_every=250, sample_every=1000, log_every=10, sample_steps=25,
+    ),
+    "latent_tiny": PocoLocoTrainConfig(
+        preset="latent_tiny", architecture="latent", denoiser=LATENT_PRESETS["tiny"], steps=20, batch_size=2,
+        num_points=256, lr=1e-3, weight_decay=0.0, warmup_steps=2, grad_clip=1.0, ema_decay=0.99, ckpt_every=10,
+        sample_every=10, log_every=1, sample_steps=3,
     ),
     # tests and smoke runs: seconds
     "tiny": PocoLocoTrainConfig(

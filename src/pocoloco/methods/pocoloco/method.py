@@ -18,7 +18,7 @@ from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.sampling import sample_clouds
 from pocoloco.methods.pocoloco.training import PocoLocoTask
-from pocoloco.models.pocoloco import PocoLocoDenoiser
+from pocoloco.models.denoisers import build_denoiser
 
 __all__ = ["LoadedDenoiser", "PocoLocoMethod", "load_denoiser"]
 
@@ -43,7 +43,7 @@ class PocoLocoMethod(Method):
             config = PocoLocoTrainConfig.from_dict(ck.config)
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{ck.path / META_FILE}: corrupt train config ({e})") from None
-        model = PocoLocoDenoiser(config.denoiser)
+        model = build_denoiser(config.architecture, config.denoiser)
         ema = use_ema and ck.ema_state is not None
         try:
             model.load_state_dict(ck.ema_state if ema else ck.model_state)

@@ -26,7 +26,7 @@ from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, diffusion_loss, samp
 from pocoloco.engine.checkpoint import Checkpoint
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.pocoloco.config import RESUMABLE_CHANGES, PocoLocoTrainConfig
-from pocoloco.models.pocoloco import PocoLocoDenoiser
+from pocoloco.models.denoisers import build_denoiser
 from pocoloco.utils.seeding import seed_of
 from pocoloco.viz.render import render_grid
 
@@ -49,7 +49,7 @@ class PocoLocoTask(TrainingTask):
         self._preview_frames: list[dict[str, Any]] | None = None
 
     def build_model(self) -> nn.Module:
-        return PocoLocoDenoiser(self.config.denoiser)
+        return build_denoiser(self.config.architecture, self.config.denoiser)
 
     def make_optimizer(self, model: nn.Module) -> torch.optim.Optimizer:
         c = self.config
@@ -104,7 +104,7 @@ def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDatas
 
 
 @torch.no_grad()
-def _render_samples(model: PocoLocoDenoiser, schedule: NoiseSchedule, config: PocoLocoTrainConfig, norm: Normalisation,
+def _render_samples(model: nn.Module, schedule: NoiseSchedule, config: PocoLocoTrainConfig, norm: Normalisation,
                     frames: list[dict[str, Any]], out: Path, step: int, device: torch.device) -> Path:  # fmt: skip
     """DDIM samples (``config.sample_steps`` steps, fixed seeds) from ``model`` for ``frames``; a PNG grid."""
     C = config.denoiser.point_channels
