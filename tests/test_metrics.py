@@ -152,3 +152,25 @@ def test_optional_inputs_and_validation():
         M.evaluate_frame(gt, None, gt, gt_n[:50])
     with pytest.raises(ValueError, match="non-finite"):
         M.s2m_cm(np.full((3, 3), np.nan), gt)
+
+
+def test_outlier_shares_and_their_worst_cloud():
+    """outlier_5/10cm_pct: generated points farther than 5 / 10 cm from every GT point (checked by
+    brute force); summarise keeps the worst cloud as _max through nested means (seeds, then frames)."""
+    rng = np.random.default_rng(0)
+    gt = rng.normal(size=(500, 3)) * 0.2
+    pred = gt[:400] + rng.normal(size=(400, 3)) * 0.01
+    pred[:40] += np.array([0.0, 0.0, 0.5])  # 10 % invented far away
+    pred[40:60] += np.array([0.07, 0.0, 0.0])  # 5 % moderately off
+    m = M.evaluate_frame(pred, None, gt, None)
+    d = np.sqrt(((pred[:, None] - gt[None]) ** 2).sum(-1)).min(1)
+    assert m["outlier_10cm_pct"] == pytest.approx(100 * (d > 0.10).mean())
+    assert m["outlier_5cm_pct"] == pytest.approx(100 * (d > 0.05).mean())
+    assert m["outlier_10cm_pct"] > 5.0 and m["outlier_5cm_pct"] > m["outlier_10cm_pct"]
+    clean = M.evaluate_frame(gt[:400], None, gt, None)
+    assert clean["outlier_5cm_pct"] == 0.0
+    frame_a = M.summarise([m, clean])  # two seeds of one frame
+    frame_b = M.summarise([clean, clean])
+    assert frame_a["outlier_10cm_pct"] == pytest.approx(m["outlier_10cm_pct"] / 2)
+    overall = M.summarise([frame_a, frame_b])
+    assert overall["outlier_10cm_pct_max"] == pytest.approx(m["outlier_10cm_pct"])  # the worst cloud, not a mean

@@ -77,6 +77,9 @@ TABLE_COLUMNS = (
     ("pop_chamfer_e-4m2", "CD 1e-4 m^2", "{:.2f}"),
     ("normal_l1_e-1", "normal 1e-1", "{:.2f}"),
     ("fscore_pct", "F@1cm %", "{:.1f}"),
+    ("outlier_5cm_pct", ">5cm %", "{:.1f}"),
+    ("outlier_10cm_pct", ">10cm %", "{:.1f}"),
+    ("outlier_10cm_pct_max", "max >10cm %", "{:.1f}"),
     ("loose_pred_pct", "loose %", "{:.1f}"),
     ("loose_gt_pct", "loose GT %", "{:.1f}"),
     ("diversity_cm", "div. cm", "{:.2f}"),
@@ -332,7 +335,8 @@ def markdown_tables(result: EvalResult) -> str:
                 f"(GT subsampled to the same N), model samples: {len(s['seeds'])} seeds {s['seeds']} with "
                 f"{s['sampler']} ({s['steps'] or 'default'} steps), metrics averaged over seeds and frames.")  # fmt: skip
     head += ["", "Chamfer = S2M + M2S (unsquared, cm; PocoLoco Table 2). CD 1e-4 m^2 = POP convention (squared, "
-             "point-to-plane M2S). normal = L1 of unit normals x10. loose % = share of points whose nearest GT point is "
+             "point-to-plane M2S). normal = L1 of unit normals x10. >5cm / >10cm % = share of generated points farther "
+             "than that from every GT point (mean; max = the worst cloud). loose % = share of points whose nearest GT point is "
              "garment. div. = mean pairwise Chamfer among the seeds' samples (whole / garment region / body region).",
              "", "## All frames", "", markdown_table(result.means, titles)]  # fmt: skip
     for subject, means in result.per_subject.items():

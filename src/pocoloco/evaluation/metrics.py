@@ -243,6 +243,12 @@ def diversity_cm(
 # ---------------------------------------------------------------------------
 
 
+#: thresholds (cm) of the outlier shares: generated points this far from every scan point
+OUTLIER_CM: tuple[int, ...] = (5, 10)
+#: keys whose worst value over frames (and seeds) :func:`summarise` reports as ``<key>_max``
+MAX_KEYS: tuple[str, ...] = tuple(f"outlier_{cm}cm_pct" for cm in OUTLIER_CM)
+
+
 def evaluate_frame(
     pred_points,
     pred_normals,
@@ -260,8 +266,9 @@ def evaluate_frame(
     gt_labels: (M,) or None (skips the loose-share keys).
     Keys (units in the name): s2m_cm, m2s_cm, chamfer_cm (PocoLoco);
     pop_s2m_e-4m2, pop_m2s_e-4m2, pop_chamfer_e-4m2 (POP); normal_l1_e-1 (POP);
-    fscore_pct, precision_pct, recall_pct (at fscore_threshold_m); loose_pred_pct,
-    loose_gt_pct; num_pred, num_gt.
+    fscore_pct, precision_pct, recall_pct (at fscore_threshold_m); outlier_5cm_pct,
+    outlier_10cm_pct (share of predicted points farther than 5 / 10 cm from every GT point);
+    loose_pred_pct, loose_gt_pct; num_pred, num_gt.
     """
     pred, gt = _cloud(pred_points, "pred_points"), _cloud(gt_points, "gt_points")
     if not fscore_threshold_m > 0:
@@ -286,6 +293,9 @@ def evaluate_frame(
         pn = _normals(pred_normals, pred, "pred_normals")
         out["normal_l1_e-1"] = float(np.abs(pn - gn[idx_pred]).sum(1).mean() * _POP_NORMAL)
 
+    for cm in OUTLIER_CM:  # generated points far from the scan: an invented garment shows up here
+        out[f"outlier_{cm}cm_pct"] = 100.0 * float((d_pred > cm / _CM).mean())
+
     f = _fscore(d_pred, d_gt, fscore_threshold_m)
     out["fscore_pct"], out["precision_pct"], out["recall_pct"] = f.fscore, f.precision, f.recall
 
@@ -301,6 +311,9 @@ def summarise(frames: Iterable[Mapping[str, float]]) -> dict[str, float]:
     """Mean of every key over a list of ``evaluate_frame`` dicts (NaNs and missing keys skipped).
 
     Adds ``num_frames``. Keys missing from some frames are averaged over the frames that have them.
+    The outlier shares (``MAX_KEYS``) also get ``<key>_max``, their worst value: the maximum over
+    the entries (or over the entries' own ``_max`` when they are summaries themselves, so a mean
+    over seeds, then over frames, still reports the single worst cloud).
     """
     frames = list(frames)
     if not frames:
@@ -313,5 +326,10 @@ def summarise(frames: Iterable[Mapping[str, float]]) -> dict[str, float]:
         vals = np.array([f[k] for f in frames if k in f], dtype=np.float64)
         vals = vals[~np.isnan(vals)]
         out[k] = float(vals.mean()) if len(vals) else float("nan")
+    for k in MAX_KEYS:
+        worst = [f.get(f"{k}_max", f.get(k)) for f in frames]
+        worst = [w for w in worst if w is not None and not np.isnan(w)]
+        if worst:
+            out[f"{k}_max"] = float(max(worst))
     out["num_frames"] = float(len(frames))
     return out

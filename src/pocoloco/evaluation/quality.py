@@ -232,7 +232,8 @@ def quality_markdown(report: dict[str, Any]) -> str:
              f"subsets ({s['num_points']} points) for every row. PocoLoco: mean over seeds {s['seeds']} "
              f"({s['sampler']}); POP / CloSET are deterministic (one cloud per frame, diversity 0).", "",
              "Chamfer = S2M + M2S (unsquared, cm); CD 1e-4 m^2 = POP convention (squared, point-to-plane M2S); "
-             "normal = L1 of unit normals x10; loose % = share of points whose nearest GT point is garment; "
+             "normal = L1 of unit normals x10; >5cm / >10cm % = share of generated points farther than that from "
+             "every GT point (mean; max = the worst cloud); loose % = share of points whose nearest GT point is garment; "
              "s/sample on this machine; params = all parameters incl. outfit codes.", "", "## Checkpoints", ""]  # fmt: skip
     for k, c in report["checkpoints"].items():
         lines.append(f"- {_title(k)}: `{c['path']}` (step {c['step']}, preset `{c['preset']}`)")
