@@ -267,3 +267,24 @@ def test_bf16_sampling_stays_close_to_float32():
         return cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean()
 
     assert chamfer(bf16[0], fp32[0]) < 0.5 * chamfer(fp32[0], fp32[1])
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda j: j * 1e6, "from the root (a body spans ~1 m)"),
+    (lambda j: np.zeros_like(j), "all joints lie within"),
+    (lambda j: np.where(np.arange(24)[:, None] == 4, j + (j[4] - j[1]) * 4, j), "impossible bone length"),
+])  # fmt: skip
+def test_implausible_skeletons_are_refused_unless_asked(tmp_path, capsys, make, message):
+    """Joints far outside any body the model saw give one line naming the problem and the override,
+    instead of a cloud hundreds of km wide; ``--any-pose`` samples them anyway."""
+    from pocoloco.data.poses import demo_pose_path
+
+    bad = make(np.load(demo_pose_path("tight")).astype(np.float64))
+    np.save(tmp_path / "bad.npy", bad)
+    argv = ["sample", "--joints", str(tmp_path / "bad.npy"), "--num", "1", "--steps", "2", "--points", "16",
+            "--no-render", "--out", str(tmp_path / "out")]  # fmt: skip
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "--any-pose" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "out").exists()
+    assert cli_main([*argv, "--any-pose"]) == 0

@@ -37,7 +37,7 @@ from pocoloco.apps.common import denoise_from, subset, to_metres, to_normalised
 from pocoloco.data import format as fmt
 from pocoloco.data.dataset import Normalisation
 from pocoloco.data.format import read_frame
-from pocoloco.data.poses import check_joints
+from pocoloco.data.poses import check_joints, check_skeleton
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.evaluation.metrics import chamfer_cm, nearest
 
@@ -68,12 +68,13 @@ class Animation:
 
 
 # --------------------------------------------------------------------------------------- motion
-def load_motion(spec: str | os.PathLike, num_joints: int = 24) -> MotionInput:
+def load_motion(spec: str | os.PathLike, num_joints: int = 24, any_pose: bool = False) -> MotionInput:
     """Read a motion: a (T, J, 3) joints ``.npy`` (or ``.npz`` with a ``joints`` array), or a
     dataset sequence ``DATASET:subject/split/sequence`` (the joints of every stored frame).
 
     Raises one-line ValueErrors: no such file / sequence, wrong shape, a skeleton with another
-    joint count than the model's, NaN / inf.
+    joint count than the model's, NaN / inf, and (unless ``any_pose``) a frame whose skeleton is
+    not a human body in metres (:func:`~pocoloco.data.poses.check_skeleton`).
     """
 
     spec = os.fspath(spec)
@@ -118,6 +119,9 @@ def load_motion(spec: str | os.PathLike, num_joints: int = 24) -> MotionInput:
         raise ValueError(f"{spec}: the skeleton has {arr.shape[1]} joints, the model expects {num_joints}")
     if not np.isfinite(arr).all():
         raise ValueError(f"{spec}: joints contain NaN or inf")
+    if not any_pose:
+        for k, joints in enumerate(arr):
+            check_skeleton(f"{spec} frame {k}", joints)
     return MotionInput(arr.astype(np.float32), frames, spec)
 
 

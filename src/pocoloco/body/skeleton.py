@@ -82,6 +82,17 @@ MIRROR_PAIRS: tuple[tuple[int, int], ...] = tuple(
 )
 
 
+#: Bone lengths (metres; bone k joins joint k + 1 to its parent) of anny's rest skeleton at its
+#: phenotype extremes (a young child to a tall heavy adult): a real skeleton's bones lie far inside
+#: [BONE_LENGTH_RANGE_M[0] / 2, 2 * BONE_LENGTH_RANGE_M[1]].
+BONE_LENGTH_RANGE_M: tuple[tuple[float, ...], tuple[float, ...]] = (
+    (0.040, 0.040, 0.023, 0.099, 0.099, 0.032, 0.115, 0.115, 0.093, 0.049, 0.049, 0.038,
+     0.019, 0.019, 0.033, 0.052, 0.052, 0.074, 0.074, 0.081, 0.081, 0.036, 0.036),
+    (0.129, 0.129, 0.106, 0.653, 0.653, 0.093, 0.525, 0.525, 0.314, 0.199, 0.199, 0.199,
+     0.119, 0.119, 0.129, 0.177, 0.177, 0.361, 0.361, 0.311, 0.311, 0.134, 0.134),
+)  # fmt: skip
+
+
 def joint_index(name: str) -> int:
     """Index of a joint by name; a clear error for unknown names."""
     try:

@@ -75,7 +75,7 @@ def cmd_complete(args: argparse.Namespace) -> None:
     partial, normals = read_cloud(args.partial)
     method = load_method_from_args(args, expect="pocoloco")
     model, normalisation, config, ckpt, step = method.model, method.normalisation, method.config, method.path, method.step
-    joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints)
+    joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, config.num_timesteps)
     seeds = [args.seed + k for k in range(args.num)]
     t0 = time.perf_counter()
@@ -155,8 +155,8 @@ def cmd_edit(args: argparse.Namespace) -> None:
     method = load_method_from_args(args, expect="pocoloco")
     model, normalisation, config, ckpt, step = method.model, method.normalisation, method.config, method.path, method.step
     J = config.denoiser.num_joints
-    target = load_joints(args.joints, None, J)
-    src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J)
+    target = load_joints(args.joints, None, J, any_pose=args.any_pose)
+    src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, config.num_timesteps)
     if args.t is not None and not 1 <= args.t <= config.num_timesteps:
         raise ValueError(f"--t must be in [1, {config.num_timesteps}] (the model's training timesteps), got {args.t}")
@@ -258,7 +258,7 @@ def cmd_animate(args: argparse.Namespace) -> None:
         raise ValueError(f"--fps must be > 0, got {args.fps}")
     method = load_method_from_args(args, expect="pocoloco")
     model, normalisation, config, ckpt, step = method.model, method.normalisation, method.config, method.path, method.step
-    motion = load_motion(args.motion, config.denoiser.num_joints)
+    motion = load_motion(args.motion, config.denoiser.num_joints, any_pose=args.any_pose)
     chosen = _parse_frames(args.frames, len(motion.joints))
     check_sampler(args.sampler, args.steps, config.num_timesteps)
     if not 1 <= args.t <= config.num_timesteps:

@@ -17,7 +17,7 @@ from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods import Method, load_method
 from pocoloco.utils.atomic import output_folder
 
-__all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "add_app_arguments", "add_device_argument", "add_threads_argument",
+__all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "add_any_pose_argument", "add_app_arguments", "add_device_argument", "add_threads_argument",
            "apply_threads", "check_app_args", "choose_device", "console", "load_method_from_args", "progress_bar",
            "run_command"]  # fmt: skip
 
@@ -74,6 +74,12 @@ def apply_threads(threads: int | None) -> None:
     if isinstance(threads, bool) or threads < 1:
         raise ValueError(f"--threads must be >= 1, got {threads}")
     torch.set_num_threads(int(threads))
+
+
+def add_any_pose_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--any-pose", action="store_true",
+                        help="accept joints that do not look like a human skeleton in metres (default: a "
+                             "one-line error; for experiments)")  # fmt: skip
 
 
 def add_device_argument(parser: argparse.ArgumentParser, default: str | None = None) -> None:
@@ -136,6 +142,7 @@ def add_app_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
     parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50; at most t)")
     parser.add_argument("--seed", type=int, default=0, help="output k uses seed SEED + k (default 0)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
+    add_any_pose_argument(parser)
     add_device_argument(parser)
     add_threads_argument(parser)
     parser.add_argument("--no-render", action="store_true", help="skip the PNG / GIF")

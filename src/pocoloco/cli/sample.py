@@ -8,11 +8,7 @@ import time
 
 import torch
 
-from pocoloco.cli.common import (
-    add_device_argument,
-    add_threads_argument,
-    load_method_from_args,
-)
+from pocoloco.cli.common import add_any_pose_argument, add_device_argument, add_threads_argument, load_method_from_args
 from pocoloco.data.poses import pose_spec_kind, subject_of_spec
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.methods import SamplerOptions
@@ -56,7 +52,7 @@ def cmd_sample(args: argparse.Namespace) -> None:
         outfit = method.outfit_id(name)
     elif args.outfit is not None:
         method.outfit_id(args.outfit)  # one line: this model has no outfit codes
-    pose = method.load_pose(spec, outfit, args.frame_id)
+    pose = method.load_pose(spec, outfit, args.frame_id, any_pose=args.any_pose)
     method.check_options(options)
     seeds = [args.seed + k for k in range(num)]
 
@@ -104,6 +100,7 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="cloud k uses seed SEED + k (default 0)")
     parser.add_argument("--batch-size", type=int, default=8, help="clouds denoised together (default 8)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
+    add_any_pose_argument(parser)
     parser.add_argument("--bf16", action="store_true",
                         help="denoiser under bf16 autocast: several times faster on CPUs with AMX / avx512_bf16 and on GPUs")
     parser.add_argument("--clip", type=float, default=DEFAULT_CLIP,

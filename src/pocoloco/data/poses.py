@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from pocoloco.body.anny_body import AnnyBody
-from pocoloco.body.skeleton import NUM_JOINTS
+from pocoloco.body.skeleton import BONE_LENGTH_RANGE_M, JOINT_NAMES, JOINT_PARENTS, MIRROR_PAIRS, NUM_JOINTS
 from pocoloco.body.surface import pose_mean_shape_vertices
 from pocoloco.data.format import (
     SPLITS,
@@ -84,6 +84,47 @@ def check_joints(src: str, joints: Any, num_joints: int) -> np.ndarray:
     return arr.astype(np.float32)
 
 
+#: a joint this far from the root (metres) is not a human body in metres
+MAX_JOINT_REACH_M = 2.5
+#: all joints within this distance (metres) of the root: not a body
+MIN_JOINT_SPREAD_M = 0.1
+ANY_POSE_HINT = "pass --any-pose (library: any_pose=True) to use it anyway"
+
+
+def check_skeleton(src: str, joints: np.ndarray) -> np.ndarray:
+    """A one-line ValueError naming the problem unless ``joints`` (24, 3) look like a human skeleton
+    in metres: every joint within ``MAX_JOINT_REACH_M`` of the root and not all of them on one spot,
+    every bone no shorter than half and no longer than twice the range of anny's bodies (a young child
+    to a tall adult, ``BONE_LENGTH_RANGE_M``), left and right bones within a factor 1.5 of each other.
+    A model trained on human poses turns anything else into a cloud that is meaningless (or hundreds
+    of km wide); returns the joints."""
+    j = np.asarray(joints, np.float64)
+    if j.shape != (NUM_JOINTS, 3):  # only the 24-joint skeleton has known bones
+        return joints
+    reach = np.linalg.norm(j - j[0], axis=1)
+    if reach.max() > MAX_JOINT_REACH_M:
+        k = int(reach.argmax())
+        raise ValueError(f"{src}: joint {JOINT_NAMES[k]} is {reach.max():.3g} m from the root (a body spans ~1 m): "
+                         f"not metres, or not a body; {ANY_POSE_HINT}")  # fmt: skip
+    if reach.max() < MIN_JOINT_SPREAD_M:
+        raise ValueError(f"{src}: all joints lie within {100 * reach.max():.1f} cm of the root: not a body; {ANY_POSE_HINT}")
+    lengths = np.array([np.linalg.norm(j[c] - j[p]) for c, p in enumerate(JOINT_PARENTS) if p >= 0])
+    lo, hi = 0.5 * np.array(BONE_LENGTH_RANGE_M[0]), 2.0 * np.array(BONE_LENGTH_RANGE_M[1])
+    bad = np.flatnonzero((lengths < lo) | (lengths > hi))
+    if len(bad):
+        k = int(bad[np.argmax(np.maximum(lengths[bad] / hi[bad], lo[bad] / np.maximum(lengths[bad], 1e-12)))])
+        raise ValueError(f"{src}: impossible bone length: {JOINT_NAMES[k + 1]} is {100 * lengths[k]:.1f} cm from its "
+                         f"parent (human bodies: {100 * lo[k]:.1f}-{100 * hi[k]:.1f} cm); {ANY_POSE_HINT}")  # fmt: skip
+    for left, right in MIRROR_PAIRS:
+        if left == 0 or JOINT_PARENTS[left] < 0:
+            continue
+        a, b = lengths[left - 1], lengths[right - 1]
+        if max(a, b) > 1.5 * min(a, b):
+            raise ValueError(f"{src}: left and right differ: {JOINT_NAMES[left]} {100 * a:.1f} cm vs "
+                             f"{JOINT_NAMES[right]} {100 * b:.1f} cm from their parents; {ANY_POSE_HINT}")  # fmt: skip
+    return joints
+
+
 def _load_array_file(path: Path) -> np.ndarray:
     """The joints array of a .npy, or of a .npz (key ``joints``, else its only array)."""
     try:
@@ -127,7 +168,8 @@ def dataset_frame_path(spec: str) -> Path:
     return path
 
 
-def load_joints(spec: str | os.PathLike, frame_id: int | None = None, num_joints: int = NUM_JOINTS) -> np.ndarray:
+def load_joints(spec: str | os.PathLike, frame_id: int | None = None, num_joints: int = NUM_JOINTS,
+                any_pose: bool = False) -> np.ndarray:
     """Read one pose's joints (J, 3) float32, in metres, from ``spec``.
 
     ``spec`` is one of:
@@ -142,8 +184,14 @@ def load_joints(spec: str | os.PathLike, frame_id: int | None = None, num_joints
 
     Raises:
         ValueError (one line, naming the file): unreadable file, not a dataset, no such frame,
-        wrong joint count or shape, NaN / inf.
+        wrong joint count or shape, NaN / inf; and, unless ``any_pose``, a skeleton that is not a
+        human body in metres (:func:`check_skeleton`).
     """
+    joints = _read_joints(spec, frame_id, num_joints)
+    return joints if any_pose else check_skeleton(os.fspath(spec), joints)
+
+
+def _read_joints(spec: str | os.PathLike, frame_id: int | None, num_joints: int) -> np.ndarray:
     spec = os.fspath(spec)
     path = Path(spec)
     if spec.startswith("demo:") and not path.exists():

@@ -160,9 +160,11 @@ class Method(ABC):
 
     # -------------------------------------------------------------------------------- poses
     @abstractmethod
-    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None) -> Pose:
+    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
+                  any_pose: bool = False) -> Pose:  # fmt: skip
         """The pose ``--joints`` names (see :mod:`pocoloco.data.poses`); ``outfit`` picks the body
-        an anny pose file is posed with (methods that need the body)."""
+        an anny pose file is posed with (methods that need the body); joints that are not a human
+        skeleton in metres are a one-line error unless ``any_pose``."""
 
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
         """The pose of a dataset frame file (``frame``: the already read ``Frame``, if any)."""

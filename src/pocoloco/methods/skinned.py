@@ -411,7 +411,8 @@ class SkinnedMethod(Method):
         return self.outfit_names().index(pose.subject)
 
     # -------------------------------------------------------------------------------- poses
-    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None) -> Pose:
+    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
+                  any_pose: bool = False) -> Pose:  # fmt: skip
         """``--joints`` for POP / CloSET: a dataset frame ``DATASET:subject/split/sequence/index`` (or
         a frame ``.npz`` of a dataset), or an ``.npz`` with anny ``joint_rotvecs`` (posed with the
         phenotype of ``outfit``'s subject); bare joints are a one-line error (they need the body)."""

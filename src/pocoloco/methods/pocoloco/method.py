@@ -69,8 +69,9 @@ class PocoLocoMethod(Method):
     def check_options(self, options: SamplerOptions) -> None:
         check_sampler(options.sampler, options.steps, self.config.num_timesteps)
 
-    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None) -> Pose:
-        joints = load_joints(spec, frame_id, self.config.denoiser.num_joints)
+    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
+                  any_pose: bool = False) -> Pose:  # fmt: skip
+        joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
         return Pose(joints, source=str(spec))
 
     def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
