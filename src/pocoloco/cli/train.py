@@ -28,7 +28,8 @@ FIELD_OPTIONS = {
     "ckpt_every": "ckpt_every", "sample_every": "sample_every", "log_every": "log_every", "bf16": "bf16",
     "ema_decay": "ema_decay", "grad_clip": "grad_clip", "schedule": "schedule", "prediction_type": "prediction_type",
     "min_snr": "min_snr_gamma", "workers": "num_workers", "normal_start": "normal_start",
-    "query_points": "query_points", "subjects": "subjects",
+    "query_points": "query_points", "subjects": "subjects", "outfit_codes": "outfit_codes",
+    "body_shape": "body_shape",
 }  # fmt: skip
 
 
@@ -142,14 +143,19 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--prediction-type", choices=PREDICTION_TYPES, help="network target (default epsilon)")
     g.add_argument("--min-snr", type=float, metavar="GAMMA", help="min-SNR-gamma loss weighting, e.g. 5 (default off)")
     g.add_argument("--workers", type=int, help="DataLoader worker processes (default 0: load in the main process)")
+    g.add_argument("--outfit-codes", action="store_true", default=None,
+                   help="condition on a learned code per subject's outfit (default off: joints only, as the paper)")  # fmt: skip
+    g.add_argument("--body-shape", action="store_true", default=None,
+                   help="condition on each subject's body shape, its anny phenotype (default off)")  # fmt: skip
+    parser.add_argument("--subjects", nargs="+",
+                        help="train on these subjects only: one model per subject as the PocoLoco paper, or hold one "
+                             "out for `pocoloco fit` (default: all)")  # fmt: skip
     g = parser.add_argument_group("pop / closet only")
     g.add_argument("--no-decomposition", action="store_true",
                    help="closet: one decoder instead of garment template + pose wrinkles (the paper's ablation)")  # fmt: skip
     g.add_argument("--normal-start", type=int,
                    help="first step with the normal loss (default: 62.5%% of --steps, as POP)")  # fmt: skip
     g.add_argument("--query-points", type=int, help="closet: surface points per training frame" + d("query_points"))
-    g.add_argument("--subjects", nargs="+",
-                   help="train on these subjects only, e.g. hold one out for `pocoloco fit` (default: all)")  # fmt: skip
     parser.add_argument("--device", default=None, help="cuda, cuda:1, cpu (default: cuda if available, else cpu)")
     add_threads_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

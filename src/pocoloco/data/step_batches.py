@@ -20,7 +20,8 @@ class StepBatches(torch.utils.data.Dataset):
     and is the same with any number of DataLoader workers, and after a resume.
 
     Items: ``points`` (B, N, C) normalised (C = 3, or 6 with unit normals), ``joints`` (B, J, 3)
-    normalised, ``root`` (B, 3) metres, ``index`` (B,) frame indices.
+    normalised, ``root`` (B, 3) metres, ``index`` (B,) frame indices, ``subject`` (B,) the frames'
+    subject ids (``dataset.subject_names`` order).
     """
 
     def __init__(self, dataset: PointCloudDataset, batch_size: int, num_points: int, seed: int, steps: int,
@@ -50,7 +51,7 @@ class StepBatches(torch.utils.data.Dataset):
 
     def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
         g, idx = self.frame_indices(int(step))
-        pts, jts, roots = [], [], []
+        pts, jts, roots, subjects = [], [], [], []
         for gk, i in zip(g, idx, strict=True):
             item = self.dataset[int(i)]
             n = item["points"].shape[0]
@@ -64,5 +65,6 @@ class StepBatches(torch.utils.data.Dataset):
             pts.append(p)
             jts.append(item["joints"])
             roots.append(item["root"])
+            subjects.append(item["subject"])
         return {"points": torch.stack(pts), "joints": torch.stack(jts), "root": torch.stack(roots),
-                "index": torch.from_numpy(idx)}  # fmt: skip
+                "index": torch.from_numpy(idx), "subject": torch.tensor(subjects, dtype=torch.long)}  # fmt: skip

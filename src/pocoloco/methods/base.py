@@ -148,15 +148,30 @@ class Method(ABC):
         return []
 
     def outfit_id(self, outfit: str | int | None) -> int | None:
-        """An outfit name or id (as given on the command line) -> its id; one-line error if the
-        model never learnt it. Methods without outfit codes refuse any outfit (None -> None)."""
-        if outfit is not None:
-            raise ValueError(f"--outfit applies to methods with outfit codes; this {self.title} checkpoint has none")
-        return None
+        """An outfit name or id (as given on the command line) -> its id (None -> None); a one-line
+        error if the model never learnt it, or if it has no outfits at all."""
+        if outfit is None:
+            return None
+        names = self.outfit_names()
+        if not names:
+            raise ValueError(f"--outfit applies to models with outfit codes; this {self.title} checkpoint has none")
+        s = str(outfit)
+        if s in names:
+            return names.index(s)
+        if s.lstrip("-").isdigit() and 0 <= int(s) < len(names):
+            return int(s)
+        raise ValueError(f"{self.path}: outfit {s!r} was never trained (this {self.kind} checkpoint has "
+                         f"{', '.join(f'{i}={n}' for i, n in enumerate(names))})")  # fmt: skip
 
     def default_outfit(self, pose: Pose) -> int | None:
-        """The outfit to use when none is given: the pose's dataset subject (methods with outfits)."""
-        return None
+        """The outfit to use when none is given: the pose's dataset subject (models with outfits;
+        None for the others); a one-line error when the pose has no known subject."""
+        names = self.outfit_names()
+        if not names:
+            return None
+        if pose.subject is None or pose.subject not in names:
+            raise ValueError(f"--outfit is required (this {self.kind} checkpoint has outfits {', '.join(names)})")
+        return names.index(pose.subject)
 
     # -------------------------------------------------------------------------------- poses
     @abstractmethod

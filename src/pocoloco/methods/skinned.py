@@ -392,24 +392,6 @@ class SkinnedMethod(Method):
     def outfit_names(self) -> list[str]:
         return [o["name"] for o in self.outfits]
 
-    def outfit_id(self, outfit: str | int | None) -> int | None:
-        if outfit is None:
-            return None
-        names = self.outfit_names()
-        s = str(outfit)
-        if s in names:
-            return names.index(s)
-        if s.lstrip("-").isdigit() and 0 <= int(s) < len(names):
-            return int(s)
-        raise ValueError(f"{self.path}: outfit {s!r} was never trained (this {self.kind} checkpoint has "
-                         f"{', '.join(f'{i}={n}' for i, n in enumerate(names))})")  # fmt: skip
-
-    def default_outfit(self, pose: Pose) -> int:
-        if pose.subject is None or pose.subject not in self.outfit_names():
-            raise ValueError(f"--outfit is required (this {self.kind} checkpoint has outfits "
-                             f"{', '.join(self.outfit_names())})")  # fmt: skip
-        return self.outfit_names().index(pose.subject)
-
     # -------------------------------------------------------------------------------- poses
     def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
                   any_pose: bool = False) -> Pose:  # fmt: skip

@@ -77,6 +77,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from pocoloco.models.conditioning import PoseCondition, WhoWearsWhat, split_condition
 from pocoloco.models.layers import (
     ATTENTION_IMPLS,
     MLP,
@@ -101,7 +102,9 @@ class LatentDenoiserConfig:
     P, i.e. P // rw_heads channels per head. mlp_ratio / point_mlp_ratio: hidden width of the
     latent and per-point MLPs, in multiples of D and P.
     posenc, num_freqs, posenc_include_input, point_channels, num_joints, prediction_type, dropout,
-    attention, joint_offsets: as in :class:`~pocoloco.models.pocoloco.PocoLocoDenoiserConfig`
+    attention, joint_offsets, num_outfits, shape_dim: as in
+    :class:`~pocoloco.models.pocoloco.PocoLocoDenoiserConfig` (outfit and body-shape tokens join the
+    latent stream)
     (``attention="dense"`` is the materialised-softmax reference, same weights and maths).
     """
 
@@ -124,6 +127,8 @@ class LatentDenoiserConfig:
     dropout: float = 0.0
     attention: str = "sdpa"
     joint_offsets: bool = True
+    num_outfits: int = 0
+    shape_dim: int = 0
 
     def __post_init__(self):
         if self.posenc not in POSENC_KINDS:
@@ -137,6 +142,9 @@ class LatentDenoiserConfig:
         for name in ("width", "depth", "compute_layers", "num_latents", "heads", "rw_heads", "num_freqs", "num_joints"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("num_outfits", "shape_dim"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.point_width is not None and self.point_width < 1:
             raise ValueError(f"point_width must be >= 1 or None, got {self.point_width}")
         if self.head_dim is not None and self.head_dim < 1:
@@ -164,7 +172,7 @@ class LatentDenoiserConfig:
     @property
     def num_tokens(self) -> int:
         """L = M latents + 1 time token + J joint tokens in the latent stream."""
-        return self.num_latents + 1 + self.num_joints
+        return self.num_latents + 1 + self.num_joints + int(self.num_outfits > 0) + int(self.shape_dim > 0)
 
     def replace(self, **changes: Any) -> LatentDenoiserConfig:
         """A copy with some fields changed (validated); an unknown field is a one-line ValueError."""
@@ -269,6 +277,7 @@ class LatentDenoiser(nn.Module):
         self.time_embed = TimestepEmbedder(D)
         self.joint_in = nn.Linear(enc_dim, D)
         self.joint_embed = nn.Parameter(torch.randn(cfg.num_joints, D) * 0.02)  # (J, D)
+        self.who = WhoWearsWhat(D, cfg.num_outfits, cfg.shape_dim) if cfg.num_outfits or cfg.shape_dim else None
         self.ln_latents = nn.LayerNorm(D)
         self.blocks = nn.ModuleList(LatentBlock(cfg) for _ in range(cfg.depth))
         self.ln_out = nn.LayerNorm(P)
@@ -322,14 +331,16 @@ class LatentDenoiser(nn.Module):
             raise ValueError("t contains NaN or infinite values")
         return t
 
-    def forward(self, x: torch.Tensor, t: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | PoseCondition) -> torch.Tensor:
         """Predict the noise (or whatever ``config.prediction_type`` says) for every point.
 
         x: (B, N, C) noisy points (C = config.point_channels), any N >= 1.
         t: (B,) diffusion timesteps (integer or float), or a scalar for the whole batch.
-        joints: (B, J, 3) skeleton joints in the same normalised frame as x.
+        cond: (B, J, 3) skeleton joints in the same normalised frame as x, or a
+        :class:`~pocoloco.models.conditioning.PoseCondition` (joints + outfit + body shape).
         Returns (B, N, C) in x's dtype (also under autocast).
         """
+        joints, outfit, shape = split_condition(cond)
         t = self._validate(x, t, joints)
         B = x.shape[0]
         feats = self._encode(x[..., :3])
@@ -342,7 +353,12 @@ class LatentDenoiser(nn.Module):
         time = self.time_embed(t)[:, None].to(p.dtype)  # (B, 1, D)
         joint_tokens = self.joint_in(self._encode(joints.to(x.dtype))) + self.joint_embed  # (B, J, D)
         latents = self.latents.expand(B, -1, -1).to(joint_tokens.dtype)  # (B, M, D)
-        z = self.ln_latents(torch.cat([latents, time.to(joint_tokens.dtype), joint_tokens], dim=1))  # (B, L, D)
+        stream = [latents, time.to(joint_tokens.dtype), joint_tokens]
+        if self.who is not None:
+            stream.append(self.who(outfit, shape, B, joint_tokens.dtype))  # (B, K, D)
+        elif outfit is not None or shape is not None:
+            raise ValueError("this model takes no outfit or body shape (trained on joints only)")
+        z = self.ln_latents(torch.cat(stream, dim=1))  # (B, L, D)
         for block in self.blocks:
             z, p = block(z, p)
         return self.out(self.ln_out(p)).to(x.dtype)  # (B, N, C)

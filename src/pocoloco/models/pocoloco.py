@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from pocoloco.models.conditioning import PoseCondition, WhoWearsWhat, split_condition
 from pocoloco.models.layers import (
     ATTENTION_IMPLS,
     POSENC_KINDS,
@@ -64,6 +65,8 @@ class PocoLocoDenoiserConfig:
     Not in the paper: still template-free (only the conditioning skeleton is used), but the
     network sees where a point is relative to each bone from the first layer instead of having
     to discover it through cross-attention; it makes training converge much faster on CPU.
+    num_outfits / shape_dim: condition also on an outfit id and the body shape (two more keys of
+    the cross-attention; :mod:`pocoloco.models.conditioning`); 0 = not (the paper's network).
     """
 
     width: int = 512
@@ -80,6 +83,8 @@ class PocoLocoDenoiserConfig:
     dropout: float = 0.0
     attention: str = "sdpa"
     joint_offsets: bool = False
+    num_outfits: int = 0
+    shape_dim: int = 0
 
     def __post_init__(self):
         if self.posenc not in POSENC_KINDS:
@@ -93,6 +98,9 @@ class PocoLocoDenoiserConfig:
         for name in ("width", "depth", "heads", "num_freqs", "num_joints"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("num_outfits", "shape_dim"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.head_dim is None and self.width % self.heads:
             raise ValueError(f"width {self.width} is not divisible by heads {self.heads}; set head_dim")
         if not 0.0 <= self.dropout < 1.0:
@@ -152,6 +160,7 @@ class PocoLocoDenoiser(nn.Module):
             nn.Sequential(nn.Linear(4 * cfg.num_joints, D), nn.GELU(), nn.Linear(D, D)) if cfg.joint_offsets else None
         )
         self.joint_embed = nn.Parameter(torch.randn(cfg.num_joints, D) * 0.02)  # (J, D)
+        self.who = WhoWearsWhat(D, cfg.num_outfits, cfg.shape_dim) if cfg.num_outfits or cfg.shape_dim else None
         self.time_embed = TimestepEmbedder(D)
         self.ln_in = nn.LayerNorm(D)
         self.ln_joints = nn.LayerNorm(D)
@@ -205,14 +214,16 @@ class PocoLocoDenoiser(nn.Module):
             raise ValueError("t contains NaN or infinite values")
         return t
 
-    def forward(self, x: torch.Tensor, t: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | PoseCondition) -> torch.Tensor:
         """Predict the noise (or whatever ``config.prediction_type`` says) for every point.
 
         x: (B, N, C) noisy points (C = config.point_channels), any N.
         t: (B,) diffusion timesteps (integer or float), or a scalar for the whole batch.
-        joints: (B, J, 3) skeleton joints in the same normalised frame as x.
+        cond: (B, J, 3) skeleton joints in the same normalised frame as x, or a
+        :class:`~pocoloco.models.conditioning.PoseCondition` (joints + outfit + body shape).
         Returns (B, N, C) in x's dtype (also under autocast).
         """
+        joints, outfit, shape = split_condition(cond)
         t = self._validate(x, t, joints)
         B, N, _ = x.shape
         feats = self._encode(x[..., :3])
@@ -223,7 +234,12 @@ class PocoLocoDenoiser(nn.Module):
             points = points + self.offset_in(joint_offset_features(x[..., :3], joints))
         time = self.time_embed(t)[:, None].to(points.dtype)  # (B, 1, D)
         h = self.ln_in(torch.cat([time, points], dim=1))  # (B, 1+N, D)
-        ctx = self.ln_joints(self.joint_in(self._encode(joints)) + self.joint_embed)  # (B, J, D)
+        ctx = self.joint_in(self._encode(joints)) + self.joint_embed  # (B, J, D)
+        if self.who is not None:
+            ctx = torch.cat([ctx, self.who(outfit, shape, B, ctx.dtype)], dim=1)  # (B, J + K, D)
+        elif outfit is not None or shape is not None:
+            raise ValueError("this model takes no outfit or body shape (trained on joints only)")
+        ctx = self.ln_joints(ctx)
         for block in self.blocks:
             h = block(h, ctx)
         h = self.ln_out(h[:, 1:])  # (B, N, D): drop the time token

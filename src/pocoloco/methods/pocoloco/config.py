@@ -43,6 +43,10 @@ class PocoLocoTrainConfig:
     architecture: the denoiser network (:mod:`pocoloco.models.denoisers`): ``"transformer"`` (the
     paper's, O(N^2) attention over points) or ``"latent"`` (read / compute / write through latent
     tokens, linear in N); ``denoiser`` is that network's config.
+    outfit_codes / body_shape: condition on who wears what (:mod:`pocoloco.models.conditioning`):
+    one learned code per subject of the dataset (its outfit) and / or the subject's anny
+    phenotype; False / False is the paper's joints-only model. subjects: train on these subjects
+    only (None: all), e.g. one model per subject as in the paper.
     """
 
     preset: str = "small"
@@ -73,6 +77,9 @@ class PocoLocoTrainConfig:
     keep_checkpoints: int = 3
     num_workers: int = 0
     architecture: str = "transformer"
+    outfit_codes: bool = False
+    body_shape: bool = False
+    subjects: tuple[str, ...] | None = None
 
     def __post_init__(self):
         if self.model != "pocoloco":
@@ -114,6 +121,10 @@ class PocoLocoTrainConfig:
         if self.denoiser.prediction_type != self.prediction_type:  # keep the two in sync
             object.__setattr__(self, "denoiser", self.denoiser.replace(prediction_type=self.prediction_type))
         object.__setattr__(self, "adam_betas", tuple(float(b) for b in self.adam_betas))
+        if self.subjects is not None:
+            if isinstance(self.subjects, str) or not self.subjects or len(set(self.subjects)) != len(self.subjects):
+                raise ValueError(f"subjects must be distinct names, got {self.subjects!r}")
+            object.__setattr__(self, "subjects", tuple(sorted(str(s) for s in self.subjects)))
 
     def replace(self, **changes) -> PocoLocoTrainConfig:
         """A copy with fields changed (validated again)."""
@@ -122,6 +133,8 @@ class PocoLocoTrainConfig:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["adam_betas"] = list(self.adam_betas)
+        if self.subjects is not None:
+            d["subjects"] = list(self.subjects)
         return d
 
     @classmethod

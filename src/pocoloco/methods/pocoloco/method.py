@@ -10,7 +10,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from pocoloco.data.poses import Pose, load_joints
+from pocoloco.data.poses import Pose, load_joints, subject_of_spec
 from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
@@ -18,6 +18,7 @@ from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.sampling import sample_clouds
 from pocoloco.methods.pocoloco.training import PocoLocoTask
+from pocoloco.models.conditioning import phenotype_vector
 from pocoloco.models.denoisers import build_denoiser
 
 __all__ = ["LoadedDenoiser", "PocoLocoMethod", "load_denoiser"]
@@ -36,6 +37,23 @@ class PocoLocoMethod(Method):
     def __init__(self, *args, weights: str = "ema", **kwargs):
         super().__init__(*args, **kwargs)
         self.weights = weights
+        self.outfits = list(self.meta.get("outfits", []))
+
+    # ------------------------------------------------------------------------------ outfits
+    @property
+    def knows_who_wears_what(self) -> bool:
+        """Conditioned on an outfit code and / or the body shape (else: the paper's joints only)."""
+        return bool(self.config.outfit_codes or self.config.body_shape)
+
+    def outfit_names(self) -> list[str]:
+        return [o["name"] for o in self.outfits] if self.knows_who_wears_what else []
+
+    def condition(self, outfit: int | None) -> dict[str, Any]:
+        """``sample_clouds`` keyword arguments (``outfit``, ``shape``) for outfit id ``outfit``."""
+        if not self.knows_who_wears_what:
+            return {}
+        return {"outfit": outfit if self.config.outfit_codes else None,
+                "shape": phenotype_vector(self.outfits[outfit].get("phenotype")) if self.config.body_shape else None}  # fmt: skip
 
     @classmethod
     def from_checkpoint(cls, ck: Checkpoint, device: str = "cpu", use_ema: bool = True) -> PocoLocoMethod:
@@ -72,15 +90,18 @@ class PocoLocoMethod(Method):
     def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
                   any_pose: bool = False) -> Pose:  # fmt: skip
         joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
-        return Pose(joints, source=str(spec))
+        return Pose(joints, subject=subject_of_spec(str(spec)), source=str(spec))
 
     def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
                 options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
-        self.outfit_id(outfit)  # PocoLoco has no outfit codes: any outfit is a one-line error
+        if self.knows_who_wears_what:
+            outfit = self.default_outfit(pose) if outfit is None else self.outfit_id(outfit)
+        else:
+            self.outfit_id(outfit)  # a joints-only model: any outfit is a one-line error
         return sample_clouds(self.model, self.normalisation, self.config, np.asarray(pose.joints), len(seeds),
                              num_points, sampler=options.sampler, steps=options.steps, seeds=list(seeds),
                              batch_size=options.batch_size, progress=options.progress, clip=options.clip,
-                             bf16=options.bf16)  # fmt: skip
+                             bf16=options.bf16, **self.condition(outfit))  # fmt: skip
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         steps = options.steps if options.steps is not None else SAMPLER_STEPS[options.sampler]

@@ -33,11 +33,24 @@ from pocoloco.diffusion.samplers import (
 )
 from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.methods.base import SampledClouds
+from pocoloco.models.conditioning import PoseCondition
 
-__all__ = ["DEFAULT_CLIP", "sample_clouds"]
+__all__ = ["DEFAULT_CLIP", "condition_for", "sample_clouds"]
 
 #: default x0 clamp of the CLI (normalised units); the ``small`` data stay within +-3.52
 DEFAULT_CLIP = 5.0
+
+
+def condition_for(joints: torch.Tensor, outfit: int | None = None,
+                  shape: Sequence[float] | None = None) -> torch.Tensor | PoseCondition:  # fmt: skip
+    """The denoiser's conditioning for B copies of one pose: the (B, J, 3) joints alone, or a
+    :class:`~pocoloco.models.conditioning.PoseCondition` with the outfit id and the body shape."""
+    if outfit is None and shape is None:
+        return joints
+    B = joints.shape[0]
+    return PoseCondition(joints, None if outfit is None else torch.full((B,), int(outfit), device=joints.device),
+                         None if shape is None else torch.as_tensor(np.asarray(shape, np.float32), device=joints.device)
+                         .expand(B, -1).to(joints.dtype))  # fmt: skip
 
 
 @torch.no_grad()
@@ -55,6 +68,8 @@ def sample_clouds(
     progress: Any = None,
     clip: float | None = None,
     bf16: bool = False,
+    outfit: int | None = None,
+    shape: Sequence[float] | None = None,
 ) -> SampledClouds:
     """Draw ``num`` clouds of ``num_points`` points from the denoiser, conditioned on one pose.
 
@@ -77,6 +92,8 @@ def sample_clouds(
         clip: clamp the sampler's x0 estimates to [-clip, clip] in normalised units (None: off).
             The data fill about [-4.5, 4.5] (a 1.2 m reach over the 0.26 m std of ``small``), so
             ``clip=5`` only stops stray points of an undertrained model from flying away.
+        outfit / shape: the outfit id and the (S,) body shape for models conditioned on who wears
+            what (``config.outfit_codes`` / ``config.body_shape``); None for joints-only models.
         bf16: run the denoiser under bf16 autocast (its matmuls and attention in bfloat16; the
             sampler's arithmetic and the returned points stay float32). Several times faster on
             CPUs with AMX / avx512_bf16 and on recent GPUs; slower on CPUs without them.
@@ -113,7 +130,8 @@ def sample_clouds(
             chunk = seeds[b0 : b0 + batch_size]
             rng = PerSampleRNG(chunk, device=device)
             noise = rng.randn((num_points, C), dtype=dtype, device=device)  # (B, N, C)
-            cond = torch.as_tensor(joints_n, dtype=dtype, device=device).expand(len(chunk), J, 3)  # (B, J, 3)
+            cond = condition_for(torch.as_tensor(joints_n, dtype=dtype, device=device).expand(len(chunk), J, 3),
+                                 outfit, shape)  # fmt: skip
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 x = sample(sampler, model, schedule, noise, cond, rng=rng, **kwargs)  # (B, N, C)
             out[b0 : b0 + len(chunk)] = x.float().cpu().numpy()

@@ -26,6 +26,7 @@ from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, diffusion_loss, samp
 from pocoloco.engine.checkpoint import Checkpoint
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.pocoloco.config import RESUMABLE_CHANGES, PocoLocoTrainConfig
+from pocoloco.models.conditioning import SHAPE_KEYS, PoseCondition, phenotype_vector
 from pocoloco.models.denoisers import build_denoiser
 from pocoloco.utils.seeding import seed_of
 from pocoloco.viz.render import render_grid
@@ -40,10 +41,20 @@ class PocoLocoTask(TrainingTask):
     resumable_changes = RESUMABLE_CHANGES
 
     def __init__(self, config: PocoLocoTrainConfig, data: str | Path):
-        self.config, self.data = config, data
+        self.data = data
         self.dataset = PointCloudDataset(data, "train", num_points=None, with_normals=config.denoiser.point_channels == 6,
-                                         random_subsample=False)  # fmt: skip
+                                         random_subsample=False, subjects=config.subjects)  # fmt: skip
         self.normalisation = self.dataset.normalisation
+        # who wears what: one outfit per subject (ids in the dataset's sorted subject order) and its
+        # anny phenotype; the denoiser's config is resolved here so the checkpoint records it
+        names = list(self.dataset.subject_names)
+        card_subjects = self.dataset.card["subjects"]
+        self.outfits = [{"id": i, "name": s, "phenotype": dict(card_subjects[s].get("phenotype") or {}),
+                         "garment_kind": card_subjects[s].get("garment_kind")} for i, s in enumerate(names)]  # fmt: skip
+        self.shapes = torch.tensor([phenotype_vector(o["phenotype"]) for o in self.outfits], dtype=torch.float32)
+        self.config = config.replace(denoiser=config.denoiser.replace(
+            num_outfits=len(names) if config.outfit_codes else 0,
+            shape_dim=len(SHAPE_KEYS) if config.body_shape else 0))  # fmt: skip
         self.schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
         self.generator: torch.Generator | None = None
         self._preview_frames: list[dict[str, Any]] | None = None
@@ -64,32 +75,51 @@ class PocoLocoTask(TrainingTask):
         c = self.config
         return StepBatches(self.dataset, c.batch_size, c.num_points, c.seed, c.steps, rank, world)
 
+    def condition(self, joints: torch.Tensor, subject: torch.Tensor) -> torch.Tensor | PoseCondition:
+        """The denoiser's conditioning for frames of these subject ids (B,): the joints alone, or
+        with the outfit ids and body shapes the config asks for."""
+        c = self.config
+        if not (c.outfit_codes or c.body_shape):
+            return joints
+        subject = subject.to(joints.device)
+        return PoseCondition(joints, subject if c.outfit_codes else None,
+                             self.shapes.to(joints.device)[subject] if c.body_shape else None)  # fmt: skip
+
     def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
         c = self.config
-        x0, joints = batch["points"], batch["joints"]  # (B, N, C), (B, J, 3)
+        x0 = batch["points"]  # (B, N, C)
+        cond = self.condition(batch["joints"], batch["subject"])
         if self.generator is None or self.generator.device != x0.device:
             self.generator = torch.Generator(x0.device)
         self.generator.manual_seed(seed_of(c.seed, 2, step, rank))
         weighting = "min_snr" if c.min_snr_gamma is not None else "none"
-        loss, logs = diffusion_loss(net, x0, joints, self.schedule, c.prediction_type, weighting,
+        loss, logs = diffusion_loss(net, x0, cond, self.schedule, c.prediction_type, weighting,
                                     c.min_snr_gamma or 5.0, generator=self.generator)  # fmt: skip
         return loss, {"loss": logs["loss"], **{k: v for k, v in logs.items() if k.startswith("mse")}}
 
     def check_resume(self, ck: Checkpoint) -> None:
         if ck.normalisation != self.normalisation:
             raise ValueError(f"{self.data}: dataset normalisation differs from the checkpoint's ({ck.path})")
+        stored = [o["name"] for o in ck.meta.get("outfits", [])]
+        if stored and stored != [o["name"] for o in self.outfits]:
+            raise ValueError(f"{self.data}: subjects {[o['name'] for o in self.outfits]} differ from the checkpoint's "
+                             f"outfits {stored} ({ck.path})")  # fmt: skip
+
+    def checkpoint_extra(self, model: nn.Module) -> dict[str, Any]:
+        return {"outfits": self.outfits}
 
     def preview(self, model: nn.Module, step: int, out: Path, device: torch.device) -> Path:
         if self._preview_frames is None:
             self._preview_frames = _sample_frames(self.data, self.config, self.dataset)
         return _render_samples(model, self.schedule, self.config, self.normalisation, self._preview_frames, out, step,
-                               device)  # fmt: skip
+                               device, self.condition)  # fmt: skip
 
 
 def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDataset) -> list[dict[str, Any]]:
     """Two frames (test split if it has any, else train) with fixed point subsets, for the periodic samples."""
     try:
-        ds = PointCloudDataset(data, "test", num_points=None, random_subsample=False)
+        ds = PointCloudDataset(data, "test", num_points=None, random_subsample=False,
+                               subjects=train_set.subject_names)  # fmt: skip
     except ValueError:
         ds = train_set
     picks = sorted({0, len(ds) // 2})
@@ -99,21 +129,24 @@ def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDatas
         n = item["points"].shape[0]
         sel = np.random.default_rng([config.seed, 3, i]).choice(n, min(n, config.num_points), replace=False)
         frames.append({"points": item["points"][sel], "joints": item["joints"], "root": item["root"],
-                       "key": item["frame_key"]})  # fmt: skip
+                       "key": item["frame_key"], "subject": item["subject"]})  # fmt: skip
     return frames
 
 
 @torch.no_grad()
 def _render_samples(model: nn.Module, schedule: NoiseSchedule, config: PocoLocoTrainConfig, norm: Normalisation,
-                    frames: list[dict[str, Any]], out: Path, step: int, device: torch.device) -> Path:  # fmt: skip
-    """DDIM samples (``config.sample_steps`` steps, fixed seeds) from ``model`` for ``frames``; a PNG grid."""
+                    frames: list[dict[str, Any]], out: Path, step: int, device: torch.device,
+                    condition=None) -> Path:  # fmt: skip
+    """DDIM samples (``config.sample_steps`` steps, fixed seeds) from ``model`` for ``frames``; a PNG
+    grid. ``condition(joints, subject ids)``: the conditioning (default: the joints alone)."""
     C = config.denoiser.point_channels
     joints = torch.stack([f["joints"] for f in frames]).to(device)  # (B, J, 3)
+    cond = joints if condition is None else condition(joints, torch.tensor([f["subject"] for f in frames]))
     rng = PerSampleRNG([config.seed * 1000 + k for k in range(len(frames))], device=device)
     noise = rng.randn((config.num_points, C), device=device)  # (B, N, C)
     was_training = model.training
     model.eval()
-    x = sample_ddim(model, schedule, noise, joints, prediction_type=config.prediction_type,
+    x = sample_ddim(model, schedule, noise, cond, prediction_type=config.prediction_type,
                     steps=config.sample_steps, rng=rng)  # fmt: skip
     model.train(was_training)
     clouds = []

@@ -1,0 +1,129 @@
+"""Who wears what: the conditioning a PocoLoco denoiser can take besides the skeleton.
+
+The paper trains one model per subject and conditions on the 3D joints K only. One model for many
+subjects must otherwise guess the outfit from the skeleton's proportions and the pose (and gets it
+wrong: a tight subject with the arms held forward was dressed in an ankle-length dress). So the
+denoisers accept a :class:`PoseCondition`: the joints (B, J, 3) and, when their config asks for them,
+
+* ``outfit`` (B,) int64: an outfit id; a learned embedding (num_outfits, D) gives one token
+  (auto-decoded like POP's geometric features and CloSET's garment codes: a new outfit is fitted
+  by optimising only its embedding, :meth:`WhoWearsWhat.add_outfit`);
+* ``shape`` (B, S) float: the body shape, here anny's phenotype parameters in [0, 1]
+  (``pocoloco.body.anny_body.PHENOTYPE_KEYS`` order); an MLP gives one token.
+
+The tokens join the joint tokens: keys of the cross-attention (transformer) or members of the
+latent stream (latent). A plain (B, J, 3) joints tensor is still accepted where the config has
+neither (``num_outfits = shape_dim = 0``, what every model trained before had).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+__all__ = ["SHAPE_KEYS", "PoseCondition", "WhoWearsWhat", "phenotype_vector", "split_condition"]
+
+#: anny's phenotype parameters, in the order of a body-shape vector (``body.anny_body.PHENOTYPE_KEYS``;
+#: repeated here so the networks do not import the body model)
+SHAPE_KEYS: tuple[str, ...] = ("gender", "age", "muscle", "weight", "height", "proportions")
+
+
+def phenotype_vector(phenotype: dict[str, float] | None) -> list[float]:
+    """An anny phenotype dict (missing keys: anny's default 0.5) -> the (S,) body-shape vector."""
+    phenotype = phenotype or {}
+    unknown = sorted(set(phenotype) - set(SHAPE_KEYS))
+    if unknown:
+        raise ValueError(f"unknown phenotype keys {unknown}; expected some of {SHAPE_KEYS}")
+    return [float(phenotype.get(k, 0.5)) for k in SHAPE_KEYS]
+
+
+@dataclass
+class PoseCondition:
+    """joints (B, J, 3) normalised; outfit (B,) int64 or None; shape (B, S) or None."""
+
+    joints: torch.Tensor
+    outfit: torch.Tensor | None = None
+    shape: torch.Tensor | None = None
+
+    def to(self, device, dtype: torch.dtype | None = None) -> PoseCondition:
+        return PoseCondition(self.joints.to(device=device, dtype=dtype or self.joints.dtype),
+                             None if self.outfit is None else self.outfit.to(device),
+                             None if self.shape is None else self.shape.to(device=device, dtype=dtype or self.shape.dtype))  # fmt: skip
+
+
+def split_condition(cond) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """(joints, outfit, shape) of a :class:`PoseCondition` or of a bare joints tensor."""
+    if isinstance(cond, PoseCondition):
+        return cond.joints, cond.outfit, cond.shape
+    return cond, None, None
+
+
+class WhoWearsWhat(nn.Module):
+    """Outfit embedding and body-shape MLP -> (B, K, D) condition tokens (K = 0, 1 or 2).
+
+    num_outfits: rows of the outfit embedding (0: no outfit token). shape_dim: S (0: no shape
+    token). Each token also gets a learned type embedding so the attention can tell them apart.
+    """
+
+    def __init__(self, width: int, num_outfits: int = 0, shape_dim: int = 0):
+        super().__init__()
+        self.num_outfits, self.shape_dim = int(num_outfits), int(shape_dim)
+        self.outfit_embed = nn.Embedding(num_outfits, width) if num_outfits else None
+        if self.outfit_embed is not None:
+            nn.init.normal_(self.outfit_embed.weight, std=0.02)
+        self.shape_in = (nn.Sequential(nn.Linear(shape_dim, width), nn.GELU(), nn.Linear(width, width))
+                         if shape_dim else None)  # fmt: skip
+
+    @property
+    def num_tokens(self) -> int:
+        return int(self.outfit_embed is not None) + int(self.shape_in is not None)
+
+    def forward(self, outfit: torch.Tensor | None, shape: torch.Tensor | None, batch: int,
+                dtype: torch.dtype) -> torch.Tensor | None:  # fmt: skip
+        """(B, K, D) tokens, or None when the model takes no such conditioning; one-line errors when
+        the model needs an input it was not given (or is given one it has no use for)."""
+        tokens = []
+        if self.outfit_embed is None:
+            if outfit is not None:
+                raise ValueError("this model has no outfit codes (trained without outfits); pass no outfit")
+        else:
+            if outfit is None:
+                raise ValueError(f"this model needs an outfit id (it knows {self.num_outfits} outfits)")
+            outfit = torch.as_tensor(outfit, device=self.outfit_embed.weight.device).long().reshape(-1)
+            if outfit.shape != (batch,):
+                raise ValueError(f"outfit must have shape ({batch},), got {tuple(outfit.shape)}")
+            if int(outfit.min()) < 0 or int(outfit.max()) >= self.num_outfits:
+                raise ValueError(f"outfit ids must be in [0, {self.num_outfits}), got {outfit.tolist()}")
+            tokens.append(self.outfit_embed(outfit))
+        if self.shape_in is None:
+            if shape is not None:
+                raise ValueError("this model takes no body shape (trained without it); pass no shape")
+        else:
+            if shape is None:
+                raise ValueError(f"this model needs the body shape ({self.shape_dim} phenotype values)")
+            if shape.shape != (batch, self.shape_dim):
+                raise ValueError(f"shape must have shape ({batch}, {self.shape_dim}), got {tuple(shape.shape)}")
+            if not torch.isfinite(shape).all():
+                raise ValueError("shape contains NaN or infinite values")
+            tokens.append(self.shape_in(shape.to(self.shape_in[0].weight.dtype)))
+        if not tokens:
+            return None
+        return torch.stack(tokens, dim=1).to(dtype)  # (B, K, D)
+
+    @torch.no_grad()
+    def add_outfit(self, code: torch.Tensor | None = None) -> int:
+        """Append one outfit (its embedding: ``code`` (D,), default the mean of the known ones);
+        returns its id. Rebuild any optimiser afterwards (the Parameter is replaced)."""
+        if self.outfit_embed is None:
+            raise ValueError("this model has no outfit codes to add to")
+        w = self.outfit_embed.weight
+        new = w.mean(0) if code is None else torch.as_tensor(code, dtype=w.dtype, device=w.device).reshape(-1)
+        if new.shape != (w.shape[1],):
+            raise ValueError(f"an outfit code has {w.shape[1]} values, got {tuple(new.shape)}")
+        grown = nn.Embedding(w.shape[0] + 1, w.shape[1]).to(device=w.device, dtype=w.dtype)
+        grown.weight.copy_(torch.cat([w, new[None]], 0))
+        self.outfit_embed = grown
+        self.num_outfits += 1
+        return self.num_outfits - 1
