@@ -254,7 +254,8 @@ def pilot(args) -> dict:
         b, a = m["test_loss_before"], m["test_loss_after"]
         print(f"  {name:<15} {m['parameters']:>9,} params  {m['train_seconds']:6.0f} s  train loss "
               f"{m['train_loss_first10']:.3f} -> {m['train_loss_last10']:.3f}  test loss at {points}: "
-              f"{b[points]:.3f} -> {a[points]:.3f}, at {eval_points}: {b[eval_points]:.3f} -> {a[eval_points]:.3f}")  # fmt: skip
+              f"{b[points]:.3f} -> {a[points]:.3f}, "
+              f"at {eval_points}: {b[eval_points]:.3f} -> {a[eval_points]:.3f}")  # fmt: skip
     return out
 
 
@@ -378,9 +379,10 @@ def main(argv: list[str] | None = None) -> dict:
                 med = statistics.median(ts)
                 results["small_sampling"][f"{threads}thr 1x{points}"] = {"steps": args.sampler_steps, "median": med,
                                                                           "runs": ts}  # fmt: skip
-                print(f"    sampling {lat} 1 x {points}, {args.sampler_steps} calls, {threads} thr: {med:.2f} s", flush=True)
-                rows.append((f"sample, {args.sampler_steps} calls, {threads} thread{'s' if threads > 1 else ''} ({lat})",
-                             f"1 x {points:,}", "-", f"{med:.2f} s", "-"))  # fmt: skip
+                thr = f"{threads} thread{'s' if threads > 1 else ''}"
+                print(f"    sampling {lat} 1 x {points}, {args.sampler_steps} calls, {thr}: {med:.2f} s", flush=True)
+                rows.append((f"sample, {args.sampler_steps} calls, {thr} ({lat})", f"1 x {points:,}", "-",
+                             f"{med:.2f} s", "-"))  # fmt: skip
         torch.set_num_threads(args.threads)
         if not args.no_memory:
             results["small_memory"] = [
