@@ -217,3 +217,31 @@ def test_tiny_overfits_one_batch():
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < 0.7 * losses[0]
+
+
+def test_condition_tokens_shape_the_output_and_are_checked():
+    """Outfit / body-shape tokens (models.conditioning): the output depends on them, a model without
+    them refuses them, a model with them needs them; a grown outfit table keeps the old codes."""
+    from pocoloco.models import denoiser_preset
+    from pocoloco.models.conditioning import PoseCondition
+    from pocoloco.models.pocoloco import PocoLocoDenoiser
+
+    torch.manual_seed(0)
+    net = PocoLocoDenoiser(denoiser_preset("tiny").replace(num_outfits=3, shape_dim=6)).eval()
+    torch.nn.init.normal_(net.out.weight, std=0.1)  # the zero-initialised head would hide everything
+    x, t, j = torch.randn(2, 9, 3), torch.tensor([5, 500]), torch.randn(2, 24, 3)
+    shape = torch.rand(2, 6)
+    a = net(x, t, PoseCondition(j, torch.tensor([0, 1]), shape))
+    b = net(x, t, PoseCondition(j, torch.tensor([2, 1]), shape))
+    assert not torch.allclose(a[0], b[0]) and torch.allclose(a[1], b[1])  # per sample
+    c = net(x, t, PoseCondition(j, torch.tensor([0, 1]), shape + 0.3))
+    assert not torch.allclose(a, c)
+    with pytest.raises(ValueError, match="needs an outfit id"):
+        net(x, t, j)
+    with pytest.raises(ValueError, match=r"outfit ids must be in \[0, 3\)"):
+        net(x, t, PoseCondition(j, torch.tensor([0, 3]), shape))
+    plain = PocoLocoDenoiser(denoiser_preset("tiny"))
+    with pytest.raises(ValueError, match="no outfit"):
+        plain(x, t, PoseCondition(j, torch.tensor([0, 1]), None))
+    new = net.who.add_outfit()
+    assert new == 3 and torch.allclose(net(x, t, PoseCondition(j, torch.tensor([0, 1]), shape)), a)
