@@ -398,6 +398,14 @@ def test_who_wears_what_conditioning_end_to_end(tiny_dataset, tmp_path, capsys, 
     assert cli_main(["sample", "--ckpt", str(out), "--joints", spec, "--num", "1", "--steps", "2", "--points", "32",
                      "--no-render", "--out", str(tmp_path / "s")]) == 0  # fmt: skip
     assert json.loads((tmp_path / "s" / "sample.json").read_text())["outfit"] == spec.split(":")[-1].split("/")[0]
+    # the apps take --outfit too (default: the motion's / pose's subject)
+    motion = spec.rsplit("/", 1)[0]
+    assert cli_main(["animate", "--ckpt", str(out), "--motion", motion, "--frames", "0:2", "--points", "16", "--steps",
+                     "2", "--t", "50", "--no-render", "--out", str(tmp_path / "a")]) == 0  # fmt: skip
+    assert cli_main(["animate", "--ckpt", str(out), "--motion", motion, "--frames", "0:2", "--points", "16", "--steps",
+                     "2", "--t", "50", "--no-render", "--outfit", subjects[-1], "--out", str(tmp_path / "b")]) == 0  # fmt: skip
+    code = cli_main(["animate", "--ckpt", str(out), "--motion", motion, "--outfit", "nobody", "--out", str(tmp_path / "c")])
+    assert code == 2 and "was never trained" in capsys.readouterr().err
     # a joints-only model: no outfits, and --outfit is a one-line error
     plain = train(tiny(steps=1), tiny_dataset, tmp_path / "plain", progress=False)
     assert plain.step == 1

@@ -27,6 +27,7 @@ from pocoloco.cli.common import (
     add_threads_argument,
     check_app_args,
     load_method_from_args,
+    pick_outfit,
     progress_bar,
 )
 from pocoloco.data.poses import load_joints
@@ -74,7 +75,9 @@ def cmd_complete(args: argparse.Namespace) -> None:
         raise ValueError(f"--coverage-radius must be > 0, got {args.coverage_radius}")
     partial, normals = read_cloud(args.partial)
     method = load_method_from_args(args, expect="pocoloco")
-    model, normalisation, config, ckpt, step = method.model, method.normalisation, method.config, method.path, method.step
+    outfit = pick_outfit(method, args.outfit, args.joints)
+    model = method.denoiser_for(outfit)
+    normalisation, config, ckpt, step = method.normalisation, method.config, method.path, method.step
     joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, config.num_timesteps)
     seeds = [args.seed + k for k in range(args.num)]
@@ -153,7 +156,9 @@ def cmd_edit(args: argparse.Namespace) -> None:
         raise ValueError(f"--threshold must be > 0, got {args.threshold}")
     source, normals = read_cloud(args.source)
     method = load_method_from_args(args, expect="pocoloco")
-    model, normalisation, config, ckpt, step = method.model, method.normalisation, method.config, method.path, method.step
+    outfit = pick_outfit(method, args.outfit, args.joints)
+    model = method.denoiser_for(outfit)
+    normalisation, config, ckpt, step = method.normalisation, method.config, method.path, method.step
     J = config.denoiser.num_joints
     target = load_joints(args.joints, None, J, any_pose=args.any_pose)
     src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J, any_pose=args.any_pose)
@@ -257,7 +262,9 @@ def cmd_animate(args: argparse.Namespace) -> None:
     if not args.fps > 0:
         raise ValueError(f"--fps must be > 0, got {args.fps}")
     method = load_method_from_args(args, expect="pocoloco")
-    model, normalisation, config, ckpt, step = method.model, method.normalisation, method.config, method.path, method.step
+    outfit = pick_outfit(method, args.outfit, args.motion)
+    model = method.denoiser_for(outfit)
+    normalisation, config, ckpt, step = method.normalisation, method.config, method.path, method.step
     motion = load_motion(args.motion, config.denoiser.num_joints, any_pose=args.any_pose)
     chosen = _parse_frames(args.frames, len(motion.joints))
     check_sampler(args.sampler, args.steps, config.num_timesteps)

@@ -12,13 +12,14 @@ from typing import Any
 
 import torch
 
+from pocoloco.data.poses import subject_of_spec
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods import Method, load_method
 from pocoloco.utils.atomic import output_folder
 
 __all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "add_any_pose_argument", "add_app_arguments", "add_device_argument", "add_threads_argument",
-           "apply_threads", "check_app_args", "choose_device", "console", "load_method_from_args", "progress_bar",
+           "apply_threads", "check_app_args", "choose_device", "pick_outfit", "console", "load_method_from_args", "progress_bar",
            "run_command"]  # fmt: skip
 
 EXIT_USER_ERROR = 2
@@ -101,6 +102,19 @@ def choose_device(arg: str | None) -> torch.device:
     return device
 
 
+def pick_outfit(method: Method, outfit: str | None, spec: str | None) -> int | None:
+    """``--outfit``'s id: the one named, else the subject of a ``DATASET:...`` spec; None for models
+    without outfits (which refuse an ``--outfit``); a one-line error when none can be chosen."""
+    names = method.outfit_names()
+    if not names:
+        method.outfit_id(outfit)  # refuses a given outfit
+        return None
+    name = outfit if outfit is not None else (subject_of_spec(os.fspath(spec)) if spec is not None else None)
+    if name is None or (outfit is None and name not in names):
+        raise ValueError(f"--outfit is required (this {method.kind} checkpoint has outfits {', '.join(names)})")
+    return method.outfit_id(name)
+
+
 def load_method_from_args(args: argparse.Namespace, expect: str | tuple[str, ...] | None = None) -> Method:
     """The model of ``--ckpt`` on ``--device`` (``--raw-weights``: the raw weights instead of the EMA)."""
     device = choose_device(getattr(args, "device", None))
@@ -141,6 +155,8 @@ def add_app_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
                         help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde)")  # fmt: skip
     parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50; at most t)")
     parser.add_argument("--seed", type=int, default=0, help="output k uses seed SEED + k (default 0)")
+    parser.add_argument("--outfit", help="models that know who wears what: outfit name or id (default: the subject "
+                                         "of a DATASET:... pose or motion)")  # fmt: skip
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
     add_any_pose_argument(parser)
     add_device_argument(parser)

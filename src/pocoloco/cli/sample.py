@@ -8,8 +8,9 @@ import time
 
 import torch
 
-from pocoloco.cli.common import add_any_pose_argument, add_device_argument, add_threads_argument, load_method_from_args
-from pocoloco.data.poses import pose_spec_kind, subject_of_spec
+from pocoloco.cli.common import (add_any_pose_argument, add_device_argument, add_threads_argument,
+                                 load_method_from_args, pick_outfit)
+from pocoloco.data.poses import pose_spec_kind
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.methods import SamplerOptions
 from pocoloco.methods.outputs import write_samples
@@ -41,17 +42,9 @@ def cmd_sample(args: argparse.Namespace) -> None:
                              batch_size=args.batch_size)  # fmt: skip
     if not method.deterministic and args.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
-    outfit = None
-    if method.outfit_names():
-        if method.needs_body:
-            pose_spec_kind(spec)  # bare joints: the one-line error first
-        name = args.outfit if args.outfit is not None else subject_of_spec(spec)
-        if name is None or (args.outfit is None and name not in method.outfit_names()):
-            raise ValueError(f"--outfit is required (this {method.kind} checkpoint has outfits "
-                             f"{', '.join(method.outfit_names())})")  # fmt: skip
-        outfit = method.outfit_id(name)
-    elif args.outfit is not None:
-        method.outfit_id(args.outfit)  # one line: this model has no outfit codes
+    if method.needs_body:
+        pose_spec_kind(spec)  # bare joints: the one-line error first
+    outfit = pick_outfit(method, args.outfit, spec)
     pose = method.load_pose(spec, outfit, args.frame_id, any_pose=args.any_pose)
     method.check_options(options)
     seeds = [args.seed + k for k in range(num)]

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-__all__ = ["SHAPE_KEYS", "PoseCondition", "WhoWearsWhat", "phenotype_vector", "split_condition"]
+__all__ = ["SHAPE_KEYS", "OutfitBound", "PoseCondition", "WhoWearsWhat", "phenotype_vector", "split_condition"]
 
 #: anny's phenotype parameters, in the order of a body-shape vector (``body.anny_body.PHENOTYPE_KEYS``;
 #: repeated here so the networks do not import the body model)
@@ -127,3 +127,29 @@ class WhoWearsWhat(nn.Module):
         self.outfit_embed = grown
         self.num_outfits += 1
         return self.num_outfits - 1
+
+
+class OutfitBound(nn.Module):
+    """A conditioned denoiser with one outfit and body shape bound in: ``forward(x, t, joints)`` like a
+    joints-only model, so code written for those (samplers, completion, editing, animation) runs
+    unchanged. outfit: an id or None; shape: (S,) or None."""
+
+    def __init__(self, model: nn.Module, outfit: int | None, shape=None):
+        super().__init__()
+        self.model, self.outfit = model, outfit
+        self.register_buffer("shape", None if shape is None else torch.as_tensor(shape, dtype=torch.float32),
+                             persistent=False)  # fmt: skip
+
+    @property
+    def prediction_type(self) -> str:
+        return self.model.prediction_type
+
+    @property
+    def config(self):
+        return self.model.config
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+        B = joints.shape[0]
+        outfit = None if self.outfit is None else torch.full((B,), int(self.outfit), device=joints.device)
+        shape = None if self.shape is None else self.shape.to(device=joints.device, dtype=joints.dtype).expand(B, -1)
+        return self.model(x, t, PoseCondition(joints, outfit, shape))

@@ -18,7 +18,7 @@ from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.sampling import sample_clouds
 from pocoloco.methods.pocoloco.training import PocoLocoTask
-from pocoloco.models.conditioning import phenotype_vector
+from pocoloco.models.conditioning import OutfitBound, phenotype_vector
 from pocoloco.models.denoisers import build_denoiser
 
 __all__ = ["LoadedDenoiser", "PocoLocoMethod", "load_denoiser"]
@@ -47,6 +47,17 @@ class PocoLocoMethod(Method):
 
     def outfit_names(self) -> list[str]:
         return [o["name"] for o in self.outfits] if self.knows_who_wears_what else []
+
+    def denoiser_for(self, outfit: int | None):
+        """The network with ``outfit`` (its code and body shape) bound in, called like a joints-only
+        denoiser (what the apps run); the network itself for a joints-only model."""
+        if not self.knows_who_wears_what:
+            self.outfit_id(outfit)  # any outfit is a one-line error
+            return self.model
+        if outfit is None:
+            raise ValueError(f"--outfit is required (this PocoLoco checkpoint knows outfits {', '.join(self.outfit_names())})")
+        kw = self.condition(outfit)
+        return OutfitBound(self.model, kw["outfit"], kw["shape"])
 
     def condition(self, outfit: int | None) -> dict[str, Any]:
         """``sample_clouds`` keyword arguments (``outfit``, ``shape``) for outfit id ``outfit``."""
