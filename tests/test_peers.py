@@ -121,6 +121,9 @@ def test_checkpoint_kind_mismatch_is_one_line(runs, tiny_run, tiny_dataset, test
     assert "'closet'" in err and "'pocoloco'" in err
     err = _one_line_error(capsys, main(["fit", "--ckpt", str(runs["closet"]), "--scan", str(scan), "--frame",
                                         test_frame[0], "--out", str(tmp_path / "f")]))  # fmt: skip
+    assert "this CloSET checkpoint cannot fit a new outfit" in err
+    err = _one_line_error(capsys, main(["fit", "--model", "pop", "--ckpt", str(runs["closet"]), "--scan", str(scan),
+                                        "--frame", test_frame[0], "--out", str(tmp_path / "f")]))  # fmt: skip
     assert "checkpoint is of model 'closet', expected 'pop'" in err
     assert not (tmp_path / "f").exists() and not (tmp_path / "c").exists()
 

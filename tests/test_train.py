@@ -412,3 +412,45 @@ def test_who_wears_what_conditioning_end_to_end(tiny_dataset, tmp_path, capsys, 
     code = cli_main(["sample", "--ckpt", str(tmp_path / "plain"), "--joints", "demo:skirt", "--outfit", "skirt",
                      "--out", str(tmp_path / "y")])  # fmt: skip
     assert code == 2 and "has none" in capsys.readouterr().err
+
+
+def test_pocoloco_fits_an_unseen_outfit_code(tiny_dataset, tmp_path, capsys):
+    """`pocoloco fit` on a PocoLoco trained with --outfit-codes on one subject: only a new outfit code
+    is optimised (the network is unchanged), from scans of the other subject (two scans, two poses);
+    the fitted checkpoint samples the new outfit; a joints-only PocoLoco cannot fit."""
+    from pocoloco.cli import main as cli_main
+    from pocoloco.data import format as fmt
+    from pocoloco.data.published import write_ply
+    from pocoloco.methods import load_method
+
+    run = tmp_path / "run"
+    assert cli_main(["train", "--data", str(tiny_dataset), "--out", str(run), "--preset", "latent_tiny", "--steps",
+                     "2", "--sample-every", "0", "--outfit-codes", "--body-shape", "--subjects", "tight",
+                     "--no-progress", "--threads", "1"]) == 0  # fmt: skip
+    layout = fmt.DatasetLayout(tiny_dataset)
+    frames = [f for f in layout.iter_frames("test") if f[0] == "skirt"][:2]
+    argv = ["fit", "--ckpt", str(run), "--steps", "12", "--name", "skirt_new", "--points", "128", "--out",
+            str(tmp_path / "fitted"), "--scan"]  # fmt: skip
+    specs = []
+    for k, (subject, seq, path) in enumerate(frames):
+        fr = fmt.read_frame(path, ["points", "frame_index"])
+        write_ply(tmp_path / f"scan{k}.ply", fr.points[::4])
+        argv.append(str(tmp_path / f"scan{k}.ply"))
+        specs.append(f"{tiny_dataset}:{subject}/test/{seq}/{int(fr.frame_index)}")
+    assert cli_main([*argv, "--frame", *specs]) == 0, capsys.readouterr().err
+    rep = json.loads((tmp_path / "fitted" / "fit.json").read_text())
+    assert rep["model_kind"] == "pocoloco" and len(rep["scans"]) == 2 and rep["outfit_id"] == 1
+    assert np.isfinite(rep["after"]["chamfer_cm"]) and np.isfinite(rep["before_mean_outfit"]["chamfer_cm"])
+    old, new = load_method(run), load_method(tmp_path / "fitted")
+    assert new.outfit_names() == ["tight", "skirt_new"] and new.model.config.num_outfits == 2
+    for k, v in old.model.state_dict().items():  # only the outfit table grew
+        w = new.model.state_dict()[k]
+        assert torch.equal(w[: v.shape[0]] if "outfit_embed" in k else w, v), k
+    assert not torch.equal(new.model.who.outfit_embed.weight[1], old.model.who.outfit_embed.weight[0])
+    assert cli_main(["sample", "--ckpt", str(tmp_path / "fitted"), "--outfit", "skirt_new", "--joints", specs[0],
+                     "--num", "1", "--steps", "2", "--points", "32", "--no-render", "--out", str(tmp_path / "s")]) == 0  # fmt: skip
+    plain = tmp_path / "plain"
+    train(tiny(steps=1), tiny_dataset, plain, progress=False)
+    assert cli_main(["fit", "--ckpt", str(plain), "--scan", str(tmp_path / "scan0.ply"), "--frame", specs[0],
+                     "--out", str(tmp_path / "f2")]) == 2  # fmt: skip
+    assert "cannot fit a new outfit" in capsys.readouterr().err

@@ -1,26 +1,30 @@
 """Fitting an outfit a model never saw to one scan (``pocoloco fit``), and its before / after report.
 
-The method does the fitting (POP: only a new geometric feature tensor is optimised against the
-scan, paper Sec. 3.3 / Eq. 7, from the mean of the trained outfits; the network is frozen); this
-module checks the inputs, scores the model on the scan before (the mean outfit, where fitting
-starts, and the best trained outfit) and after fitting, and writes a new checkpoint with the outfit
-added (then ``pocoloco sample --outfit NAME`` animates it in new poses) and ``fit.json``.
+The method does the fitting (POP: only a new geometric feature tensor is optimised against one
+scan, paper Sec. 3.3 / Eq. 7; PocoLoco: only a new outfit code, with the diffusion loss, on one or
+a few scans; both start from the mean of the trained outfits, the network frozen); this module
+checks the inputs, scores the model on the scan before (the mean outfit, where fitting starts, and
+the best trained outfit) and after fitting, and writes a new checkpoint with the outfit added (then
+``pocoloco sample --outfit NAME`` puts it in new poses) and ``fit.json``.
 """
 
 from __future__ import annotations
 
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from pocoloco.data.format import read_frame
 from pocoloco.data.poses import dataset_frame_path
 from pocoloco.data.published import read_ply
 from pocoloco.engine.checkpoint import META_FILE, latest_checkpoint
 from pocoloco.evaluation.metrics import evaluate_frame
-from pocoloco.methods import METHODS, load_method
+from pocoloco.methods import load_method
+from pocoloco.models.conditioning import phenotype_vector
 from pocoloco.utils.atomic import write_json_atomic
 
 __all__ = ["MIN_SCAN_POINTS", "FitReport", "fit_outfit"]
@@ -49,78 +53,102 @@ def _score(pred_points, pred_normals, scan, scan_n) -> dict[str, float]:
     return {k: float(m[k]) for k in ("chamfer_cm", "s2m_cm", "m2s_cm", "pop_chamfer_e-4m2", "normal_l1_e-1") if k in m}
 
 
-def fit_outfit(ckpt: str | os.PathLike, scan_path: str | os.PathLike, frame_spec: str, out: str | os.PathLike,
+def _read_scan(path: str | os.PathLike, need_normals: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    ply = read_ply(path, require_normals=need_normals)
+    scan, scan_n = ply.points, ply.normals
+    if len(scan) < MIN_SCAN_POINTS:
+        raise ValueError(f"{path}: scan has {len(scan)} points; fitting needs at least {MIN_SCAN_POINTS}")
+    if scan_n is None:
+        return scan, None
+    lens = np.linalg.norm(scan_n, axis=1)
+    if not (lens > 1e-6).all():
+        if need_normals:
+            raise ValueError(f"{path}: {int((lens <= 1e-6).sum())} normals are zero; the point-to-plane loss needs normals")
+        return scan, None
+    return scan, (scan_n / lens[:, None]).astype(np.float32)
+
+
+def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike, str]], out: str | os.PathLike,
                name: str | None = None, steps: int = 400, lr: float | None = None, num_points: int | None = None,
                seed: int = 0, progress=None) -> FitReport:  # fmt: skip
-    """Fit a new outfit to one scan with a method that can (POP: paper Eq. 7) and write ``out`` = a
-    new checkpoint folder with the outfit appended (atomic), plus ``out/fit.json``.
+    """Fit a new outfit to scans of a garment the model never saw and write ``out`` = a new checkpoint
+    folder with the outfit appended (atomic), plus ``out/fit.json``.
 
-    The scan (PLY with normals, world frame of ``frame_spec``'s body) is subsampled to
-    ``num_points`` (default: the model's ``num_scan_points``). Only the new (1, Cg, Ri, Ri)
-    geometric feature tensor is optimised, from the mean of the trained outfits (the paper's
-    init); the network is frozen. Chamfer is reported before (the mean outfit = the start point;
-    and the best trained outfit) and after fitting, on the scan, with the model's query points.
+    scans: [(PLY path, ``DATASET:subject/split/sequence/index`` of the body and pose it was captured
+    in)], world frame of that frame's body; POP takes one scan (paper Eq. 7; its loss needs the
+    normals), PocoLoco one or a few. Each scan is subsampled to ``num_points`` (default: the model's
+    own). Only the new outfit code is optimised (POP: its geometric feature tensor; PocoLoco: its
+    outfit embedding, with the diffusion loss), from the mean of the trained outfits; the network is
+    frozen. Chamfer is reported on the first scan before (the mean outfit = the start point; the best
+    trained outfit) and after fitting, with the same seeds for every row.
     """
-    loaded = load_method(ckpt, expect=tuple(k for k, c in METHODS.items() if c.fits_outfits))
+    loaded = load_method(ckpt)
     if not loaded.fits_outfits:
-        raise ValueError(f"{loaded.path}: {loaded.title} cannot fit a new outfit to a scan; POP can "
-                         "(e.g. --ckpt default:pop)")  # fmt: skip
+        raise ValueError(f"{loaded.path}: this {loaded.title} checkpoint cannot fit a new outfit (POP can, and PocoLoco "
+                         "trained with --outfit-codes)")  # fmt: skip
     if isinstance(steps, bool) or steps < 1:
         raise ValueError(f"--steps must be >= 1, got {steps}")
+    if not scans:
+        raise ValueError("fitting needs at least one --scan")
     out = Path(out)
     if latest_checkpoint(out / "checkpoints") is not None or (out / META_FILE).exists():
         raise ValueError(f"{out}: already holds a checkpoint; choose another --out")
     if name is None:
-        name = Path(scan_path).stem
+        name = Path(scans[0][0]).stem
     if name in loaded.outfit_names():
         raise ValueError(f"outfit name {name!r} already exists in {loaded.path}; pass another --name")
     if name.lstrip("-").isdigit():
         raise ValueError(f"--name {name!r}: outfit names must not be plain integers (they would read as ids)")
-    ply = read_ply(scan_path, require_normals=True)
-    scan, scan_n = ply.points, ply.normals
-    if len(scan) < MIN_SCAN_POINTS:
-        raise ValueError(f"{scan_path}: scan has {len(scan)} points; fitting needs at least {MIN_SCAN_POINTS}")
-    lens = np.linalg.norm(scan_n, axis=1)
-    if not (lens > 1e-6).all():
-        raise ValueError(f"{scan_path}: {int((lens <= 1e-6).sum())} normals are zero; the point-to-plane loss needs normals")
-    scan_n = (scan_n / lens[:, None]).astype(np.float32)
-    n_fit = min(len(scan), num_points or loaded.model.config.num_scan_points)
-    sel = np.sort(np.random.default_rng([seed, 6]).choice(len(scan), n_fit, replace=False))
-    subject = frame_spec.rpartition(":")[2].strip("/").split("/")[0]
-    pose = loaded.pose_from_frame(dataset_frame_path(frame_spec), subject)
+    read = [_read_scan(path, loaded.fit_needs_normals) for path, _ in scans]
+    n_fit = num_points or loaded.fit_points()
+    fit_scans, poses = [], []
+    for k, ((path, frame_spec), (scan, scan_n)) in enumerate(zip(scans, read, strict=True)):
+        sel = np.sort(np.random.default_rng([seed, 6, k]).choice(len(scan), min(len(scan), n_fit), replace=False))
+        subject = frame_spec.rpartition(":")[2].strip("/").split("/")[0]
+        pose = loaded.pose_from_frame(dataset_frame_path(frame_spec), subject,
+                                      frame=read_frame(dataset_frame_path(frame_spec)))  # fmt: skip
+        fit_scans.append((scan[sel], None if scan_n is None else scan_n[sel], pose))
+        poses.append(pose)
+    trained_names = loaded.outfit_names()
+    subject = poses[0].subject
+    phenotype = loaded.outfits[0].get("phenotype", {})
+    if subject in trained_names:  # the body the scans were taken on
+        phenotype = loaded.outfits[loaded.outfit_id(subject)].get("phenotype", {})
+    body_outfit = trained_names.index(subject) if subject in trained_names else 0  # whose body shape to use
     t0 = time.perf_counter()
-    fit = loaded.fit_outfit(scan[sel], scan_n[sel], pose, steps=steps, lr=lr, progress=progress)
+    fit = loaded.fit_outfit(fit_scans, steps=steps, lr=lr, progress=progress, shape=phenotype_vector(phenotype),
+                            seed=seed)  # fmt: skip
     seconds = time.perf_counter() - t0
 
+    scan, scan_n = read[0]
     n_eval = min(len(scan), 10_000)
     esel = np.sort(np.random.default_rng([seed, 7]).choice(len(scan), n_eval, replace=False))
-    gt, gt_n = scan[esel].astype(np.float64), scan_n[esel].astype(np.float64)
+    gt, gt_n = scan[esel].astype(np.float64), None if scan_n is None else scan_n[esel].astype(np.float64)
 
-    def score(geom=None, outfit=0):
-        c = loaded.predict(pose, n_eval, (seed,), outfit=outfit, geom=geom)
-        return _score(c.points[0], c.normals[0], gt, gt_n)
+    def score(code=None, outfit=0):
+        c = loaded.predict(poses[0], n_eval, (seed,), outfit=outfit, code=code)
+        return _score(c.points[0], None if c.normals is None else c.normals[0], gt, gt_n)
 
-    before_mean = score(geom=loaded.mean_outfit_code())
-    trained_names = loaded.outfit_names()
+    before_mean = score(code=loaded.mean_outfit_code(), outfit=body_outfit)
     per_outfit = [score(outfit=i) for i in range(len(trained_names))]
     best = int(np.argmin([m["chamfer_cm"] for m in per_outfit]))
-    after = score(geom=fit.features)
+    after = score(code=fit.features, outfit=body_outfit)
 
-    phenotype = loaded.outfits[0].get("phenotype", {})
-    if subject in trained_names:  # the body the scan was fitted on
-        phenotype = loaded.outfits[loaded.outfit_id(subject)].get("phenotype", {})
-    new_id = loaded.add_outfit(fit.features, {"name": name, "phenotype": phenotype,
-                                              "source": f"fitted to {os.fspath(scan_path)} (body of {frame_spec})"})  # fmt: skip
+    sources = "; ".join(f"{os.fspath(p)} (body of {f})" for p, f in scans)
+    new_id = loaded.add_outfit(fit.features, {"name": name, "phenotype": phenotype, "source": f"fitted to {sources}"})
     from_path = str(loaded.path)
     path = loaded.save(out / "checkpoints", extra={"fitted_from": from_path})
     report = FitReport(path, name, new_id, before_mean, per_outfit[best], trained_names[best], after,
                        fit.losses, seconds)  # fmt: skip
     write_json_atomic(out / "fit.json", {
-        "checkpoint": str(path), "from": from_path, "scan": os.fspath(scan_path), "frame": frame_spec,
-        "outfit": name, "outfit_id": new_id, "steps": steps, "scan_points_fit": n_fit, "eval_points": n_eval,
-        "before_mean_outfit": before_mean, "before_nearest_outfit": {"outfit": report.nearest_outfit, **per_outfit[best]},
-        "after": after, "loss_first": fit.losses[0], "loss_last": fit.losses[-1], "seconds": seconds,
-        "note": "Chamfer on the scan (10K points at most) with the same number of model points; 'before' = the mean of "
-                "the trained outfits' features (where fitting starts) and the best single trained outfit",
+        "checkpoint": str(path), "from": from_path, "model_kind": loaded.kind,
+        "scans": [{"scan": os.fspath(p), "frame": f} for p, f in scans], "scan": os.fspath(scans[0][0]),
+        "frame": scans[0][1], "outfit": name, "outfit_id": new_id, "steps": steps, "scan_points_fit": n_fit,
+        "eval_points": n_eval, "before_mean_outfit": before_mean,
+        "before_nearest_outfit": {"outfit": report.nearest_outfit, **per_outfit[best]}, "after": after,
+        "loss_first": fit.losses[0], "loss_last": fit.losses[-1], "seconds": seconds,
+        "note": "Chamfer on the first scan (10K points at most) with the same number of model points and the same "
+                "seed for every row; 'before' = the mean of the trained outfits' codes (where fitting starts) and "
+                "the best single trained outfit",
     })  # fmt: skip
     return report

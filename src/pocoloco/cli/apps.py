@@ -33,6 +33,7 @@ from pocoloco.cli.common import (
 from pocoloco.data.poses import load_joints
 from pocoloco.data.published import write_ply
 from pocoloco.diffusion.samplers import check_sampler
+from pocoloco.methods import checkpoint_kind
 from pocoloco.utils.atomic import jsonable, write_json_atomic
 from pocoloco.viz.render import render_gif, render_grid
 
@@ -310,31 +311,40 @@ def cmd_animate(args: argparse.Namespace) -> None:
 # ----------------------------------------------------------------------------------------- fit
 def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco fit`` options."""
-    parser.add_argument("--model", default="pop", choices=("pop",),
-                        help="the kind of --ckpt (only POP fits unseen outfits so far, paper Sec. 3.3)")  # fmt: skip
-    parser.add_argument("--ckpt", required=True, help="trained POP checkpoint / run folder")
-    parser.add_argument("--scan", required=True, help="PLY of the unseen outfit with normals (world frame of --frame)")
-    parser.add_argument("--frame", required=True,
-                        help="DATASET:subject/split/sequence/index: the body and pose the scan was taken in")  # fmt: skip
-    parser.add_argument("--name", help="name of the new outfit (default: the scan file's stem)")
-    parser.add_argument("--steps", type=int, default=400, help="Adam steps (default 400, as the paper)")
-    parser.add_argument("--lr", type=float, help="learning rate (default: the model's feature lr)")
-    parser.add_argument("--points", type=int, help="scan points used by the loss (default: the model's)")
+    parser.add_argument("--model", choices=("pop", "pocoloco"),
+                        help="the kind --ckpt must be (checked; default: whatever it is): POP fits its geometric "
+                             "features to one scan (paper Sec. 3.3), PocoLoco trained with --outfit-codes an outfit "
+                             "code to one or a few scans")  # fmt: skip
+    parser.add_argument("--ckpt", required=True, help="trained POP or PocoLoco checkpoint / run folder")
+    parser.add_argument("--scan", required=True, nargs="+",
+                        help="PLY(s) of the unseen outfit (world frame of the matching --frame; POP needs normals)")  # fmt: skip
+    parser.add_argument("--frame", required=True, nargs="+",
+                        help="DATASET:subject/split/sequence/index per --scan: the body and pose it was taken in")  # fmt: skip
+    parser.add_argument("--name", help="name of the new outfit (default: the first scan file's stem)")
+    parser.add_argument("--steps", type=int, default=400, help="Adam steps (default 400, as the POP paper)")
+    parser.add_argument("--lr", type=float, help="learning rate (default: POP's feature lr; PocoLoco 1e-2)")
+    parser.add_argument("--points", type=int, help="scan points per cloud used by the loss (default: the model's)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scan points used and scored (default 0)")
     add_threads_argument(parser)
     parser.add_argument("--out", required=True, help="new folder: the checkpoint with the added outfit + fit.json")
 
 
 def cmd_fit(args: argparse.Namespace) -> None:
+    if len(args.scan) != len(args.frame):
+        raise ValueError(f"give one --frame per --scan: {len(args.scan)} scans, {len(args.frame)} frames")
+    if args.model is not None:
+        kind = checkpoint_kind(args.ckpt)
+        if kind != args.model:
+            raise ValueError(f"--ckpt {args.ckpt}: checkpoint is of model {kind!r}, expected {args.model!r} (--model)")
     with progress_bar("fit", total=args.steps, loss=True) as update:
-        rep = fit_outfit(args.ckpt, args.scan, args.frame, args.out, name=args.name, steps=args.steps, lr=args.lr,
-                         num_points=args.points, seed=args.seed,
+        rep = fit_outfit(args.ckpt, list(zip(args.scan, args.frame)), args.out, name=args.name, steps=args.steps,
+                         lr=args.lr, num_points=args.points, seed=args.seed,
                          progress=lambda d, n, loss: update(d, loss=f"{loss:.3f}"))  # fmt: skip
     b, nb, a = rep.before_mean, rep.before_nearest, rep.after
     print(f"outfit {rep.outfit!r} (id {rep.outfit_id}) fitted in {rep.seconds:.1f} s: Chamfer {b['chamfer_cm']:.2f} cm "
           f"(mean outfit) / {nb['chamfer_cm']:.2f} cm (nearest trained outfit {rep.nearest_outfit!r}) -> "
           f"{a['chamfer_cm']:.2f} cm; CD {b['pop_chamfer_e-4m2']:.2f} -> {a['pop_chamfer_e-4m2']:.2f} 1e-4 m^2")  # fmt: skip
-    print(f"wrote {rep.checkpoint} and {Path(args.out) / 'fit.json'}; animate it with "
+    print(f"wrote {rep.checkpoint} and {Path(args.out) / 'fit.json'}; pose it with "
           f"`pocoloco sample --ckpt {args.out} --outfit {rep.outfit} --joints DATASET:subject/split/sequence/index`")
 
 

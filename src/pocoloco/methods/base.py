@@ -83,8 +83,11 @@ class Method(ABC):
     kind: ClassVar[str]
     deterministic: ClassVar[bool] = False
     needs_body: ClassVar[bool] = False
-    #: can fit a new outfit to a scan (``fit_outfit``, ``mean_outfit_code``, ``add_outfit``)
+    #: can fit a new outfit to scans (``fit_outfit``, ``fit_points``, ``mean_outfit_code``,
+    #: ``add_outfit``; ``predict(..., code=...)``); a model may decide per checkpoint (a property)
     fits_outfits: ClassVar[bool] = False
+    #: the fit needs the scans' normals (POP's point-to-plane loss)
+    fit_needs_normals: ClassVar[bool] = False
     #: keyword options of :meth:`preset` beyond the config's fields (CloSET: ``decomposition``)
     train_options: ClassVar[frozenset[str]] = frozenset()
     train_config: ClassVar[type]

@@ -415,16 +415,16 @@ class SkinnedMethod(Method):
 
     # ---------------------------------------------------------------------------- predicting
     @abstractmethod
-    def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, geom: torch.Tensor | None = None):
+    def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, code: torch.Tensor | None = None):
         """The network's output (``points`` (1, N, 3), ``normals`` (1, N, 3), pelvis-centred) in eval mode."""
 
     @torch.no_grad()
     def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
-                options: SamplerOptions = SamplerOptions(), geom: torch.Tensor | None = None) -> SampledClouds:  # fmt: skip
+                options: SamplerOptions = SamplerOptions(), code: torch.Tensor | None = None) -> SampledClouds:  # fmt: skip
         """One deterministic cloud of ``num_points`` for ``pose`` and ``outfit`` (default: the pose's
         subject), metres, in the frame of ``pose`` (the root joint added back). ``seeds``: one seed,
-        which picks the query points. ``geom``: outfit features to use instead of ``outfit``'s
-        (POP's unseen-outfit fitting)."""
+        which picks the query points. ``code``: outfit features to use instead of ``outfit``'s
+        (POP's unseen-outfit fitting: a (1, Cg, Ri, Ri) geometric feature tensor)."""
         if num_points < 1:
             raise ValueError(f"num_points must be >= 1, got {num_points}")
         if len(seeds) != 1:
@@ -437,7 +437,7 @@ class SkinnedMethod(Method):
         was_training = model.training
         model.eval()
         try:
-            out = self._predict_one(pose, outfit, num_points, int(seeds[0]), geom=geom)
+            out = self._predict_one(pose, outfit, num_points, int(seeds[0]), code=code)
         finally:
             model.train(was_training)
         root = np.asarray(pose.joints[0], np.float32)

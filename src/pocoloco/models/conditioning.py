@@ -41,22 +41,20 @@ def phenotype_vector(phenotype: dict[str, float] | None) -> list[float]:
 
 @dataclass
 class PoseCondition:
-    """joints (B, J, 3) normalised; outfit (B,) int64 or None; shape (B, S) or None."""
+    """joints (B, J, 3) normalised; outfit (B,) int64 or None; shape (B, S) or None; code (B, D) or
+    None: an outfit embedding given directly instead of an id (fitting a new outfit)."""
 
     joints: torch.Tensor
     outfit: torch.Tensor | None = None
     shape: torch.Tensor | None = None
-
-    def to(self, device, dtype: torch.dtype | None = None) -> PoseCondition:
-        return PoseCondition(self.joints.to(device=device, dtype=dtype or self.joints.dtype),
-                             None if self.outfit is None else self.outfit.to(device),
-                             None if self.shape is None else self.shape.to(device=device, dtype=dtype or self.shape.dtype))  # fmt: skip
+    code: torch.Tensor | None = None
 
 
-def split_condition(cond) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """(joints, outfit, shape) of a :class:`PoseCondition` or of a bare joints tensor."""
+def split_condition(cond) -> tuple[torch.Tensor, torch.Tensor | torch.Tensor | None, torch.Tensor | None]:
+    """(joints, outfit, shape) of a :class:`PoseCondition` or of a bare joints tensor; ``outfit`` is
+    the (B, D) code instead of the (B,) ids when the condition carries one."""
     if isinstance(cond, PoseCondition):
-        return cond.joints, cond.outfit, cond.shape
+        return cond.joints, (cond.code if cond.code is not None else cond.outfit), cond.shape
     return cond, None, None
 
 
@@ -91,12 +89,18 @@ class WhoWearsWhat(nn.Module):
         else:
             if outfit is None:
                 raise ValueError(f"this model needs an outfit id (it knows {self.num_outfits} outfits)")
-            outfit = torch.as_tensor(outfit, device=self.outfit_embed.weight.device).long().reshape(-1)
-            if outfit.shape != (batch,):
-                raise ValueError(f"outfit must have shape ({batch},), got {tuple(outfit.shape)}")
-            if int(outfit.min()) < 0 or int(outfit.max()) >= self.num_outfits:
-                raise ValueError(f"outfit ids must be in [0, {self.num_outfits}), got {outfit.tolist()}")
-            tokens.append(self.outfit_embed(outfit))
+            if torch.is_tensor(outfit) and outfit.is_floating_point():  # (B, D) codes given directly
+                if outfit.shape != (batch, self.outfit_embed.embedding_dim):
+                    raise ValueError(f"outfit codes must have shape ({batch}, {self.outfit_embed.embedding_dim}), "
+                                     f"got {tuple(outfit.shape)}")  # fmt: skip
+                tokens.append(outfit)
+            else:
+                outfit = torch.as_tensor(outfit, device=self.outfit_embed.weight.device).long().reshape(-1)
+                if outfit.shape != (batch,):
+                    raise ValueError(f"outfit must have shape ({batch},), got {tuple(outfit.shape)}")
+                if int(outfit.min()) < 0 or int(outfit.max()) >= self.num_outfits:
+                    raise ValueError(f"outfit ids must be in [0, {self.num_outfits}), got {outfit.tolist()}")
+                tokens.append(self.outfit_embed(outfit))
         if self.shape_in is None:
             if shape is not None:
                 raise ValueError("this model takes no body shape (trained without it); pass no shape")
@@ -132,13 +136,15 @@ class WhoWearsWhat(nn.Module):
 class OutfitBound(nn.Module):
     """A conditioned denoiser with one outfit and body shape bound in: ``forward(x, t, joints)`` like a
     joints-only model, so code written for those (samplers, completion, editing, animation) runs
-    unchanged. outfit: an id or None; shape: (S,) or None."""
+    unchanged. outfit: an id or None; shape: (S,) or None; code: (D,) an outfit embedding instead of
+    an id (a fitted outfit, before it is added to the model)."""
 
-    def __init__(self, model: nn.Module, outfit: int | None, shape=None):
+    def __init__(self, model: nn.Module, outfit: int | None, shape=None, code: torch.Tensor | None = None):
         super().__init__()
         self.model, self.outfit = model, outfit
         self.register_buffer("shape", None if shape is None else torch.as_tensor(shape, dtype=torch.float32),
                              persistent=False)  # fmt: skip
+        self.code = code  # (D,): an outfit embedding used instead of ``outfit``
 
     @property
     def prediction_type(self) -> str:
@@ -152,4 +158,5 @@ class OutfitBound(nn.Module):
         B = joints.shape[0]
         outfit = None if self.outfit is None else torch.full((B,), int(self.outfit), device=joints.device)
         shape = None if self.shape is None else self.shape.to(device=joints.device, dtype=joints.dtype).expand(B, -1)
-        return self.model(x, t, PoseCondition(joints, outfit, shape))
+        code = None if self.code is None else self.code.to(device=joints.device, dtype=joints.dtype).reshape(1, -1).expand(B, -1)
+        return self.model(x, t, PoseCondition(joints, outfit, shape, code))

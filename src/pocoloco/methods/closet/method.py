@@ -51,9 +51,9 @@ class CloSETMethod(SkinnedMethod):
     def title(self) -> str:
         return "CloSET" if self.config.net.get("decomposition", True) else "CloSET (no decomposition)"
 
-    def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, geom: torch.Tensor | None = None):
-        if geom is not None:
-            raise ValueError("CloSET takes no outfit features (geom); fitting a new outfit is POP's")
+    def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, code: torch.Tensor | None = None):
+        if code is not None:
+            raise ValueError("CloSET cannot take an outfit code from outside (it does not fit new outfits)")
         body, vt = self.body_tensors(pose)
         outfit_t = torch.tensor([int(outfit)], dtype=torch.long, device=body.device)
         q = self.model.sample_query_points(num_points, seed=int(seed))

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+import torch
 
 from pocoloco.data.poses import Pose, load_joints, subject_of_spec
 from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
@@ -16,6 +17,7 @@ from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, o
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig
+from pocoloco.methods.pocoloco.fitting import CodeFit, fit_outfit_code
 from pocoloco.methods.pocoloco.sampling import sample_clouds
 from pocoloco.methods.pocoloco.training import PocoLocoTask
 from pocoloco.models.conditioning import OutfitBound, phenotype_vector
@@ -48,7 +50,39 @@ class PocoLocoMethod(Method):
     def outfit_names(self) -> list[str]:
         return [o["name"] for o in self.outfits] if self.knows_who_wears_what else []
 
-    def denoiser_for(self, outfit: int | None):
+    # ------------------------------------------------------------------- unseen outfits
+    @property
+    def fits_outfits(self) -> bool:  # type: ignore[override]
+        return bool(self.config.outfit_codes)
+
+    def fit_points(self) -> int:
+        """Scan points per cloud the fit uses by default: the training N."""
+        return int(self.config.num_points)
+
+    def fit_outfit(self, scans: Sequence[tuple[np.ndarray, np.ndarray | None, Pose]], steps: int = 400,
+                   lr: float | None = None, progress=None, shape: Sequence[float] | None = None,
+                   seed: int = 0) -> CodeFit:  # fmt: skip
+        """Fit a new outfit code to ``scans`` [(points (P, 3), normals or None, pose)], the network
+        frozen (:func:`~pocoloco.methods.pocoloco.fitting.fit_outfit_code`)."""
+        return fit_outfit_code(self.model, self.normalisation, self.config,
+                               [(points, pose.joints) for points, _, pose in scans],
+                               shape=shape if self.config.body_shape else None, steps=steps,
+                               lr=1e-2 if lr is None else lr, seed=seed, progress=progress)  # fmt: skip
+
+    def mean_outfit_code(self) -> torch.Tensor:
+        """The mean of the trained outfits' codes (D,): where fitting starts."""
+        return self.model.who.outfit_embed.weight.detach().mean(0)
+
+    def add_outfit(self, code: torch.Tensor, entry: dict[str, Any]) -> int:
+        """Append a fitted outfit (its code and its ``meta.json`` entry); returns its id."""
+        new_id = self.model.who.add_outfit(code)
+        self.model.config = self.config.denoiser.replace(num_outfits=new_id + 1)
+        self.config = self.config.replace(denoiser=self.model.config)
+        self.outfits.append({"id": new_id, **entry})
+        self.meta["outfits"] = self.outfits
+        return new_id
+
+    def denoiser_for(self, outfit: int | None, code: torch.Tensor | None = None):
         """The network with ``outfit`` (its code and body shape) bound in, called like a joints-only
         denoiser (what the apps run); the network itself for a joints-only model."""
         if not self.knows_who_wears_what:
@@ -57,7 +91,7 @@ class PocoLocoMethod(Method):
         if outfit is None:
             raise ValueError(f"--outfit is required (this PocoLoco checkpoint knows outfits {', '.join(self.outfit_names())})")
         kw = self.condition(outfit)
-        return OutfitBound(self.model, kw["outfit"], kw["shape"])
+        return OutfitBound(self.model, None if code is not None else kw["outfit"], kw["shape"], code=code)
 
     def condition(self, outfit: int | None) -> dict[str, Any]:
         """``sample_clouds`` keyword arguments (``outfit``, ``shape``) for outfit id ``outfit``."""
@@ -104,15 +138,19 @@ class PocoLocoMethod(Method):
         return Pose(joints, subject=subject_of_spec(str(spec)), source=str(spec))
 
     def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
-                options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
+                options: SamplerOptions = SamplerOptions(), code: torch.Tensor | None = None) -> SampledClouds:  # fmt: skip
+        """``code``: an outfit code (D,) to use instead of ``outfit``'s (a fit; the body shape still
+        comes from ``outfit``)."""
         if self.knows_who_wears_what:
             outfit = self.default_outfit(pose) if outfit is None else self.outfit_id(outfit)
         else:
             self.outfit_id(outfit)  # a joints-only model: any outfit is a one-line error
-        return sample_clouds(self.model, self.normalisation, self.config, np.asarray(pose.joints), len(seeds),
+        model = self.model if code is None else self.denoiser_for(outfit, code=code)
+        kw = {} if code is not None else self.condition(outfit)
+        return sample_clouds(model, self.normalisation, self.config, np.asarray(pose.joints), len(seeds),
                              num_points, sampler=options.sampler, steps=options.steps, seeds=list(seeds),
                              batch_size=options.batch_size, progress=options.progress, clip=options.clip,
-                             bf16=options.bf16, **self.condition(outfit))  # fmt: skip
+                             bf16=options.bf16, **kw)  # fmt: skip
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         steps = options.steps if options.steps is not None else SAMPLER_STEPS[options.sampler]

@@ -47,7 +47,9 @@ class PocoLocoTask(TrainingTask):
         self.normalisation = self.dataset.normalisation
         # who wears what: one outfit per subject (ids in the dataset's sorted subject order) and its
         # anny phenotype; the denoiser's config is resolved here so the checkpoint records it
-        names = list(self.dataset.subject_names)
+        names = sorted(config.subjects) if config.subjects else list(self.dataset.subject_names)
+        # the dataset's subject ids (all subjects of the card) -> outfit ids (the trained subjects)
+        self.outfit_of_subject = torch.tensor([names.index(s) if s in names else -1 for s in self.dataset.subject_names])
         card_subjects = self.dataset.card["subjects"]
         self.outfits = [{"id": i, "name": s, "phenotype": dict(card_subjects[s].get("phenotype") or {}),
                          "garment_kind": card_subjects[s].get("garment_kind")} for i, s in enumerate(names)]  # fmt: skip
@@ -81,9 +83,9 @@ class PocoLocoTask(TrainingTask):
         c = self.config
         if not (c.outfit_codes or c.body_shape):
             return joints
-        subject = subject.to(joints.device)
-        return PoseCondition(joints, subject if c.outfit_codes else None,
-                             self.shapes.to(joints.device)[subject] if c.body_shape else None)  # fmt: skip
+        outfit = self.outfit_of_subject[subject.cpu()].to(joints.device)
+        return PoseCondition(joints, outfit if c.outfit_codes else None,
+                             self.shapes.to(joints.device)[outfit] if c.body_shape else None)  # fmt: skip
 
     def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
         c = self.config

@@ -65,7 +65,7 @@ class POPMethod(SkinnedMethod):
     def needs_mean_shape(self) -> bool:
         return self.config.net.get("pose_input") == "mean_shape"
 
-    def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, geom: torch.Tensor | None = None):
+    def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, code: torch.Tensor | None = None):
         body, vt = self.body_tensors(pose)
         outfit_t = torch.tensor([int(outfit)], dtype=torch.long, device=body.device)
         if self.needs_mean_shape:
@@ -75,16 +75,25 @@ class POPMethod(SkinnedMethod):
         else:
             pv = body
         query, _ = pop_query_for(self.model, num_points, seed)
-        return self.model(POPBatch(pv, body, vt, outfit_t), geom=geom, query=query)
+        return self.model(POPBatch(pv, body, vt, outfit_t), geom=code, query=query)
 
     # ------------------------------------------------------------------- unseen outfits (Eq. 7)
     fits_outfits = True
+    fit_needs_normals = True
 
-    def fit_outfit(self, scan_points: np.ndarray, scan_normals: np.ndarray, pose: Pose, steps: int = 400,
-                   lr: float | None = None, progress=None) -> POPFit:  # fmt: skip
-        """Fit a new outfit to one scan (world frame of ``pose``, with unit normals): only a new
-        geometric feature tensor is optimised, from the mean of the trained outfits; the network is
-        frozen (:func:`~pocoloco.methods.pop.fitting.fit_unseen_outfit`)."""
+    def fit_points(self) -> int:
+        """Scan points the fit uses by default: the model's ``num_scan_points``."""
+        return int(self.model.config.num_scan_points)
+
+    def fit_outfit(self, scans, steps: int = 400, lr: float | None = None, progress=None, shape=None,
+                   seed: int = 0) -> POPFit:  # fmt: skip
+        """Fit a new outfit to one scan ``scans = [(points (P, 3), unit normals (P, 3), pose)]`` (world
+        frame of the pose): only a new geometric feature tensor is optimised, from the mean of the
+        trained outfits; the network is frozen (:func:`~pocoloco.methods.pop.fitting.fit_unseen_outfit`,
+        paper Eq. 7 fits one scan)."""
+        if len(scans) != 1:
+            raise ValueError(f"POP fits an outfit to one scan (paper Eq. 7), got {len(scans)}")
+        scan_points, scan_normals, pose = scans[0]
         root = np.asarray(pose.joints[0], np.float32)
         pv = pose.mean_shape if self.needs_mean_shape else pose.body_vertices - root
         return fit_unseen_outfit(self.model, scan_points - root, scan_normals, pv, pose.body_vertices - root,
