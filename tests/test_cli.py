@@ -147,3 +147,20 @@ def test_readme_python_examples_run(tmp_path, monkeypatch):
         with contextlib.redirect_stdout(out):
             exec(compile(code, "README.md", "exec"), {})
     assert "(2, 2048, 3)" in out.getvalue()
+
+
+def test_bf16_is_on_by_default_only_where_it_runs_natively(tmp_path, monkeypatch):
+    """sample's --bf16 / --no-bf16; default: on with avx512_bf16 / AMX (or a bf16 GPU), off elsewhere."""
+    from pocoloco.cli.common import resolve_bf16
+    from pocoloco.utils import hardware
+
+    monkeypatch.setattr(hardware, "cpu_flags", lambda: frozenset({"avx2"}))
+    assert resolve_bf16(None, "cpu") is False and resolve_bf16(True, "cpu") is True
+    monkeypatch.setattr(hardware, "cpu_flags", lambda: frozenset({"avx512f", "amx_bf16"}))
+    assert resolve_bf16(None, "cpu") is True and resolve_bf16(False, "cpu") is False
+    monkeypatch.undo()
+    base = ["sample", "--joints", "demo:skirt", "--num", "1", "--steps", "3", "--points", "64", "--no-render"]
+    assert main([*base, "--no-bf16", "--out", str(tmp_path / "a")]) == 0
+    assert main([*base, "--bf16", "--out", str(tmp_path / "b")]) == 0
+    a, b = (json.loads((tmp_path / d / "sample.json").read_text()) for d in ("a", "b"))
+    assert a["bf16"] is False and b["bf16"] is True

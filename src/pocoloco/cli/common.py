@@ -17,8 +17,9 @@ from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods import Method, load_method
 from pocoloco.utils.atomic import output_folder
+from pocoloco.utils.hardware import bf16_is_fast
 
-__all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "add_any_pose_argument", "add_app_arguments", "add_device_argument", "add_threads_argument",
+__all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "add_any_pose_argument", "add_bf16_argument", "resolve_bf16", "add_app_arguments", "add_device_argument", "add_threads_argument",
            "apply_threads", "check_app_args", "choose_device", "pick_outfit", "console", "load_method_from_args", "progress_bar",
            "run_command"]  # fmt: skip
 
@@ -81,6 +82,17 @@ def add_any_pose_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--any-pose", action="store_true",
                         help="accept joints that do not look like a human skeleton in metres (default: a "
                              "one-line error; for experiments)")  # fmt: skip
+
+
+def add_bf16_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
+                        help="run the denoiser under bf16 autocast (sampler arithmetic stays float32); default: on "
+                             "where it runs natively (CPUs with avx512_bf16 / AMX, recent GPUs), off elsewhere")  # fmt: skip
+
+
+def resolve_bf16(flag: bool | None, device) -> bool:
+    """``--bf16`` / ``--no-bf16`` as given, else whether bf16 runs natively on ``device``."""
+    return bf16_is_fast(device) if flag is None else bool(flag)
 
 
 def add_device_argument(parser: argparse.ArgumentParser, default: str | None = None) -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pocoloco.cli.common import add_threads_argument, console, progress_bar
+from pocoloco.cli.common import add_bf16_argument, add_threads_argument, console, progress_bar, resolve_bf16
 from pocoloco.data import format as fmt
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.evaluation.baselines import NEAREST_ALIGNS
@@ -44,7 +44,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             sampler=args.sampler, steps=args.steps,
                             baselines=() if args.no_baselines else EvalSettings.baselines,
                             subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
-                            use_ema=not args.raw_weights, clip=args.clip or None, bf16=args.bf16,
+                            use_ema=not args.raw_weights, clip=args.clip or None, bf16=resolve_bf16(args.bf16, args.device),
                             nearest_align=args.nearest_align)  # fmt: skip
     if settings.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {settings.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
@@ -77,7 +77,7 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
     parser.add_argument("--clip", type=float, default=5.0,
                         help="clamp the sampler's x0 estimates, normalised units (default 5; 0 = off; see pocoloco sample)")  # fmt: skip
-    parser.add_argument("--bf16", action="store_true", help="denoiser under bf16 autocast (see pocoloco sample --bf16)")
+    add_bf16_argument(parser)
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
     add_threads_argument(parser)
     parser.add_argument("--out", required=True, help="output folder (eval.json, eval.md, plots)")

@@ -8,8 +8,8 @@ import time
 
 import torch
 
-from pocoloco.cli.common import (add_any_pose_argument, add_device_argument, add_threads_argument,
-                                 load_method_from_args, pick_outfit)
+from pocoloco.cli.common import (add_any_pose_argument, add_bf16_argument, add_device_argument, add_threads_argument,
+                                 load_method_from_args, pick_outfit, resolve_bf16)
 from pocoloco.data.poses import pose_spec_kind
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.methods import SamplerOptions
@@ -38,7 +38,8 @@ def cmd_sample(args: argparse.Namespace) -> None:
         num = 1
     else:
         num = 3 if args.num is None else args.num
-    options = SamplerOptions(sampler=args.sampler, steps=args.steps, clip=args.clip or None, bf16=args.bf16,
+    options = SamplerOptions(sampler=args.sampler, steps=args.steps, clip=args.clip or None,
+                             bf16=resolve_bf16(args.bf16, method.device),
                              batch_size=args.batch_size)  # fmt: skip
     if not method.deterministic and args.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
@@ -94,8 +95,7 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=8, help="clouds denoised together (default 8)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
     add_any_pose_argument(parser)
-    parser.add_argument("--bf16", action="store_true",
-                        help="denoiser under bf16 autocast: several times faster on CPUs with AMX / avx512_bf16 and on GPUs")
+    add_bf16_argument(parser)
     parser.add_argument("--clip", type=float, default=DEFAULT_CLIP,
                         help=f"clamp the sampler's x0 estimates to [-CLIP, CLIP] normalised units (default {DEFAULT_CLIP}: "
                              "outside the data, which stay within +-3.5 on small; 0 = off)")  # fmt: skip
