@@ -22,8 +22,11 @@ with the same checkpoint, frames, seeds, points, clip and threads (e.g. the expe
 of recomputing it: the samples are seeded, so its Chamfer values are the same; its time was
 measured in the other run (the row says ``reused_from``), so compare times within one run.
 
+``--combine JSON ...`` samples nothing: it pools the rows of runs on other seeds (same checkpoint,
+frames, points and clip), configuration by configuration, into one table over all their clouds.
+
 Writes ``--out`` (JSON, default benchmarks/results/sampler_steps.json) and a plot of Chamfer vs.
-NFE next to it (``.png``).
+NFE next to it (``.png``; not with ``--combine``).
 """
 
 from __future__ import annotations
@@ -117,6 +120,45 @@ def _paired(r: dict, base: dict) -> None:
     r["speedup"] = base["seconds_per_sample"] / r["seconds_per_sample"]
 
 
+def combine(paths: list[str], baseline: str) -> dict:
+    """Pool results of runs on disjoint seeds (same checkpoint, frames, points, clip) into one."""
+    runs = [json.loads(Path(path).read_text()) for path in paths]
+    keys = ("checkpoint", "data", "split", "frames", "points", "clip")
+    for path, r in zip(paths[1:], runs[1:], strict=True):
+        if any(r.get(k) != runs[0].get(k) for k in keys):
+            raise ValueError(f"{path} differs from {paths[0]} in {[k for k in keys if r.get(k) != runs[0].get(k)]}")
+    seeds = [s for r in runs for s in r["seeds"]]
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"--combine needs runs on disjoint seeds, got {[r['seeds'] for r in runs]}")
+    by_spec = [{row.get("config", f"{row['sampler']}:{row['steps']}"): row for row in r["rows"]} for r in runs]
+    rows = []
+    for spec, first in by_spec[0].items():
+        if not all(spec in b for b in by_spec):
+            continue
+        parts = [b[spec] for b in by_spec]
+        cds = [c for part in parts for c in part["chamfer_per_cloud_cm"]]
+        rows.append({**{k: v for k, v in first.items() if k != "reused_from"}, "config": spec,
+                     "chamfer_cm": float(np.mean(cds)), "chamfer_sem_cm": float(np.std(cds) / np.sqrt(len(cds))),
+                     "seconds_per_sample": float(np.mean([part["seconds_per_sample"] for part in parts])),
+                     "chamfer_per_cloud_cm": cds, "combined_from": paths})  # fmt: skip
+    base = next((r for r in rows if r["config"] == baseline), None)
+    if base is None:
+        raise ValueError(f"the baseline {baseline} is not in every file of --combine")
+    for r in rows:
+        _paired(r, base)
+    return {**{k: runs[0].get(k) for k in keys}, "seeds": seeds, "threads": runs[0].get("threads"),
+            "machine": runs[0].get("machine"), "baseline": baseline, "rows": rows}  # fmt: skip
+
+
+def print_table(rows: list[dict], baseline: str) -> None:
+    print(f"\n{'config':>32} {'NFE':>5} {'Chamfer cm':>11} {'vs ' + baseline:>14} {'paired diff cm':>16} "
+          f"{'s/sample':>9} {'speed-up':>9}")  # fmt: skip
+    for r in rows:
+        print(f"{r['config']:>32} {r.get('nfe', r['steps']):>5} {r['chamfer_cm']:>11.3f} {r['chamfer_ratio']:>14.3f} "
+              f"{r['diff_vs_baseline_cm']:>+9.3f} ± {r['diff_sem_cm']:.3f} "
+              f"{r['seconds_per_sample']:>9.2f} {r['speedup']:>8.1f}x")  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ckpt", default="default", help="checkpoint / run folder, or 'default' (the shipped model)")
@@ -128,10 +170,17 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--configs", nargs="+", default=list(DEFAULT_CONFIGS), help="SAMPLER:STEPS[:KEY=VALUE,...] to compare")
     p.add_argument("--baseline", default="ddpm:1000", help="the reference configuration (must be in --configs)")
     p.add_argument("--reuse", nargs="+", default=[], help="results JSON of earlier runs whose rows are reused")
+    p.add_argument("--combine", nargs="+", default=None, help="pool these results JSON (disjoint seeds); no sampling")
     p.add_argument("--clip", type=float, default=5.0, help="sampler x0 clamp (0 = off), as pocoloco eval")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--out", default="benchmarks/results/sampler_steps.json")
     args = p.parse_args(argv)
+    if args.combine:
+        result = combine(args.combine, args.baseline)
+        print_table(result["rows"], args.baseline)
+        write_json_atomic(Path(args.out), result)
+        print(f"wrote {args.out}")
+        return result
     if args.baseline not in args.configs:
         p.error(f"--baseline {args.baseline} is not one of --configs")
     configs = [(spec, *parse_config(spec)) for spec in args.configs]
@@ -180,12 +229,7 @@ def main(argv: list[str] | None = None) -> dict:
     for r in rows:
         _paired(r, base)
 
-    print(f"\n{'config':>32} {'NFE':>5} {'Chamfer cm':>11} {'vs ' + args.baseline:>14} {'paired diff cm':>16} "
-          f"{'s/sample':>9} {'speed-up':>9}")  # fmt: skip
-    for r in rows:
-        print(f"{r['config']:>32} {r.get('nfe', r['steps']):>5} {r['chamfer_cm']:>11.3f} {r['chamfer_ratio']:>14.3f} "
-              f"{r['diff_vs_baseline_cm']:>+9.3f} ± {r['diff_sem_cm']:.3f} "
-              f"{r['seconds_per_sample']:>9.2f} {r['speedup']:>8.1f}x")  # fmt: skip
+    print_table(rows, args.baseline)
     result = {"checkpoint": str(ckpt), "data": args.data, "split": args.split, "frames": len(gts), "seeds": args.seeds,
               "points": args.points, "clip": args.clip or None, "threads": torch.get_num_threads(),
               "machine": platform.processor() or platform.machine(), "baseline": args.baseline, "rows": rows}  # fmt: skip
