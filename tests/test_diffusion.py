@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -140,7 +141,7 @@ def test_karras_and_lambda_spacings_match_diffusers(kind):
     # many steps: rounding collides near t = 0; the list stays strictly decreasing with `steps` entries
     for spacing in ("karras", "lambda"):
         ts = make_timesteps(T, 300, spacing, sched.alphas_cumprod)
-        assert len(ts) == 300 and all(a > b for a, b in zip(ts, ts[1:])) and ts[0] == T - 1 and ts[-1] == 0
+        assert len(ts) == 300 and all(a > b for a, b in itertools.pairwise(ts)) and ts[0] == T - 1 and ts[-1] == 0
     with pytest.raises(ValueError, match="alphas_cumprod"):
         make_timesteps(T, 10, "karras")
 
@@ -412,7 +413,7 @@ def test_dpmpp_third_order_term_integrates_a_quadratic_exactly():
     """One 3M step with x0 quadratic in lambda: "exact" reproduces the exponential integral,
     diffusers' "half" does not (its c2 is half the exact one)."""
     h, h0, h1 = 0.7, 0.5, 0.9
-    f = lambda u: 1 + 0.3 * u + 0.8 * u * u  # noqa: E731
+    f = lambda u: 1 + 0.3 * u + 0.8 * u * u
     u = np.linspace(0.0, h, 200001)
     m0, m1, m2 = f(0.0), f(-h0), f(-h0 - h1)
     r0, r1 = h0 / h, h1 / h
@@ -677,6 +678,7 @@ def test_progress_and_dispatch(four):
     with pytest.raises(ValueError, match="unknown sampler kind"):
         sample("euler", fake_denoiser, four, noise)
     assert set(SAMPLER_STEPS) <= set(SAMPLERS)  # every name the CLI offers can be dispatched
+    assert torch.equal(sample("unipc", fake_denoiser, four, noise, steps=6), sample_unipc(fake_denoiser, four, noise, steps=6))
     with pytest.raises(ValueError, match="order"):
         sample("unipc", fake_denoiser, four, noise, order=4)
     with pytest.raises(ValueError, match="d2"):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import Any, Literal, Protocol
 
 import numpy as np
@@ -214,7 +215,7 @@ def resolve_timesteps(
     if timesteps is None:
         return make_timesteps(T, T if steps is None else steps, spacing, schedule.alphas_cumprod)
     ts = [int(t) for t in timesteps]
-    if not ts or any(not 0 <= t < T for t in ts) or any(a <= b for a, b in zip(ts, ts[1:], strict=False)):
+    if not ts or any(not 0 <= t < T for t in ts) or any(a <= b for a, b in pairwise(ts)):
         raise ValueError(f"timesteps must be a non-empty strictly decreasing sequence in [0, {T})")
     return ts
 
