@@ -311,6 +311,30 @@ def test_dpmpp_sde_matches_diffusers(four, steps, order):
     assert not torch.allclose(ode, ours[-1], atol=1e-3)  # the noise really enters
 
 
+@pytest.mark.parametrize("order", [2, 3])
+def test_dpmpp_eta_interpolates_ode_and_sde(four, order):
+    """eta = 1 is the SDE, eta = 0 the ODE (no noise drawn); eta = 0.5 lies in between, and the
+    exact denoiser's toy data come out right for any eta."""
+    noise = make_noise((64, 3), [311, 312])
+    kw = {"steps": 12, "order": order}
+    sde = sample_dpmpp(fake_denoiser, four, noise, stochastic=True, rng=PerSampleRNG([1, 2]), **kw)
+    assert torch.equal(sample_dpmpp(fake_denoiser, four, noise, stochastic=True, eta=1.0, rng=PerSampleRNG([1, 2]), **kw), sde)
+    rng = PerSampleRNG([1, 2])
+    ode = sample_dpmpp(fake_denoiser, four, noise, stochastic=True, eta=0.0, rng=rng, **kw)
+    assert torch.allclose(ode, sample_dpmpp(fake_denoiser, four, noise, **kw), atol=1e-6)
+    assert torch.equal(rng.randn((1,)), PerSampleRNG([1, 2]).randn((1,)))  # eta 0 drew no noise
+    half = sample_dpmpp(fake_denoiser, four, noise, stochastic=True, eta=0.5, rng=PerSampleRNG([1, 2]), **kw)
+    assert (half - ode).abs().mean() < (sde - ode).abs().mean()
+    den = MixtureDenoiser(four)
+    rng = PerSampleRNG([0, 1, 2, 3])
+    out = sample_dpmpp(den, four, rng.randn((1024, 3)), stochastic=True, eta=0.5, steps=25, rng=rng)
+    _, _, within, frac = _mixture_stats(out)
+    assert torch.allclose(within, torch.full((3,), SD, dtype=torch.float64), rtol=0.08), within
+    assert abs(frac.item() - 0.5) < 0.04
+    with pytest.raises(ValueError, match="eta"):
+        sample_dpmpp(fake_denoiser, four, noise, stochastic=True, eta=-1.0)
+
+
 def _set_custom_timesteps(ref, ts: list[int]) -> None:
     """UniPCMultistepScheduler.set_timesteps takes no custom timesteps: set them and their sigmas
     (final sigma 0) the way it does for its own spacings."""
@@ -419,11 +443,12 @@ def test_dpmpp_third_order_term_integrates_a_quadratic_exactly():
     r0, r1 = h0 / h, h1 / h
     d1_0, d1_1 = (m0 - m1) / r0, (m1 - m2) / r1
     d2 = (d1_0 - d1_1) / (r0 + r1)
-    for stochastic, rate in ((False, 1.0), (True, 2.0)):
+    for eta in (0.0, 1.0, 0.5):
+        rate = 1.0 + eta
         integral = rate * np.trapezoid(np.exp(-rate * (h - u)) * f(u), u)
-        _, c0, c1, c2 = dpmpp_coefficients(h, stochastic, "exact")
+        _, c0, c1, c2 = dpmpp_coefficients(h, eta, "exact")
         assert c0 * m0 + c1 * (d1_0 + r0 * d2) + c2 * d2 == pytest.approx(integral, rel=1e-9)
-        _, c0, c1, c2h = dpmpp_coefficients(h, stochastic, "half")
+        _, c0, c1, c2h = dpmpp_coefficients(h, eta, "half")
         assert c2h == pytest.approx(c2 / 2)
         assert abs(c0 * m0 + c1 * (d1_0 + r0 * d2) + c2h * d2 - integral) > 1e-2
 

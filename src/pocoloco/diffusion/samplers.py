@@ -185,22 +185,24 @@ def sample_ddim(
 LOWER_ORDER_BELOW = 15
 
 
-def dpmpp_coefficients(h: float, stochastic: bool, d2: str = "exact") -> tuple[float, float, float, float]:
+def dpmpp_coefficients(h: float, eta: float, d2: str = "exact") -> tuple[float, float, float, float]:
     """(A, c0, c1, c2) of one DPM-Solver++ step in half log-SNR from lambda_t to lambda_s = lambda_t + h:
-    ``x_s = A (sigma_s / sigma_t) x_t + alpha_s (c0 D0 + c1 D1 + c2 D2)`` (+ noise for the SDE).
+    ``x_s = A (sigma_s / sigma_t) x_t + alpha_s (c0 D0 + c1 D1 + c2 D2)`` (+ noise if eta > 0).
 
     The data-prediction exponential integrator (Lu et al. 2022, DPM-Solver++ eq. 8-9) is
-    ``x_s = (sigma_s / sigma_t) x_t + alpha_s int_0^h e^{-(h-u)} x0(u) du`` for the ODE and, for the
-    SDE (same paper, Appendix; Gonzalez et al. 2023), ``(sigma_s / sigma_t) e^{-h} x_t
-    + 2 alpha_s int_0^h e^{-2(h-u)} x0(u) du + sigma_s sqrt(1 - e^{-2h}) z``. Expanding x0 to second
-    order, x0(u) = D0 + D1 u / h + D2 u^2 / h^2 (D1 = h x0', D2 = h^2 x0'' / 2), gives with H = h
-    (ODE) or 2h (SDE) and phi2(H) = (H - 1 + e^{-H}) / H^2:
+    ``x_s = (sigma_s / sigma_t) x_t + alpha_s int_0^h e^{-(h-u)} x0(u) du`` for the ODE (eta = 0) and,
+    for the SDE (eta = 1; same paper, Appendix; Gonzalez et al. 2023), ``(sigma_s / sigma_t) e^{-h} x_t
+    + 2 alpha_s int_0^h e^{-2(h-u)} x0(u) du + sigma_s sqrt(1 - e^{-2h}) z``; in general (the family
+    of k-diffusion's ``eta``) ``(sigma_s / sigma_t) e^{-eta h} x_t + (1 + eta) alpha_s
+    int_0^h e^{-(1 + eta)(h-u)} x0(u) du + sigma_s sqrt(1 - e^{-2 eta h}) z``, which keeps the
+    marginals for any eta >= 0. Expanding x0 to second order, x0(u) = D0 + D1 u / h + D2 u^2 / h^2
+    (D1 = h x0', D2 = h^2 x0'' / 2), gives with H = (1 + eta) h and phi2(H) = (H - 1 + e^{-H}) / H^2:
     c0 = 1 - e^{-H}, c1 = 1 - c0 / H, c2 = 1 - 2 phi2(H) ("exact", the integral of the quadratic),
     or c2 = 1/2 - phi2(H) ("half": the coefficient of Lu et al.'s multistep third-order code and
     of diffusers' DPMSolverMultistepScheduler(solver_order=3), and k-diffusion's 3M SDE, which
     amounts to taking D2 = h^2 x0'' instead of h^2 x0'' / 2; it leaves the step second order).
     """
-    H = 2.0 * h if stochastic else h
+    H = (1.0 + eta) * h
     c0 = -float(np.expm1(-H))
     c1 = 1.0 - c0 / H
     phi2 = (H - c0) / H**2
@@ -210,7 +212,7 @@ def dpmpp_coefficients(h: float, stochastic: bool, d2: str = "exact") -> tuple[f
         c2 = 0.5 - phi2
     else:
         raise ValueError(f"d2 must be 'exact' or 'half', got {d2!r}")
-    return (float(np.exp(-h)) if stochastic else 1.0), c0, c1, c2
+    return float(np.exp(-eta * h)), c0, c1, c2
 
 
 @torch.no_grad()
@@ -224,6 +226,7 @@ def sample_dpmpp(
     steps: int = 20,
     order: int = 2,
     stochastic: bool = False,
+    eta: float = 1.0,
     d2: Literal["exact", "half"] = "exact",
     spacing: Spacing = "trailing",
     timesteps: Sequence[int] | None = None,
@@ -250,7 +253,9 @@ def sample_dpmpp(
     ``stochastic=True`` integrates the reverse SDE instead (same D's, coefficients of H = 2h, and
     ``x_s`` gains the factor e^{-h} on x_t and ``+ sigma_s sqrt(1 - e^{-2h}) z``, z ~ N(0, I) from
     ``rng``); like ancestral DDPM it re-injects noise, which corrects an imperfect denoiser's
-    errors instead of carrying them along the ODE. The order ramps up over the first steps (one x0
+    errors instead of carrying them along the ODE. ``eta`` (stochastic only) scales the noise
+    between the ODE (0) and the SDE (1, default) or beyond (H = (1 + eta) h, factor e^{-eta h},
+    noise sigma_s sqrt(1 - e^{-2 eta h}); :func:`dpmpp_coefficients`). The order ramps up over the first steps (one x0
     estimate more per step); with fewer than 15 steps the second-to-last step is at most second
     order (diffusers' ``lower_order_final``). The last step goes to sigma = 0 and returns x0_hat
     ("final_sigmas_type='zero'" in diffusers, which also makes it first order). An abar of
@@ -266,6 +271,9 @@ def sample_dpmpp(
         raise ValueError(f"order must be 1, 2 or 3, got {order}")
     if d2 not in ("exact", "half"):
         raise ValueError(f"d2 must be 'exact' or 'half', got {d2!r}")
+    if not eta >= 0:
+        raise ValueError(f"eta must be >= 0, got {eta}")
+    eta = float(eta) if stochastic else 0.0
     run = SamplerRun(denoiser, schedule, noise, cond, prediction_type,
                      resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
     n, lam = len(run.timesteps), run.lam
@@ -281,7 +289,7 @@ def sample_dpmpp(
             a_s, s_s, s_t = ab_s**0.5, (1.0 - ab_s) ** 0.5, (1.0 - run.ab[i]) ** 0.5
             h = 0.5 * float(np.log(ab_s / (1.0 - ab_s))) - lam[i]
             p = min(order, len(hist), 2 if (i == n - 2 and n < LOWER_ORDER_BELOW) else order)
-            A, c0, c1, c2 = dpmpp_coefficients(h, stochastic, d2)
+            A, c0, c1, c2 = dpmpp_coefficients(h, eta, d2)
             if p == 1:
                 update = c0 * x0
             elif p == 2:
@@ -293,8 +301,8 @@ def sample_dpmpp(
                 dd2 = (d1_0 - d1_1) / (r0 + r1)
                 update = c0 * x0 + c1 * (d1_0 + r0 * dd2) + c2 * dd2
             x = (A * s_s / s_t) * x + a_s * update
-            if stochastic:
-                x = x + (s_s * (-np.expm1(-2.0 * h)) ** 0.5) * run.randn_like(x)
+            if eta > 0:
+                x = x + (s_s * (-np.expm1(-2.0 * eta * h)) ** 0.5) * run.randn_like(x)
         x = run.impose_known(x, ab_s)
         run.report(i, x, x0)
     return x.to(run.dtype)
