@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -21,7 +22,10 @@ from pocoloco.diffusion import (
     sample_ddim,
     sample_ddpm,
     sample_dpmpp,
+    sample_unipc,
 )
+from pocoloco.diffusion.samplers import SAMPLER_STEPS, SAMPLERS, dpmpp_coefficients
+from pocoloco.diffusion.unipc import unipc_rhos
 
 diffusers = pytest.importorskip("diffusers")
 # diffusers 0.42 + numpy 2: harmless copy-keyword DeprecationWarning inside DPMSolverMultistep
@@ -122,6 +126,26 @@ def test_timestep_spacings_match_diffusers():
         make_timesteps(T, 0)
 
 
+@pytest.mark.parametrize("kind", ["four", "linear"])
+def test_karras_and_lambda_spacings_match_diffusers(kind):
+    """"karras" = diffusers' use_karras_sigmas, "lambda" = use_lu_lambdas (their rounded timesteps)."""
+    sched = NoiseSchedule.from_betas(make_betas(kind, T).float().double())
+    for spacing, flag in (("karras", "use_karras_sigmas"), ("lambda", "use_lu_lambdas")):
+        for steps in (2, 3, 5, 8, 10, 15, 20, 25):
+            ref = diffusers.DPMSolverMultistepScheduler(num_train_timesteps=T, trained_betas=sched.betas.numpy(),
+                                                        **{flag: True})  # fmt: skip
+            ref.set_timesteps(steps)
+            ours = make_timesteps(T, steps, spacing, sched.alphas_cumprod)
+            assert ours == ref.timesteps.tolist(), (spacing, steps)
+            assert ours[0] == T - 1 and ours[-1] == 0
+    # many steps: rounding collides near t = 0; the list stays strictly decreasing with `steps` entries
+    for spacing in ("karras", "lambda"):
+        ts = make_timesteps(T, 300, spacing, sched.alphas_cumprod)
+        assert len(ts) == 300 and all(a > b for a, b in itertools.pairwise(ts)) and ts[0] == T - 1 and ts[-1] == 0
+    with pytest.raises(ValueError, match="alphas_cumprod"):
+        make_timesteps(T, 10, "karras")
+
+
 # -- step-for-step against diffusers -----------------------------------------------------------
 
 
@@ -131,7 +155,9 @@ def _collect():
 
 
 def _diffusers_loop(scheduler, noise, steps, step_kwargs=None):
-    scheduler.set_timesteps(steps)
+    """Run a diffusers scheduler with fake_denoiser; steps None: its timesteps are already set."""
+    if steps is not None:
+        scheduler.set_timesteps(steps)
     x, xs = noise.clone(), []
     for t in scheduler.timesteps:
         out = fake_denoiser(x, torch.full((x.shape[0],), int(t)))
@@ -285,6 +311,207 @@ def test_dpmpp_sde_matches_diffusers(four, steps, order):
     assert not torch.allclose(ode, ours[-1], atol=1e-3)  # the noise really enters
 
 
+@pytest.mark.parametrize("order", [2, 3])
+def test_dpmpp_eta_interpolates_ode_and_sde(four, order):
+    """eta = 1 is the SDE, eta = 0 the ODE (no noise drawn); eta = 0.5 lies in between, and the
+    exact denoiser's toy data come out right for any eta."""
+    noise = make_noise((64, 3), [311, 312])
+    kw = {"steps": 12, "order": order}
+    sde = sample_dpmpp(fake_denoiser, four, noise, stochastic=True, rng=PerSampleRNG([1, 2]), **kw)
+    assert torch.equal(sample_dpmpp(fake_denoiser, four, noise, stochastic=True, eta=1.0, rng=PerSampleRNG([1, 2]), **kw), sde)
+    rng = PerSampleRNG([1, 2])
+    ode = sample_dpmpp(fake_denoiser, four, noise, stochastic=True, eta=0.0, rng=rng, **kw)
+    assert torch.allclose(ode, sample_dpmpp(fake_denoiser, four, noise, **kw), atol=1e-6)
+    assert torch.equal(rng.randn((1,)), PerSampleRNG([1, 2]).randn((1,)))  # eta 0 drew no noise
+    half = sample_dpmpp(fake_denoiser, four, noise, stochastic=True, eta=0.5, rng=PerSampleRNG([1, 2]), **kw)
+    assert (half - ode).abs().mean() < (sde - ode).abs().mean()
+    den = MixtureDenoiser(four)
+    rng = PerSampleRNG([0, 1, 2, 3])
+    out = sample_dpmpp(den, four, rng.randn((1024, 3)), stochastic=True, eta=0.5, steps=25, rng=rng)
+    _, _, within, frac = _mixture_stats(out)
+    assert torch.allclose(within, torch.full((3,), SD, dtype=torch.float64), rtol=0.08), within
+    assert abs(frac.item() - 0.5) < 0.04
+    with pytest.raises(ValueError, match="eta"):
+        sample_dpmpp(fake_denoiser, four, noise, stochastic=True, eta=-1.0)
+
+
+def _set_custom_timesteps(ref, ts: list[int]) -> None:
+    """UniPCMultistepScheduler.set_timesteps takes no custom timesteps: set them and their sigmas
+    (final sigma 0) the way it does for its own spacings."""
+    ref.set_timesteps(len(ts))
+    ab = ref.alphas_cumprod.double().numpy()
+    sig = np.sqrt((1 - ab) / ab)[ts]
+    ref.timesteps = torch.tensor(ts, dtype=torch.int64)
+    ref.sigmas = torch.from_numpy(np.concatenate([sig, [0.0]]).astype(np.float32))
+
+
+@pytest.mark.parametrize(
+    ("steps", "spacing", "prediction_type"),
+    [
+        (20, "trailing", "epsilon"),
+        (10, "trailing", "epsilon"),  # < 15 steps: second-to-last step second order
+        (5, "trailing", "epsilon"),
+        (20, "lambda", "epsilon"),
+        (10, "karras", "v_prediction"),
+        (20, "linspace", "sample"),
+    ],
+)
+def test_dpmpp3m_matches_diffusers(steps, spacing, prediction_type):
+    """DPM-Solver++(3M) with diffusers' D2 coefficient ("half") step by step against
+    DPMSolverMultistepScheduler(solver_order=3), on the same integer timesteps."""
+    sched = NoiseSchedule.from_betas(make_betas("four", T).float().double())
+    ts = make_timesteps(T, steps, spacing, sched.alphas_cumprod)
+    noise = make_noise((64, 3), [305, 306])
+    ref = diffusers.DPMSolverMultistepScheduler(num_train_timesteps=T, trained_betas=sched.betas.numpy(),
+                                                algorithm_type="dpmsolver++", solver_order=3,
+                                                prediction_type=prediction_type)  # fmt: skip
+    ref.set_timesteps(timesteps=ts)
+    theirs = _diffusers_loop(ref, noise, None)
+    ours, cb = _collect()
+    sample("dpm++3m", fake_denoiser, sched, noise, prediction_type=prediction_type, timesteps=ts, d2="half",
+           progress=cb)  # fmt: skip
+    _assert_trajectories_close(ours, theirs, rtol=1e-5)
+    exact = sample("dpm++3m", fake_denoiser, sched, noise, prediction_type=prediction_type, timesteps=ts)
+    if steps > 5:  # the third-order term makes a difference (5 steps: one third-order step only)
+        assert not torch.allclose(exact, ours[-1], atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("steps", "order", "variant", "spacing", "prediction_type"),
+    [
+        (20, 2, "bh2", "trailing", "epsilon"),
+        (10, 2, "bh2", "trailing", "epsilon"),
+        (10, 3, "bh2", "trailing", "epsilon"),
+        (5, 3, "bh1", "trailing", "epsilon"),
+        (10, 1, "bh2", "trailing", "epsilon"),
+        (8, 3, "bh2", "karras", "v_prediction"),
+        (10, 2, "bh1", "lambda", "epsilon"),
+        (10, 2, "bh2", "trailing", "sample"),
+        (20, 3, "bh2", "linspace", "epsilon"),
+    ],
+)
+def test_unipc_matches_diffusers(steps, order, variant, spacing, prediction_type):
+    """UniPC (predictor + corrector, data prediction) step by step against diffusers'
+    UniPCMultistepScheduler on the same integer timesteps; one denoiser call per step."""
+    sched = NoiseSchedule.from_betas(make_betas("four", T).float().double())
+    ts = make_timesteps(T, steps, spacing, sched.alphas_cumprod)
+    noise = make_noise((64, 3), [307, 308])
+    ref = diffusers.UniPCMultistepScheduler(num_train_timesteps=T, trained_betas=sched.betas.numpy(),
+                                            solver_order=order, solver_type=variant, predict_x0=True,
+                                            prediction_type=prediction_type)  # fmt: skip
+    _set_custom_timesteps(ref, ts)
+    x, theirs = noise.clone(), []
+    for t in ref.timesteps:
+        x = ref.step(fake_denoiser(x, torch.full((x.shape[0],), int(t))), t, x).prev_sample
+        theirs.append(x)
+    ours, cb = _collect()
+    calls = []
+
+    def counting(x, t, c):
+        calls.append(int(t[0]))
+        return fake_denoiser(x, t, c)
+
+    sample("unipc", counting, sched, noise, prediction_type=prediction_type, timesteps=ts, order=order,
+           variant=variant, progress=cb)  # fmt: skip
+    assert calls == ts
+    _assert_trajectories_close(ours, theirs, rtol=1e-5)
+
+
+def test_unipc_rhos_solve_the_order_conditions():
+    """The predictor / corrector weights against a direct evaluation of Zhao et al.'s g_i(h) by
+    numerical integration: g_i = int_0^1 e^{-h(1-s)} ... via phi_{i+1}(-h) = int_0^1 e^{-h(1-s)} s^i / i! ds."""
+    h = 0.8
+    for variant, B in (("bh1", -h), ("bh2", math.expm1(-h))):
+        for rks in ([-0.7, 1.0], [-0.6, -1.5], [-0.6, -1.3, 1.0]):
+            s = np.linspace(0.0, 1.0, 20001)
+            g = []
+            for i in range(1, len(rks) + 1):
+                phi = np.trapezoid(np.exp(-h * (1 - s)) * s**i / math.factorial(i), s)  # phi_{i+1}(-h)
+                g.append(-h * math.factorial(i) * phi)
+            R = np.array([[r**i for r in rks] for i in range(len(rks))])
+            assert np.allclose(unipc_rhos(h, rks, variant), np.linalg.solve(R, np.array(g) / B), rtol=1e-6)
+    assert unipc_rhos(h, [1.0], "bh2").tolist() == [0.5]
+
+
+def test_dpmpp_third_order_term_integrates_a_quadratic_exactly():
+    """One 3M step with x0 quadratic in lambda: "exact" reproduces the exponential integral,
+    diffusers' "half" does not (its c2 is half the exact one)."""
+    h, h0, h1 = 0.7, 0.5, 0.9
+    f = lambda u: 1 + 0.3 * u + 0.8 * u * u
+    u = np.linspace(0.0, h, 200001)
+    m0, m1, m2 = f(0.0), f(-h0), f(-h0 - h1)
+    r0, r1 = h0 / h, h1 / h
+    d1_0, d1_1 = (m0 - m1) / r0, (m1 - m2) / r1
+    d2 = (d1_0 - d1_1) / (r0 + r1)
+    for eta in (0.0, 1.0, 0.5):
+        rate = 1.0 + eta
+        integral = rate * np.trapezoid(np.exp(-rate * (h - u)) * f(u), u)
+        _, c0, c1, c2 = dpmpp_coefficients(h, eta, "exact")
+        assert c0 * m0 + c1 * (d1_0 + r0 * d2) + c2 * d2 == pytest.approx(integral, rel=1e-9)
+        _, c0, c1, c2h = dpmpp_coefficients(h, eta, "half")
+        assert c2h == pytest.approx(c2 / 2)
+        assert abs(c0 * m0 + c1 * (d1_0 + r0 * d2) + c2h * d2 - integral) > 1e-2
+
+
+def _slow_dpmpp3m(den, sched, noise, ts, seeds, stochastic):
+    """A slow, obviously-correct DPM-Solver++(3M): each step integrates the Lagrange interpolant
+    of the last p x0 estimates (in lambda) against the exponential kernel numerically (p = 1, 3),
+    or takes the 2M midpoint step (p = 2); p = min(3, i + 1), at most 2 on the second-to-last
+    step when there are fewer than 15, the last step returns x0."""
+    gens = [torch.Generator().manual_seed(s) for s in seeds]
+    ab = [sched.alpha_bar(t) for t in ts]
+    lam = [0.5 * math.log(a / (1 - a)) for a in ab]
+    x, hist, xs, n = noise.double(), [], [], len(ts)
+    for i, t in enumerate(ts):
+        eps = fake_denoiser(x.float(), torch.full((x.shape[0],), t)).double()
+        x0 = (x - math.sqrt(1 - ab[i]) * eps) / math.sqrt(ab[i])
+        hist = [*hist[-2:], (lam[i], x0)]
+        if i == n - 1:
+            xs.append(x0)
+            break
+        a_s, s_s, s_t = math.sqrt(ab[i + 1]), math.sqrt(1 - ab[i + 1]), math.sqrt(1 - ab[i])
+        h = lam[i + 1] - lam[i]
+        p = min(3, i + 1, 2 if (i == n - 2 and n < 15) else 3)
+        rate = 2.0 if stochastic else 1.0
+        if p == 2:
+            (l1, m1), (l0, m0) = hist[-2:]
+            integral = -math.expm1(-rate * h) * (m0 + 0.5 * h / (l0 - l1) * (m0 - m1))
+        else:
+            nodes = hist[-p:]
+            u = np.linspace(0.0, h, 4001)
+            weights = []
+            for k, (lk, _) in enumerate(nodes):  # Lagrange basis k at u (u = lambda - lambda_t)
+                basis = np.ones_like(u)
+                for j, (lj, _) in enumerate(nodes):
+                    if j != k:
+                        basis *= (u - (lj - lam[i])) / (lk - lj)
+                weights.append(rate * np.trapezoid(np.exp(-rate * (h - u)) * basis, u))
+            integral = sum(w * m for w, (_, m) in zip(weights, nodes))
+        decay = math.exp(-h) if stochastic else 1.0
+        x = decay * s_s / s_t * x + a_s * integral
+        if stochastic:
+            z = torch.stack([torch.randn(x.shape[1:], generator=g) for g in gens]).double()
+            x = x + s_s * math.sqrt(-math.expm1(-2 * h)) * z
+        xs.append(x)
+    return xs
+
+
+@pytest.mark.parametrize(("kind", "steps", "spacing"), [("dpm++3m", 20, "trailing"), ("dpm++3m", 10, "lambda"),
+                                                        ("dpm++3msde", 20, "trailing"), ("dpm++3msde", 8, "karras")])  # fmt: skip
+def test_dpmpp3m_exact_matches_slow_reference(kind, steps, spacing):
+    """3M (ODE and SDE, exact third-order term) against the quadrature reference, same noise
+    streams. diffusers' sde-dpmsolver++ order 3 is no oracle here (see sample_dpmpp)."""
+    sched = NoiseSchedule.from_kind("four", T)
+    ts = make_timesteps(T, steps, spacing, sched.alphas_cumprod)
+    seeds = [41, 42]
+    noise = make_noise((64, 3), [309, 310])
+    ref = _slow_dpmpp3m(fake_denoiser, sched, noise, ts, seeds, kind == "dpm++3msde")
+    ours, cb = _collect()
+    sample(kind, fake_denoiser, sched, noise, timesteps=ts, rng=PerSampleRNG(seeds), progress=cb)
+    # trapezoid quadrature with 4001 nodes: ~1e-8 relative
+    _assert_trajectories_close(ours, [r.float() for r in ref], rtol=1e-6)
+
+
 def test_zero_terminal_snr_stays_finite():
     betas = make_betas("four").clone()
     betas[-1] = 1.0  # alpha_bar_T = 0 exactly
@@ -332,8 +559,11 @@ def _mixture_stats(x: torch.Tensor):
 
 
 @pytest.mark.parametrize(
-    ("kind", "kwargs"), [("ddim", {"steps": 50}), ("dpm++", {"steps": 20}), ("dpm++sde", {"steps": 25}), ("ddpm", {})]
-)
+    ("kind", "kwargs"),
+    [("ddim", {"steps": 50}), ("dpm++", {"steps": 20}), ("dpm++sde", {"steps": 25}), ("ddpm", {}),
+     ("dpm++3m", {"steps": 20}), ("dpm++3msde", {"steps": 25}), ("unipc", {"steps": 20, "order": 3}),
+     ("unipc", {"steps": 20, "spacing": "karras"}), ("dpm++sde", {"steps": 25, "spacing": "lambda"})],
+)  # fmt: skip
 def test_exact_denoiser_reproduces_data(four, kind, kwargs):
     den = MixtureDenoiser(four)
     rng = PerSampleRNG([0, 1, 2, 3])
@@ -359,8 +589,10 @@ def test_make_noise_per_sample_invariance():
 
 
 @pytest.mark.parametrize(
-    ("kind", "kwargs"), [("ddpm", {"steps": 100}), ("ddim", {"eta": 1.0}), ("dpm++", {}), ("dpm++sde", {})]
-)
+    ("kind", "kwargs"),
+    [("ddpm", {"steps": 100}), ("ddim", {"eta": 1.0}), ("dpm++", {}), ("dpm++sde", {}), ("dpm++3msde", {}),
+     ("unipc", {})],
+)  # fmt: skip
 def test_sampling_per_sample_seed_invariance(four, kind, kwargs):
     den = MixtureDenoiser(four)
     mask = torch.zeros(1, 256, dtype=torch.bool)
@@ -378,7 +610,10 @@ def test_sampling_per_sample_seed_invariance(four, kind, kwargs):
     assert not torch.allclose(a[0], a[1])
 
 
-@pytest.mark.parametrize(("kind", "kwargs"), [("ddpm", {"steps": 50}), ("ddim", {}), ("dpm++", {})])
+@pytest.mark.parametrize(
+    ("kind", "kwargs"),
+    [("ddpm", {"steps": 50}), ("ddim", {}), ("dpm++", {}), ("dpm++3m", {}), ("unipc", {"steps": 20})],
+)
 def test_inpainting_keeps_known_points(four, kind, kwargs):
     g = torch.Generator().manual_seed(0)
     B, N = 2, 300
@@ -467,6 +702,12 @@ def test_progress_and_dispatch(four):
     assert torch.equal(a, b)
     with pytest.raises(ValueError, match="unknown sampler kind"):
         sample("euler", fake_denoiser, four, noise)
+    assert set(SAMPLER_STEPS) <= set(SAMPLERS)  # every name the CLI offers can be dispatched
+    assert torch.equal(sample("unipc", fake_denoiser, four, noise, steps=6), sample_unipc(fake_denoiser, four, noise, steps=6))
+    with pytest.raises(ValueError, match="order"):
+        sample("unipc", fake_denoiser, four, noise, order=4)
+    with pytest.raises(ValueError, match="d2"):
+        sample("dpm++3m", fake_denoiser, four, noise, d2="double")
     with pytest.raises(ValueError, match="prediction_type"):
         sample("ddpm", fake_denoiser, four, noise, prediction_type="score")
     with pytest.raises(ValueError, match="timesteps"):

@@ -4,14 +4,17 @@
   "cosine") and ``NoiseSchedule`` (forward process, posterior, eps/x0/v conversions).
 - :mod:`~pocoloco.diffusion.loss`: ``diffusion_loss`` (L_simple, optional min-SNR-gamma).
 - :mod:`~pocoloco.diffusion.samplers`: pure-function samplers ``sample_ddpm`` (the paper's
-  1000-step ancestral sampler), ``sample_ddim``, ``sample_dpmpp`` (DPM-Solver++ 2M) and the
-  ``sample`` dispatcher; per-sample seeded noise (``PerSampleRNG``, ``make_noise``).
+  1000-step ancestral sampler), ``sample_ddim``, ``sample_dpmpp`` (DPM-Solver++ 2M / 3M, ODE or
+  SDE), ``sample_unipc`` (:mod:`~pocoloco.diffusion.unipc`) and the ``sample`` dispatcher.
+- :mod:`~pocoloco.diffusion.sampler_base`: what they share: per-sample seeded noise
+  (``PerSampleRNG``, ``make_noise``), timestep spacings (``make_timesteps``), ``SamplerRun``.
 """
 
 from pocoloco.diffusion.loss import diffusion_loss, min_snr_weight
 from pocoloco.diffusion.samplers import (
     ALPHA_BAR_MIN,
     SAMPLER_STEPS,
+    SAMPLERS,
     Denoiser,
     PerSampleRNG,
     StepInfo,
@@ -22,12 +25,14 @@ from pocoloco.diffusion.samplers import (
     sample_ddim,
     sample_ddpm,
     sample_dpmpp,
+    sample_unipc,
 )
 from pocoloco.diffusion.schedules import PREDICTION_TYPES, NoiseSchedule, make_betas
 
 __all__ = [
     "ALPHA_BAR_MIN",
     "PREDICTION_TYPES",
+    "SAMPLERS",
     "SAMPLER_STEPS",
     "Denoiser",
     "NoiseSchedule",
@@ -43,4 +48,5 @@ __all__ = [
     "sample_ddim",
     "sample_ddpm",
     "sample_dpmpp",
+    "sample_unipc",
 ]

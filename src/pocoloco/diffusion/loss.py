@@ -11,7 +11,7 @@ from typing import Any, Literal
 
 import torch
 
-from pocoloco.diffusion.samplers import Denoiser
+from pocoloco.diffusion.sampler_base import Denoiser
 from pocoloco.diffusion.schedules import PREDICTION_TYPES, NoiseSchedule, PredictionType
 
 Weighting = Literal["none", "min_snr"]

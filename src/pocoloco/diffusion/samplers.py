@@ -1,10 +1,11 @@
-"""Samplers for the discrete diffusion process: ancestral DDPM, DDIM and DPM-Solver++ (2M),
-deterministic (ODE) or stochastic (SDE).
+"""Samplers for the discrete diffusion process: ancestral DDPM, DDIM, DPM-Solver++ (2M and 3M),
+deterministic (ODE) or stochastic (SDE), and UniPC (:mod:`~pocoloco.diffusion.unipc`).
 
 Every sampler is a pure function of ``(denoiser, schedule, noise, cond)`` plus options; the
 network, the process (:class:`~pocoloco.diffusion.schedules.NoiseSchedule`) and the sampler are
 separate pieces (as in EDM and diffusers). Shapes: ``noise`` / samples ``(B, N, C)`` (any
-``(B, ...)`` works), timesteps passed to the denoiser ``(B,)`` int64 in ``[0, T)``.
+``(B, ...)`` works), timesteps passed to the denoiser ``(B,)`` int64 in ``[0, T)``. Every sampler
+calls the denoiser exactly once per step (NFE = steps).
 
 Conventions:
 
@@ -13,9 +14,13 @@ Conventions:
 - Timesteps: ``steps`` sampling steps are placed with the "trailing" spacing of Lin et al.
   2024 (Table 2) by default, ``round(T - k T / steps) - 1`` for ``k = 0 .. steps-1``, so the
   first step is always the noisiest training step ``T - 1``. ``"linspace"`` is DPM-Solver's
-  ``linspace(0, T-1, steps+1)`` rounded, reversed, last (0) dropped. Both match diffusers'
-  schedulers with the same ``timestep_spacing``. An explicit descending ``timesteps`` list
-  overrides both (e.g. ``range(99, -1, -1)`` to denoise from t = 99, as in pose editing).
+  ``linspace(0, T-1, steps+1)`` rounded, reversed, last (0) dropped. ``"karras"`` (even in
+  sigma^(1/7), Karras et al. 2022) and ``"lambda"`` (even in log-SNR, Lu et al. 2022) run from
+  T-1 down to t = 0 and put more steps at low noise. All match diffusers' schedulers with the same
+  ``timestep_spacing`` / ``use_karras_sigmas`` / ``use_lu_lambdas``
+  (:func:`~pocoloco.diffusion.sampler_base.make_timesteps`). An explicit descending ``timesteps``
+  list overrides the spacing (e.g. ``range(99, -1, -1)`` to denoise from t = 99, as in pose
+  editing).
 - Randomness: pass ``rng=PerSampleRNG(seeds)`` and build the initial noise with the *same*
   object (``noise = rng.randn((N, C))``): every sample then owns one ``torch.Generator`` whose
   stream continues through the sampler, so sample k is identical whatever the batch it is in
@@ -30,33 +35,42 @@ Conventions:
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import Any, Literal, Protocol
+from typing import Any, Literal
 
 import numpy as np
 import torch
 
-from pocoloco.diffusion.schedules import (
-    PREDICTION_TYPES,
-    NoiseSchedule,
-    PredictionType,
-    pred_to_eps_x0,
+from pocoloco.diffusion.sampler_base import (
+    ALPHA_BAR_MIN,
+    Denoiser,
+    PerSampleRNG,
+    ProgressFn,
+    SamplerRun,
+    Spacing,
+    StepInfo,
+    make_noise,
+    make_timesteps,
+    resolve_timesteps,
 )
+from pocoloco.diffusion.schedules import NoiseSchedule, PredictionType
+from pocoloco.diffusion.unipc import sample_unipc
 
-Spacing = Literal["trailing", "linspace"]
-SamplerKind = Literal["ddpm", "ddim", "dpm++", "dpm++sde"]
-#: What the samplers use instead of abar = 0 (a zero-terminal-SNR schedule, e.g. a last beta
-#: of 1), as diffusers does for such schedules: keeps x0 = (x - sqrt(1-abar) eps) / sqrt(abar)
-#: and DPM-Solver's log-SNR finite. Positive abar are used unchanged, so this is a no-op for the
-#: built-in schedules (smallest abar at T = 1000: "four" 4.2e-3, "linear" 4.0e-5, "cosine" 2.4e-9).
-ALPHA_BAR_MIN = 2.0**-24
+__all__ = ["ALPHA_BAR_MIN", "SAMPLERS", "SAMPLER_STEPS", "Denoiser", "PerSampleRNG", "SamplerKind", "StepInfo",
+           "check_sampler", "make_noise", "make_timesteps", "sample", "sample_ddim", "sample_ddpm", "sample_dpmpp",
+           "sample_unipc"]  # fmt: skip
+
+SamplerKind = Literal["ddpm", "ddim", "dpm++", "dpm++sde", "dpm++3m", "dpm++3msde", "unipc"]
 
 #: sampler names accepted by :func:`sample` (and ``pocoloco sample --sampler``) -> default number of
 #: steps. ddpm is the ancestral sampler strided to 100 steps (``steps=1000`` is the paper's DDPM).
 #: The default, dpm++sde (SDE-DPM-Solver++ 2M, 25 steps), is within 4 % of DDPM-1000 at 28x less
 #: time for the shipped model; the deterministic DDIM / DPM++ are ~24 % worse (BENCHMARKS.md,
-#: "Few-step sampling").
-SAMPLER_STEPS: dict[str, int] = {"dpm++": 20, "dpm++sde": 25, "ddim": 50, "ddpm": 100}
+#: "Few-step sampling"). The deterministic higher-order solvers (unipc: UniPC-2 bh2; dpm++3m)
+#: reach their ODE's answer in ~10 steps, but that answer stays ~6-14 % above DDPM-1000 for the
+#: shipped model; dpm++3msde (SDE-DPM-Solver++ 3M) is no better than dpm++sde at <= 10 steps
+#: (benchmarks/results/SAMPLERS.md).
+SAMPLER_STEPS: dict[str, int] = {"dpm++": 20, "dpm++sde": 25, "ddim": 50, "ddpm": 100, "unipc": 10, "dpm++3m": 15,
+                                 "dpm++3msde": 25}  # fmt: skip
 
 
 def check_sampler(sampler: str, steps: int | None, num_timesteps: int) -> None:
@@ -66,221 +80,6 @@ def check_sampler(sampler: str, steps: int | None, num_timesteps: int) -> None:
         raise ValueError(f"unknown sampler {sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
     if steps is not None and not 1 <= steps <= num_timesteps:
         raise ValueError(f"steps must be in [1, {num_timesteps}] (the model's training timesteps), got {steps}")
-
-
-class Denoiser(Protocol):
-    """A network seen by the samplers: ``fn(x_t, t, cond) -> model output``.
-
-    Args:
-        x_t: (B, N, C) noisy points.
-        t: (B,) int64 timesteps in [0, T).
-        cond: conditioning (e.g. (B, J, 3) joints), passed through untouched; may be None.
-    Returns:
-        (B, N, C) prediction of the kind named by ``prediction_type`` ("epsilon", "sample" =
-        x0, or "v_prediction"). A denoiser may declare it as a ``prediction_type`` attribute;
-        the samplers' ``prediction_type`` argument overrides it.
-    """
-
-    def __call__(self, x_t: torch.Tensor, t: torch.Tensor, cond: Any) -> torch.Tensor: ...
-
-
-@dataclass(frozen=True)
-class StepInfo:
-    """What the ``progress`` callback receives after each sampler step.
-
-    Attributes:
-        index: step index, 0-based.
-        num_steps: total number of steps.
-        t: the timestep the denoiser was evaluated at in this step.
-        x: (B, N, C) the state after the step (in noise.dtype).
-        x0_pred: (B, N, C) the denoiser's x0 estimate at this step (in noise.dtype).
-    """
-
-    index: int
-    num_steps: int
-    t: int
-    x: torch.Tensor
-    x0_pred: torch.Tensor
-
-
-ProgressFn = Callable[[StepInfo], None]
-
-
-# -- randomness --------------------------------------------------------------------------------
-
-
-class PerSampleRNG:
-    """One ``torch.Generator`` per sample, seeded by ``seeds`` (EDM2's StackedRandomGenerator).
-
-    Draws for sample k only consume generator k, so sample k's noise does not depend on the
-    batch it is in.
-    """
-
-    def __init__(self, seeds: Sequence[int], device: torch.device | str | None = None) -> None:
-        seeds = [int(s) for s in seeds]
-        if not seeds:
-            raise ValueError("seeds must be a non-empty sequence of ints")
-        self.seeds = tuple(seeds)
-        self.device = torch.device(device if device is not None else "cpu")
-        self.generators = [torch.Generator(self.device).manual_seed(s) for s in seeds]
-
-    def __len__(self) -> int:
-        return len(self.generators)
-
-    def randn(
-        self,
-        shape_per_sample: Sequence[int],
-        dtype: torch.dtype = torch.float32,
-        device: torch.device | str | None = None,
-    ) -> torch.Tensor:
-        """Standard normal noise of shape (B, *shape_per_sample), B = len(seeds)."""
-        shape = tuple(shape_per_sample)
-        out = torch.stack([torch.randn(shape, generator=g, dtype=dtype, device=self.device) for g in self.generators])
-        return out.to(device) if device is not None else out
-
-    def randn_like(self, x: torch.Tensor) -> torch.Tensor:
-        """Standard normal noise with x's shape (B, ...), dtype and device; B must be len(seeds)."""
-        if x.shape[0] != len(self):
-            raise ValueError(f"batch size {x.shape[0]} does not match the {len(self)} seeds of the RNG")
-        return self.randn(x.shape[1:], dtype=x.dtype, device=x.device)
-
-
-def make_noise(
-    shape_per_sample: Sequence[int],
-    seeds: Sequence[int],
-    dtype: torch.dtype = torch.float32,
-    device: torch.device | str | None = None,
-) -> torch.Tensor:
-    """(B, *shape_per_sample) standard normal noise, sample k drawn from a generator seeded seeds[k].
-
-    Use :class:`PerSampleRNG` instead when the sampler is stochastic, so the initial noise and
-    the sampler's noise come from one continuing stream per sample.
-    """
-    return PerSampleRNG(seeds, device).randn(shape_per_sample, dtype=dtype, device=device)
-
-
-def _randn_like(x: torch.Tensor, rng: PerSampleRNG | torch.Generator | None) -> torch.Tensor:
-    if isinstance(rng, PerSampleRNG):
-        return rng.randn_like(x)
-    if rng is None:
-        return torch.randn(x.shape, dtype=x.dtype, device=x.device)
-    return torch.randn(x.shape, generator=rng, dtype=x.dtype, device=rng.device).to(x.device)
-
-
-# -- timesteps ---------------------------------------------------------------------------------
-
-
-def make_timesteps(num_train_timesteps: int, steps: int, spacing: Spacing = "trailing") -> list[int]:
-    """Descending sampling timesteps in [0, T) (see the module docstring for the spacings).
-
-    Example: T = 1000, steps = 50, "trailing" -> [999, 979, ..., 19].
-    """
-    T = int(num_train_timesteps)
-    if not 1 <= steps <= T:
-        raise ValueError(f"steps must be in [1, {T}], got {steps}")
-    if spacing == "trailing":
-        ts = np.round(T - np.arange(steps) * (T / steps)).astype(np.int64) - 1
-    elif spacing == "linspace":
-        ts = np.linspace(0, T - 1, steps + 1).round()[::-1][:-1].astype(np.int64)
-    else:
-        raise ValueError(f"unknown timestep spacing {spacing!r} (expected 'trailing' or 'linspace')")
-    return [int(t) for t in ts]
-
-
-def _resolve_timesteps(
-    schedule: NoiseSchedule, steps: int | None, spacing: Spacing, timesteps: Sequence[int] | None
-) -> list[int]:
-    T = schedule.num_timesteps
-    if timesteps is None:
-        return make_timesteps(T, T if steps is None else steps, spacing)
-    ts = [int(t) for t in timesteps]
-    if not ts or any(not 0 <= t < T for t in ts) or any(a <= b for a, b in zip(ts, ts[1:], strict=False)):
-        raise ValueError(f"timesteps must be a non-empty strictly decreasing sequence in [0, {T})")
-    return ts
-
-
-# -- shared machinery --------------------------------------------------------------------------
-
-
-class _Run:
-    """State shared by the three samplers: validation, denoiser calls, known points, progress."""
-
-    def __init__(
-        self,
-        denoiser: Denoiser,
-        schedule: NoiseSchedule,
-        noise: torch.Tensor,
-        cond: Any,
-        prediction_type: PredictionType | None,
-        timesteps: list[int],
-        clip: float | None,
-        rng: PerSampleRNG | torch.Generator | None,
-        known: tuple[torch.Tensor, torch.Tensor] | None,
-        progress: ProgressFn | None,
-    ) -> None:
-        if not isinstance(noise, torch.Tensor) or not noise.is_floating_point() or noise.ndim < 2:
-            raise ValueError("noise must be a floating-point tensor of shape (B, N, C)")
-        if prediction_type is None:
-            prediction_type = getattr(denoiser, "prediction_type", "epsilon")
-        if prediction_type not in PREDICTION_TYPES:
-            raise ValueError(f"prediction_type must be one of {PREDICTION_TYPES}, got {prediction_type!r}")
-        if clip is not None and not clip > 0:
-            raise ValueError(f"clip must be positive or None, got {clip}")
-        if isinstance(rng, PerSampleRNG) and len(rng) != noise.shape[0]:
-            raise ValueError(f"rng has {len(rng)} seeds but noise has batch size {noise.shape[0]}")
-        self.denoiser, self.schedule, self.cond = denoiser, schedule, cond
-        self.prediction_type, self.clip, self.rng, self.progress = prediction_type, clip, rng, progress
-        self.dtype, self.device = noise.dtype, noise.device
-        self.timesteps = timesteps
-        # abar per step and the "previous" abar (1 after the last step), kept away from 0
-        ab = [schedule.alpha_bar(t) or ALPHA_BAR_MIN for t in timesteps]
-        self.ab, self.ab_prev = ab, [*ab[1:], 1.0]
-        self.mask = self.x0_known = None
-        if known is not None:
-            mask, x0k = known
-            if mask.shape != noise.shape[:2] or mask.dtype != torch.bool:
-                raise ValueError(f"known mask must be a bool tensor of shape {tuple(noise.shape[:2])}")
-            if x0k.shape != noise.shape:
-                raise ValueError(f"known x0 must have the noise's shape {tuple(noise.shape)}, got {tuple(x0k.shape)}")
-            self.mask = mask.to(self.device).view(*mask.shape, *([1] * (noise.ndim - 2)))
-            self.x0_known = x0k.to(device=self.device, dtype=torch.float64)
-
-    def model_eps_x0(self, x: torch.Tensor, i: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Evaluate the denoiser at step i; return float64 (eps, x0), x0 clipped if asked."""
-        t = torch.full((x.shape[0],), self.timesteps[i], dtype=torch.long, device=self.device)
-        out = self.denoiser(x.to(self.dtype), t, self.cond)
-        if out.shape != x.shape:
-            raise ValueError(f"denoiser output shape {tuple(out.shape)} does not match x shape {tuple(x.shape)}")
-        a, s = self.ab[i] ** 0.5, (1.0 - self.ab[i]) ** 0.5
-        eps, x0 = pred_to_eps_x0(out.to(torch.float64), x, a, s, self.prediction_type)
-        if self.clip is not None:
-            x0 = x0.clamp(-self.clip, self.clip)
-            eps = (x - a * x0) / s
-        return eps, x0
-
-    def randn_like(self, x: torch.Tensor) -> torch.Tensor:
-        """Fresh noise in the model dtype (so streams match diffusers'), returned as float64."""
-        return _randn_like(x.to(self.dtype), self.rng).to(torch.float64)
-
-    def impose_known(self, x: torch.Tensor, ab: float, eps: torch.Tensor | None = None) -> torch.Tensor:
-        """Replace the known points by q(x_s | x0_known) at abar_s = ab (exact x0 when ab == 1)."""
-        if self.mask is None:
-            return x
-        if ab >= 1.0:
-            noisy = self.x0_known
-        else:
-            eps = self.randn_like(x) if eps is None else eps
-            noisy = ab**0.5 * self.x0_known + (1.0 - ab) ** 0.5 * eps
-        return torch.where(self.mask, noisy, x)
-
-    def start(self, noise: torch.Tensor) -> torch.Tensor:
-        """The float64 initial state, known points noised to the first timestep with fresh noise
-        (``noise`` may be a partially noised sample rather than pure noise, see ``timesteps``)."""
-        return self.impose_known(noise.to(torch.float64), self.ab[0])
-
-    def report(self, i: int, x: torch.Tensor, x0: torch.Tensor) -> None:
-        if self.progress is not None:
-            self.progress(StepInfo(i, len(self.timesteps), self.timesteps[i], x.to(self.dtype), x0.to(self.dtype)))
 
 
 # -- samplers ----------------------------------------------------------------------------------
@@ -324,8 +123,8 @@ def sample_ddpm(
     Returns:
         (B, N, C) samples in noise.dtype.
     """
-    run = _Run(denoiser, schedule, noise, cond, prediction_type,
-               _resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
+    run = SamplerRun(denoiser, schedule, noise, cond, prediction_type,
+               resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
     x = run.start(noise)
     for i in range(len(run.timesteps)):
         ab_t, ab_s = run.ab[i], run.ab_prev[i]
@@ -366,8 +165,8 @@ def sample_ddim(
     """
     if eta < 0:
         raise ValueError(f"eta must be >= 0, got {eta}")
-    run = _Run(denoiser, schedule, noise, cond, prediction_type,
-               _resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
+    run = SamplerRun(denoiser, schedule, noise, cond, prediction_type,
+               resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
     x = run.start(noise)
     for i in range(len(run.timesteps)):
         ab_t, ab_s = run.ab[i], run.ab_prev[i]
@@ -381,6 +180,41 @@ def sample_ddim(
     return x.to(run.dtype)
 
 
+#: below this many steps DPM-Solver++(3M) drops to second order on its second-to-last step, as
+#: diffusers' ``lower_order_final`` does ("stabilises sampling for steps < 15")
+LOWER_ORDER_BELOW = 15
+
+
+def dpmpp_coefficients(h: float, eta: float, d2: str = "exact") -> tuple[float, float, float, float]:
+    """(A, c0, c1, c2) of one DPM-Solver++ step in half log-SNR from lambda_t to lambda_s = lambda_t + h:
+    ``x_s = A (sigma_s / sigma_t) x_t + alpha_s (c0 D0 + c1 D1 + c2 D2)`` (+ noise if eta > 0).
+
+    The data-prediction exponential integrator (Lu et al. 2022, DPM-Solver++ eq. 8-9) is
+    ``x_s = (sigma_s / sigma_t) x_t + alpha_s int_0^h e^{-(h-u)} x0(u) du`` for the ODE (eta = 0) and,
+    for the SDE (eta = 1; same paper, Appendix; Gonzalez et al. 2023), ``(sigma_s / sigma_t) e^{-h} x_t
+    + 2 alpha_s int_0^h e^{-2(h-u)} x0(u) du + sigma_s sqrt(1 - e^{-2h}) z``; in general (the family
+    of k-diffusion's ``eta``) ``(sigma_s / sigma_t) e^{-eta h} x_t + (1 + eta) alpha_s
+    int_0^h e^{-(1 + eta)(h-u)} x0(u) du + sigma_s sqrt(1 - e^{-2 eta h}) z``, which keeps the
+    marginals for any eta >= 0. Expanding x0 to second order, x0(u) = D0 + D1 u / h + D2 u^2 / h^2
+    (D1 = h x0', D2 = h^2 x0'' / 2), gives with H = (1 + eta) h and phi2(H) = (H - 1 + e^{-H}) / H^2:
+    c0 = 1 - e^{-H}, c1 = 1 - c0 / H, c2 = 1 - 2 phi2(H) ("exact", the integral of the quadratic),
+    or c2 = 1/2 - phi2(H) ("half": the coefficient of Lu et al.'s multistep third-order code and
+    of diffusers' DPMSolverMultistepScheduler(solver_order=3), and k-diffusion's 3M SDE, which
+    amounts to taking D2 = h^2 x0'' instead of h^2 x0'' / 2; it leaves the step second order).
+    """
+    H = (1.0 + eta) * h
+    c0 = -float(np.expm1(-H))
+    c1 = 1.0 - c0 / H
+    phi2 = (H - c0) / H**2
+    if d2 == "exact":
+        c2 = 1.0 - 2.0 * phi2
+    elif d2 == "half":
+        c2 = 0.5 - phi2
+    else:
+        raise ValueError(f"d2 must be 'exact' or 'half', got {d2!r}")
+    return float(np.exp(-eta * h)), c0, c1, c2
+
+
 @torch.no_grad()
 def sample_dpmpp(
     denoiser: Denoiser,
@@ -392,6 +226,8 @@ def sample_dpmpp(
     steps: int = 20,
     order: int = 2,
     stochastic: bool = False,
+    eta: float = 1.0,
+    d2: Literal["exact", "half"] = "exact",
     spacing: Spacing = "trailing",
     timesteps: Sequence[int] | None = None,
     clip: float | None = None,
@@ -399,51 +235,89 @@ def sample_dpmpp(
     known: tuple[torch.Tensor, torch.Tensor] | None = None,
     progress: ProgressFn | None = None,
 ) -> torch.Tensor:
-    """DPM-Solver++(2M), multistep, data-prediction form (Lu et al. 2022, Algorithm 2), or its
-    SDE variant SDE-DPM-Solver++(2M) (same paper, Appendix; diffusers' "sde-dpmsolver++").
+    """DPM-Solver++(2M / 3M), multistep, data-prediction form (Lu et al. 2022, Algorithm 2 and
+    Appendix), or its SDE variant SDE-DPM-Solver++(2M / 3M) (diffusers' "sde-dpmsolver++").
 
-    With alpha = sqrt(abar), sigma = sqrt(1 - abar), lambda = log(alpha / sigma) and
-    h = lambda_s - lambda_t:
-    x_s = (sigma_s / sigma_t) x_t - alpha_s (e^{-h} - 1) (D0 + D1 / 2),
-    D0 = x0_hat_t, D1 = (x0_hat_t - x0_hat_prev) h / h_prev (D1 = 0 for order 1 and for the first
-    step). ``stochastic=True`` integrates the reverse SDE instead:
-    x_s = (sigma_s / sigma_t) e^{-h} x_t + alpha_s (1 - e^{-2h}) (D0 + D1 / 2)
-    + sigma_s sqrt(1 - e^{-2h}) z, z ~ N(0, I) from ``rng``; like ancestral DDPM it re-injects
-    noise, which corrects an imperfect denoiser's errors instead of carrying them along the ODE.
-    The last step goes to sigma = 0 and returns x0_hat ("final_sigmas_type='zero'" in
-    diffusers, which also makes it first order). An abar of exactly 0 is replaced by
-    ALPHA_BAR_MIN so lambda stays finite. In the ODE form ``rng`` is only used for the known
-    points' noise.
+    With alpha = sqrt(abar), sigma = sqrt(1 - abar), lambda = log(alpha / sigma),
+    h = lambda_s - lambda_t and the x0 estimates m0, m1, m2 of this step and the two before
+    (h0, h1 their lambda gaps, r0 = h0 / h, r1 = h1 / h):
+
+    - order 1 (DDIM, and every first step): D0 = m0.
+    - order 2 (2M, "midpoint"): ``x_s = (sigma_s / sigma_t) x_t + alpha_s c0 (D0 + D1 / 2)``,
+      D1 = (m0 - m1) / r0.
+    - order 3 (3M): ``x_s = (sigma_s / sigma_t) x_t + alpha_s (c0 D0 + c1 D1 + c2 D2)`` with the
+      quadratic through m0, m1, m2 in lambda: D1 = D1_0 + r0 / (r0 + r1) (D1_0 - D1_1),
+      D2 = (D1_0 - D1_1) / (r0 + r1), D1_0 = (m0 - m1) / r0, D1_1 = (m1 - m2) / r1; coefficients
+      from :func:`dpmpp_coefficients` (``d2`` chooses c2: "exact" or diffusers' "half").
+
+    ``stochastic=True`` integrates the reverse SDE instead (same D's, coefficients of H = 2h, and
+    ``x_s`` gains the factor e^{-h} on x_t and ``+ sigma_s sqrt(1 - e^{-2h}) z``, z ~ N(0, I) from
+    ``rng``); like ancestral DDPM it re-injects noise, which corrects an imperfect denoiser's
+    errors instead of carrying them along the ODE. ``eta`` (stochastic only) scales the noise
+    between the ODE (0) and the SDE (1, default) or beyond (H = (1 + eta) h, factor e^{-eta h},
+    noise sigma_s sqrt(1 - e^{-2 eta h}); :func:`dpmpp_coefficients`). The order ramps up over the first steps (one x0
+    estimate more per step); with fewer than 15 steps the second-to-last step is at most second
+    order (diffusers' ``lower_order_final``). The last step goes to sigma = 0 and returns x0_hat
+    ("final_sigmas_type='zero'" in diffusers, which also makes it first order). An abar of
+    exactly 0 is replaced by ALPHA_BAR_MIN so lambda stays finite. In the ODE form ``rng`` is only
+    used for the known points' noise.
+
+    Note: diffusers 0.42's "sde-dpmsolver++" with solver_order=3 has the sign of the 1/2 in its
+    D2 coefficient flipped (-1/2 - phi2(2h) instead of 1/2 - phi2(2h)); the 3M SDE here is
+    therefore checked against a slow reference, not against diffusers.
     Other arguments as in :func:`sample_ddpm`.
     """
-    if order not in (1, 2):
-        raise ValueError(f"order must be 1 or 2, got {order}")
-    run = _Run(denoiser, schedule, noise, cond, prediction_type,
-               _resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
-    lam = [0.5 * np.log(ab / (1.0 - ab)) for ab in run.ab]
+    if order not in (1, 2, 3):
+        raise ValueError(f"order must be 1, 2 or 3, got {order}")
+    if d2 not in ("exact", "half"):
+        raise ValueError(f"d2 must be 'exact' or 'half', got {d2!r}")
+    if not eta >= 0:
+        raise ValueError(f"eta must be >= 0, got {eta}")
+    eta = float(eta) if stochastic else 0.0
+    run = SamplerRun(denoiser, schedule, noise, cond, prediction_type,
+                     resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
+    n, lam = len(run.timesteps), run.lam
     x = run.start(noise)
-    x0_last: torch.Tensor | None = None
-    for i in range(len(run.timesteps)):
+    hist: list[torch.Tensor] = []  # x0 estimates, newest last
+    for i in range(n):
         _, x0 = run.model_eps_x0(x, i)
+        hist = [*hist[-2:], x0]
         ab_s = run.ab_prev[i]
         if ab_s >= 1.0:  # final step to sigma = 0
             x = x0
         else:
             a_s, s_s, s_t = ab_s**0.5, (1.0 - ab_s) ** 0.5, (1.0 - run.ab[i]) ** 0.5
-            h = lam[i + 1] - lam[i]
-            d = x0
-            if order == 2 and x0_last is not None:
-                r = (lam[i] - lam[i - 1]) / h
-                d = x0 + (0.5 / r) * (x0 - x0_last)
-            if stochastic:
-                x = (s_s / s_t * np.exp(-h)) * x + (-a_s * np.expm1(-2.0 * h)) * d
-                x = x + (s_s * (-np.expm1(-2.0 * h)) ** 0.5) * run.randn_like(x)
+            h = 0.5 * float(np.log(ab_s / (1.0 - ab_s))) - lam[i]
+            p = min(order, len(hist), 2 if (i == n - 2 and n < LOWER_ORDER_BELOW) else order)
+            A, c0, c1, c2 = dpmpp_coefficients(h, eta, d2)
+            if p == 1:
+                update = c0 * x0
+            elif p == 2:
+                r0 = (lam[i] - lam[i - 1]) / h
+                update = c0 * (x0 + (0.5 / r0) * (x0 - hist[-2]))
             else:
-                x = (s_s / s_t) * x + (-a_s * np.expm1(-h)) * d
-        x0_last = x0
+                r0, r1 = (lam[i] - lam[i - 1]) / h, (lam[i - 1] - lam[i - 2]) / h
+                d1_0, d1_1 = (x0 - hist[-2]) / r0, (hist[-2] - hist[-3]) / r1
+                dd2 = (d1_0 - d1_1) / (r0 + r1)
+                update = c0 * x0 + c1 * (d1_0 + r0 * dd2) + c2 * dd2
+            x = (A * s_s / s_t) * x + a_s * update
+            if eta > 0:
+                x = x + (s_s * (-np.expm1(-2.0 * eta * h)) ** 0.5) * run.randn_like(x)
         x = run.impose_known(x, ab_s)
         run.report(i, x, x0)
     return x.to(run.dtype)
+
+
+#: sampler kind -> (function, preset keyword arguments); :func:`sample`'s keywords override presets
+SAMPLERS: dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]] = {
+    "ddpm": (sample_ddpm, {}),
+    "ddim": (sample_ddim, {}),
+    "dpm++": (sample_dpmpp, {}),
+    "dpm++sde": (sample_dpmpp, {"stochastic": True}),
+    "dpm++3m": (sample_dpmpp, {"order": 3}),
+    "dpm++3msde": (sample_dpmpp, {"order": 3, "stochastic": True}),
+    "unipc": (sample_unipc, {}),
+}
 
 
 def sample(
@@ -454,12 +328,11 @@ def sample(
     cond: Any = None,
     **kwargs: Any,
 ) -> torch.Tensor:
-    """Dispatch to :func:`sample_ddpm` ("ddpm"), :func:`sample_ddim` ("ddim") or
-    :func:`sample_dpmpp` ("dpm++", "dpm++sde" = ``stochastic=True``); keyword arguments are
-    forwarded."""
-    samplers = {"ddpm": sample_ddpm, "ddim": sample_ddim, "dpm++": sample_dpmpp, "dpm++sde": sample_dpmpp}
-    if kind not in samplers:
-        raise ValueError(f"unknown sampler kind {kind!r} (expected one of {sorted(samplers)})")
-    if kind == "dpm++sde":
-        kwargs = {**kwargs, "stochastic": True}
-    return samplers[kind](denoiser, schedule, noise, cond, **kwargs)
+    """Dispatch to the sampler named ``kind`` (:data:`SAMPLERS`): :func:`sample_ddpm` ("ddpm"),
+    :func:`sample_ddim` ("ddim"), :func:`sample_dpmpp` ("dpm++"; "dpm++sde" = ``stochastic=True``;
+    "dpm++3m" / "dpm++3msde" = ``order=3``) or :func:`sample_unipc` ("unipc"); keyword arguments are
+    forwarded and override the kind's presets."""
+    if kind not in SAMPLERS:
+        raise ValueError(f"unknown sampler kind {kind!r} (expected one of {sorted(SAMPLERS)})")
+    fn, preset = SAMPLERS[kind]
+    return fn(denoiser, schedule, noise, cond, **{**preset, **kwargs})
