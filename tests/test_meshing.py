@@ -302,7 +302,9 @@ def test_cli_refine_body_bad_joints_one_line_nothing_written(tmp_path, capsys, j
     src = tmp_path / "in.ply"
     write_ply(src, _sphere(500) + [0, 0, 1.0])
     np.save(tmp_path / "j17.npy", np.zeros((17, 3)))
-    np.save(tmp_path / "far.npy", np.full((24, 3), 10.0))
+    from pocoloco.data.poses import demo_pose_path
+
+    np.save(tmp_path / "far.npy", np.load(demo_pose_path("tight")) + 10.0)  # a body, 10 m from the cloud
     argv = ["mesh", str(src), "--refine-body", "--out", str(tmp_path / "o.ply")]
     if joints:
         argv += ["--joints", str(tmp_path / joints)]

@@ -20,7 +20,7 @@ from pocoloco.utils.atomic import output_folder
 from pocoloco.utils.hardware import bf16_is_fast
 
 __all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "add_any_pose_argument", "add_bf16_argument", "resolve_bf16", "add_app_arguments", "add_device_argument", "add_threads_argument",
-           "apply_threads", "check_app_args", "choose_device", "pick_outfit", "console", "load_method_from_args", "progress_bar",
+           "apply_threads", "check_app_args", "choose_device", "pick_outfit", "steps_defaults", "console", "load_method_from_args", "progress_bar",
            "run_command"]  # fmt: skip
 
 EXIT_USER_ERROR = 2
@@ -159,13 +159,18 @@ def progress_bar(label: str, total: int | None = None, loss: bool = False, trans
 
 
 # ------------------------------------------------------------------------------------- the apps
+def steps_defaults() -> str:
+    """``dpm++sde 10, ddpm 100, ...``: every sampler's default step count, for help texts."""
+    return ", ".join(f"{k} {v}" for k, v in SAMPLER_STEPS.items())
+
+
 def add_app_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
     """--ckpt, --sampler, --steps, --seed, --raw-weights, --device, --threads, --no-render, --out."""
     parser.add_argument("--ckpt", default="default",
                         help="checkpoint / run folder of a PocoLoco model; 'default' = the model shipped with pocoloco")  # fmt: skip
     parser.add_argument("--sampler", default="dpm++sde",
                         help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde)")  # fmt: skip
-    parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50; at most t)")
+    parser.add_argument("--steps", type=int, help=f"sampler steps (default: {steps_defaults()}; at most t)")
     parser.add_argument("--seed", type=int, default=0, help="output k uses seed SEED + k (default 0)")
     parser.add_argument("--outfit", help="models that know who wears what: outfit name or id (default: the subject "
                                          "of a DATASET:... pose or motion)")  # fmt: skip

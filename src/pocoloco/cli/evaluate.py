@@ -6,7 +6,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pocoloco.cli.common import add_bf16_argument, add_threads_argument, console, progress_bar, resolve_bf16
+from pocoloco.cli.common import (
+    add_bf16_argument,
+    add_threads_argument,
+    console,
+    progress_bar,
+    resolve_bf16,
+    steps_defaults,
+)
 from pocoloco.data import format as fmt
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.evaluation.baselines import NEAREST_ALIGNS
@@ -67,8 +74,8 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=24, help="frames evenly spaced over the split (0 = all; default 24)")
     parser.add_argument("--points", type=int, default=10_000, help="points per cloud (default 10000, as the paper)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="one sample per seed (default 0 1 2)")
-    parser.add_argument("--sampler", default="dpm++sde", help="dpm++sde, ddpm, dpm++ or ddim (default dpm++sde, 25 steps)")
-    parser.add_argument("--steps", type=int, help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50)")
+    parser.add_argument("--sampler", default="dpm++sde", help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde, {SAMPLER_STEPS['dpm++sde']} steps)")
+    parser.add_argument("--steps", type=int, help=f"sampler steps (default: {steps_defaults()})")
     parser.add_argument("--subjects", nargs="+", help="only these subjects (default: all)")
     parser.add_argument("--no-baselines", action="store_true", help="skip the nearest-frame / posed-body / GT rows")
     parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
@@ -109,7 +116,7 @@ def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=24, help="test frames, evenly spaced (0 = all; default 24)")
     parser.add_argument("--points", type=int, default=10_000, help="points per cloud (default 10000)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="PocoLoco samples per frame (default 0 1 2)")
-    parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco sampler (default dpm++sde, 25 steps)")
+    parser.add_argument("--sampler", default="dpm++sde", help=f"PocoLoco sampler (default dpm++sde, {SAMPLER_STEPS['dpm++sde']} steps)")
     parser.add_argument("--steps", type=int, help="PocoLoco sampler steps (default: the sampler's)")
     add_nearest_align_argument(parser)
     add_threads_argument(parser)

@@ -8,8 +8,16 @@ import time
 
 import torch
 
-from pocoloco.cli.common import (add_any_pose_argument, add_bf16_argument, add_device_argument, add_threads_argument,
-                                 load_method_from_args, pick_outfit, resolve_bf16)
+from pocoloco.cli.common import (
+    add_any_pose_argument,
+    add_bf16_argument,
+    add_device_argument,
+    add_threads_argument,
+    load_method_from_args,
+    pick_outfit,
+    resolve_bf16,
+    steps_defaults,
+)
 from pocoloco.data.poses import pose_spec_kind
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.methods import SamplerOptions
@@ -87,9 +95,9 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--outfit",
                         help="POP / CloSET: outfit name or id (default: the subject of a DATASET:... frame)")  # fmt: skip
     parser.add_argument("--sampler", default="dpm++sde",
-                        help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde: SDE-DPM-Solver++, 25 steps)")  # fmt: skip
+                        help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde: SDE-DPM-Solver++, {SAMPLER_STEPS['dpm++sde']} steps)")  # fmt: skip
     parser.add_argument("--steps", type=int,
-                        help="sampler steps (default: dpm++sde 25, ddpm 100, dpm++ 20, ddim 50; ddpm 1000 = the paper's)")  # fmt: skip
+                        help=f"sampler steps (default: {steps_defaults()}; ddpm 1000 = the paper's)")  # fmt: skip
     parser.add_argument("--points", type=int, default=2048, help="N points per cloud (default 2048; any N works)")
     parser.add_argument("--seed", type=int, default=0, help="cloud k uses seed SEED + k (default 0)")
     parser.add_argument("--batch-size", type=int, default=8, help="clouds denoised together (default 8)")
