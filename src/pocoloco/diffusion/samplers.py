@@ -68,7 +68,7 @@ SamplerKind = Literal["ddpm", "ddim", "dpm++", "dpm++sde", "dpm++3m", "dpm++3msd
 #: less time; the deterministic DDIM / DPM++ are ~24 % worse (BENCHMARKS.md, "Few-step sampling"). The deterministic higher-order solvers (unipc: UniPC-2 bh2; dpm++3m)
 #: reach their ODE's answer in ~10 steps, but that answer stays ~6-14 % above DDPM-1000 for the
 #: shipped model; dpm++3msde (SDE-DPM-Solver++ 3M) is no better than dpm++sde at <= 10 steps
-#: (benchmarks/results/SAMPLERS.md).
+#: (BENCHMARKS.md, "Few-step samplers, <= 10 network calls").
 SAMPLER_STEPS: dict[str, int] = {"dpm++": 20, "dpm++sde": 10, "ddim": 50, "ddpm": 100, "unipc": 10, "dpm++3m": 15,
                                  "dpm++3msde": 25}  # fmt: skip
 
