@@ -324,4 +324,5 @@
   if (isFinite(parseFloat(opts.az))) cam.az = parseFloat(opts.az) * Math.PI / 180;
   if (isFinite(parseFloat(opts.el))) cam.el = Math.min(Math.max(parseFloat(opts.el), -89), 89) * Math.PI / 180;
   select(isFinite(parseInt(opts.cloud, 10)) ? parseInt(opts.cloud, 10) : 0);
+  draw();  // the first frame now, not on the next animation frame (headless browsers may not tick)
 })();
