@@ -58,6 +58,11 @@ class ClothSimSettings:
     fps: output frame rate; the body sequence is given at this rate.
     substeps, iterations: VBD substeps per frame and solver iterations per substep.
     collider: ``"capsules"`` or ``"mesh"`` (see module docstring).
+    frame: ``"world"``, or ``"root"``: simulate in a frame translating with the
+        pelvis (the same physics: the cloth's velocity is corrected whenever the
+        frame's changes). Self-contact needs it: its divide-and-truncate bound
+        lets two touching layers move at most about half their gap per substep,
+        so in the world frame the layers of a walking subject's skirt lag behind.
     density: cloth area density [kg/m^2]. tri_ke/tri_ka/tri_kd: membrane
     stretch/area stiffness and damping; edge_ke/edge_kd: bending.
     particle_radius, contact_margin: collision thickness and detection gap [m].
@@ -65,9 +70,13 @@ class ClothSimSettings:
     self_contact: newton VBD cloth self-contact (vertex-triangle and edge-edge).
     self_contact_margin: distance [m] at which two cloth layers start to repel.
     self_contact_gap: extra detection reach [m]. VBD's divide-and-truncate bound
-        lets a particle move at most ~0.43 x (margin + gap) per substep, so this
-        also caps the cloth's speed: 3.4 cm at 10 substeps of 4 ms allow 3.6 m/s
-        (a 1 cm reach caps it at ~1 m/s and a swinging skirt lags into the legs).
+        lets a particle move at most ~0.43 x (margin + gap) per substep, and two
+        touching layers about half their gap: this caps the cloth's speed relative
+        to the simulation frame (1.6 cm at 10 substeps of 4 ms: 1.7 m/s), so use
+        ``frame="root"`` (a walking body's skirt layers otherwise lag and tangle).
+        Measured on a walk (benchmarks/bench_cloth_settings.py): a 1 cm reach lets
+        legs through the cloth (8 of 110 frames > 3 cm), 1.6 cm none; cost 2.1x /
+        2.7x / 3.6x the simulation without self-contact at 1.0 / 1.6 / 2.4 cm.
     self_contact_detection: "pre_init" (detect once per substep) or
         "pre_post_init" (twice, newton's default; ~10 % slower, same result here).
     settle_frames: frames simulated at the first pose before recording.
@@ -81,6 +90,7 @@ class ClothSimSettings:
     substeps: int = 10
     iterations: int = 5
     collider: str = "mesh"
+    frame: str = "world"
     density: float = 0.15
     tri_ke: float = 1.0e4
     tri_ka: float = 1.0e4
@@ -94,7 +104,7 @@ class ClothSimSettings:
     contact_mu: float = 0.05
     self_contact: bool = False
     self_contact_margin: float = 0.004
-    self_contact_gap: float = 0.03
+    self_contact_gap: float = 0.012
     self_contact_detection: str = "pre_init"
     settle_frames: int = 10
     capsule_percentile: float = 90.0
@@ -389,6 +399,8 @@ def simulate_garment(
     s = settings or ClothSimSettings()
     if s.collider not in COLLIDERS:
         raise ValueError(f"unknown collider {s.collider!r}; expected one of {COLLIDERS}")
+    if s.frame not in ("world", "root"):
+        raise ValueError(f"frame must be 'world' or 'root', got {s.frame!r}")
     if s.substeps < 1 or s.iterations < 1 or s.fps <= 0:
         raise ValueError("substeps, iterations and fps must be positive")
     T = posed.vertices.shape[0]
@@ -405,6 +417,13 @@ def simulate_garment(
     import newton
 
     device = wp.get_device("cpu")
+    world = posed
+    # the simulation frame: the world, or a frame translating with the pelvis ("root")
+    origin = posed.joints[:, 0].astype(np.float64) if s.frame == "root" else np.zeros((T, 3))
+    posed = PosedBody((world.vertices - origin[:, None]).astype(np.float32),
+                      (world.joints - origin[:, None]).astype(np.float32), world.vtransf)  # fmt: skip
+    # the frame's velocity, constant within a frame (body data is interpolated linearly)
+    frame_velocity = np.diff(origin, axis=0, prepend=origin[:1]) * s.fps  # (T, 3), 0 for frame 0
     pins = pin_positions(garment, posed)  # (T, P, 3)
     pin_idx = np.flatnonzero(garment.pinned)
     x0 = skin_garment(garment, body, posed.vertices[0], posed.vtransf[0])
@@ -506,7 +525,7 @@ def simulate_garment(
 
     # settle at the first pose (or restore a settled state of the same first frame)
     if settled is not None:
-        if settled.positions.shape != x0.shape or not np.array_equal(settled.first_frame, posed.vertices[0]):
+        if settled.positions.shape != x0.shape or not np.array_equal(settled.first_frame, world.vertices[0]):
             raise ValueError("settled: the state was settled for another garment or first frame")
         state0.particle_q.assign(settled.positions)
         state0.particle_qd.assign(settled.velocities)
@@ -515,7 +534,7 @@ def simulate_garment(
             for _ in range(s.substeps):
                 substep(0, 0.0, None)
     settled_out = SettledCloth(state0.particle_q.numpy().copy(), state0.particle_qd.numpy().copy(),
-                               posed.vertices[0].copy())  # fmt: skip
+                               world.vertices[0].copy())  # fmt: skip
 
     out = np.zeros((T, len(x0), 3), dtype=np.float32)
     stats: list[ClothFrameStats] = []
@@ -525,14 +544,17 @@ def simulate_garment(
     for t in range(T):
         if t > 0:
             t_start, c_start = time.perf_counter(), time.process_time()
+            dv = frame_velocity[t] - frame_velocity[t - 1]
+            if dv.any():  # the frame changes velocity: the cloth keeps its world velocity
+                state0.particle_qd.assign(state0.particle_qd.numpy() - dv.astype(np.float32))
             vel = (posed.vertices[t] - posed.vertices[t - 1]) / frame_dt if body_mesh is not None else None
             for k in range(s.substeps):
                 substep(t - 1, (k + 1) / s.substeps, vel)
             sim_time += time.perf_counter() - t_start
             cpu_time += time.process_time() - c_start
-        x = state0.particle_q.numpy().copy()
+        x = state0.particle_q.numpy().copy()  # in the simulation frame
         st = frame_stats(x, posed.vertices[t], body.faces, edges, rest_len, s)
-        out[t] = x
+        out[t] = x + origin[t]
         stats.append(st)
         if _is_hard_failure(st):  # restore the last good cloth, at rest
             resets += 1

@@ -50,7 +50,9 @@ class SynthConfig:
     garment_tessellation: ``"isotropic"`` (rings of ~2.2 cm / resolution edges)
         or ``"grid"`` (the first skirt / long_shirt grids, 72 x 36).
     cloth_self_contact: newton VBD cloth self-contact (the cloth does not pass
-        through itself; costs simulation time, see BENCHMARKS).
+        through itself; costs simulation time: benchmarks/bench_cloth_settings.py).
+    cloth_frame: ``"root"`` (simulate in a frame translating with the pelvis, the
+        same physics; needed by self-contact) or ``"world"`` (``ClothSimSettings.frame``).
     capture_cull_hidden_faces: draw capture candidates only on faces that may be
         visible (``capture.possibly_visible_faces``).
     self_intersection_every: count cloth self-intersections (crossing triangle
@@ -71,6 +73,7 @@ class SynthConfig:
     seed: int = 0
     garment_tessellation: str = "isotropic"
     cloth_self_contact: bool = False
+    cloth_frame: str = "root"
     capture_cull_hidden_faces: bool = True
     self_intersection_every: int = 10
 
@@ -88,6 +91,7 @@ class SynthConfig:
 SYNTH_V1: dict = {
     "garment_tessellation": "grid",
     "cloth_self_contact": False,
+    "cloth_frame": "world",
     "capture_cull_hidden_faces": False,
     "self_intersection_every": 0,
 }

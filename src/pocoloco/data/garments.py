@@ -56,14 +56,17 @@ front and back; sleeves and trouser legs are lofted from an arm hole / half-ring
 through a few blended rows; the seams are ironed (Laplacian smoothing + push-out)
 until no two triangles cross.
 
-Why these are built here rather than with ``pygarment`` (GarmentCode, MIT): see
-BENCHMARKS.md, "Garment library". In short, the PyPI wheel (2.0.2) installs 83
+Why these are built here rather than with ``pygarment`` (GarmentCode, MIT), judged in a
+scratch venv (2026-11-23): the PyPI wheel (2.0.2) installs 83
 packages / 641 MB (CGAL, libigl, nicegui, pyrender, OpenGL; pins numpy < 2 while this
 project runs numpy 2.4), is not importable as published (its modules import
 ``pygarment.*`` but are installed top-level, ``data_config`` and ``meshgen.render`` are
 missing), ships no garment designs (skirts, bodices, sleeves, pants live in the GitHub
 repository's ``assets/``, with SMPL-derived body files) and produces flat 2D panels
 placed around the body: draping them needs its own sewing simulator (a warp fork).
+With a namespace shim and a stub its pattern layer does run (a two-panel skirt
+assembles to panels + stitches in ~1.3 s of imports), but everything from there to a
+draped, body-fitted 3D mesh would still be ours to write.
 """
 
 from __future__ import annotations

@@ -161,7 +161,7 @@ def cloth_settings(config: SynthConfig):
     """The cloth simulation settings of a run."""
     from .cloth_sim import ClothSimSettings
 
-    return ClothSimSettings(fps=config.fps, self_contact=config.cloth_self_contact)
+    return ClothSimSettings(fps=config.fps, self_contact=config.cloth_self_contact, frame=config.cloth_frame)
 
 
 def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
