@@ -256,8 +256,8 @@ def visibility(
 
     Each point tries the cameras that face it (``cos > min_cos``) best-facing
     first, one any-hit occlusion ray per try, and stops at the first that sees
-    it. The cosines come from (N, 3) x (3, C) products (no (N, C, 3)
-    temporaries) in float32; :func:`_visibility_reference` is the original.
+    it. The cosines are accumulated axis by axis in float32 (no (N, C, 3)
+    temporaries); :func:`_visibility_reference` is the original.
 
     Args:
         scene: an open3d ``RaycastingScene`` holding all triangles.
@@ -283,9 +283,14 @@ def visibility(
     p = np.ascontiguousarray(points, dtype=np.float32)
     nrm = np.ascontiguousarray(normals, dtype=np.float32)
     cam = np.ascontiguousarray(cameras, dtype=np.float32)
-    # |c - p|^2 and (c - p) . n from (N, 3) x (3, C) products: (N, C)
-    dist2 = (cam * cam).sum(1)[None, :] - 2.0 * (p @ cam.T) + (p * p).sum(1)[:, None]
-    cos = (nrm @ cam.T - (nrm * p).sum(1)[:, None]) / np.sqrt(np.maximum(dist2, 1e-24))
+    # |c - p|^2 and (c - p) . n accumulated one axis at a time: (N, C), no (N, C, 3) temporaries
+    dist2 = np.zeros((n, cam.shape[0]), dtype=np.float32)
+    dot = np.zeros_like(dist2)
+    for a in range(3):
+        d = cam[None, :, a] - p[:, a : a + 1]
+        dist2 += d * d
+        dot += d * nrm[:, a : a + 1]
+    cos = dot / np.sqrt(np.maximum(dist2, 1e-24))
     score = np.where(np.asarray(sides)[:, None] == 0, np.abs(cos), cos)
     score[score <= min_cos] = -np.inf  # cameras that cannot see the point
     order = np.argsort(-score, axis=1)  # best-facing first: most visible points cost one ray
