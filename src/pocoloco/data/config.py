@@ -49,10 +49,14 @@ class SynthConfig:
     Generation settings (data v2; ``SYNTH_V1`` restores the first pipeline's):
     garment_tessellation: ``"isotropic"`` (rings of ~2.2 cm / resolution edges)
         or ``"grid"`` (the first skirt / long_shirt grids, 72 x 36).
-    cloth_self_contact: newton VBD cloth self-contact (the cloth does not pass
-        through itself; costs simulation time: benchmarks/bench_cloth_settings.py).
+    cloth_self_contact: newton VBD cloth self-contact (~90 % fewer crossing
+        triangles, but 2.4-3.2x the simulation time and, at its 1.6 cm reach, fast
+        spins still tear the cloth: off by default; benchmarks/bench_cloth_settings.py).
     cloth_frame: ``"root"`` (simulate in a frame translating with the pelvis, the
         same physics; needed by self-contact) or ``"world"`` (``ClothSimSettings.frame``).
+    cloth_substeps, cloth_iterations: VBD substeps per frame and iterations per
+        substep (v1: 10 x 5; in the root frame 7 x 5 keeps the cloth out of the body
+        better than 10 x 5 did in the world frame, benchmarks/bench_cloth_settings.py).
     capture_cull_hidden_faces: draw capture candidates only on faces that may be
         visible (``capture.possibly_visible_faces``).
     self_intersection_every: count cloth self-intersections (crossing triangle
@@ -74,6 +78,8 @@ class SynthConfig:
     garment_tessellation: str = "isotropic"
     cloth_self_contact: bool = False
     cloth_frame: str = "root"
+    cloth_substeps: int = 7
+    cloth_iterations: int = 5
     capture_cull_hidden_faces: bool = True
     self_intersection_every: int = 10
 
@@ -92,6 +98,8 @@ SYNTH_V1: dict = {
     "garment_tessellation": "grid",
     "cloth_self_contact": False,
     "cloth_frame": "world",
+    "cloth_substeps": 10,
+    "cloth_iterations": 5,
     "capture_cull_hidden_faces": False,
     "self_intersection_every": 0,
 }

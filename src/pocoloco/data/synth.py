@@ -161,7 +161,8 @@ def cloth_settings(config: SynthConfig):
     """The cloth simulation settings of a run."""
     from .cloth_sim import ClothSimSettings
 
-    return ClothSimSettings(fps=config.fps, self_contact=config.cloth_self_contact, frame=config.cloth_frame)
+    return ClothSimSettings(fps=config.fps, substeps=config.cloth_substeps, iterations=config.cloth_iterations,
+                            self_contact=config.cloth_self_contact, frame=config.cloth_frame)  # fmt: skip
 
 
 def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
@@ -331,6 +332,10 @@ def _simulate_cached(body, garment, posed, seq_dir: Path, start: int, settings=N
     if subject_key is not None:
         _SETTLED[key] = seq.settled
     stats = [dataclasses.asdict(s) for s in seq.stats[start:]]
+    if seq.settings.self_contact:  # which frames kept self-contact (it is dropped after a tear)
+        off = seq.self_contact_off_from
+        for i, st in enumerate(stats):
+            st["self_contact"] = off is None or start + i < off
     vertices = seq.vertices[start:].astype(np.float32)
     from .garments import self_intersections
 
@@ -352,6 +357,8 @@ def _summarise_penetration(stats: list[dict]) -> dict:
         "fraction_percent": 100.0 * float(np.mean([s["penetration_fraction"] for s in valid])),
         "stretch_max": max(s["stretch_max"] for s in valid),
     }
+    if "self_contact" in valid[0]:
+        out["self_contact_frames_percent"] = 100.0 * float(np.mean([s["self_contact"] for s in valid]))
     inter = [s["self_intersections"] for s in valid if s.get("self_intersections") is not None]
     if inter:
         out["self_intersection_pairs_mean"] = float(np.mean(inter))
