@@ -17,8 +17,12 @@ JSON), split into:
   numpy and the occlusion rays themselves (with the number of rays);
 - writing the frame file.
 
-    python benchmarks/profile_synth.py --preset small --frames 24 [--set capture_cameras=24 ...]
+    python benchmarks/profile_synth.py --preset small --frames 24 [--v1] [--set capture_cameras=24 ...]
         [--out benchmarks/results/profile_synth.json]
+
+``--v1`` applies ``config.SYNTH_V1`` (the first pipeline's settings; the profile of
+``benchmarks/results/profile_synth_before.json`` was taken before those settings existed,
+with the code of that time).
 
 The simulation includes the sequence's settle, blend and warm-up frames (as the pipeline
 does), so per-stored-frame figures depend on ``--frames``; with the ``small`` preset's 80
@@ -185,6 +189,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=24, help="stored frames per sequence")
     ap.add_argument("--subjects", nargs="*", default=None, help="subject names (default: all of the preset)")
     ap.add_argument("--set", nargs="*", default=[], help="SynthConfig overrides key=value (python literals)")
+    ap.add_argument("--v1", action="store_true", help="the first pipeline's settings (config.SYNTH_V1)")
     ap.add_argument("--out", default="benchmarks/results/profile_synth.json")
     args = ap.parse_args()
 
@@ -193,7 +198,9 @@ def main() -> None:
     from pocoloco.data import synth
     from pocoloco.data.config import synth_preset
 
-    over = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
+    from pocoloco.data.config import SYNTH_V1
+
+    over = {**(SYNTH_V1 if args.v1 else {}), **{k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}}
     config = dataclasses.replace(synth_preset(args.preset), frames_per_sequence=args.frames, train_sequences=1,
                                  test_sequences=0, **over)  # fmt: skip
     if args.subjects:

@@ -1049,8 +1049,11 @@ def _make_sleeved_shirt(
     region = np.zeros(mb.count, dtype=np.int64)
     region[sleeves[0]] = REGION_LEFT_ARM
     region[sleeves[1]] = REGION_RIGHT_ARM
-    # pins: the neckline (the top ring outside the arm holes) and the shoulder pieces
-    pins = np.concatenate([top[~in_armhole], pieces["left"].ravel(), pieces["right"].ravel()])
+    # pins: the neckline (the top ring outside the arm holes) and the neck-side half of the
+    # shoulder pieces; their outer half rests on the shoulder (the deltoid belongs to the arm
+    # and rises with it: cloth pinned to the torso there would let it poke through)
+    inner = lambda g: g[:, : max(1, (g.shape[1] + 1) // 2)].ravel()
+    pins = np.concatenate([top[~in_armhole], inner(pieces["left"]), inner(pieces["right"])])
     # iron the arm hole seams: vertices within 8 cm of an arm hole, except pins and cuffs
     verts = np.concatenate(mb.verts)
     holes = top[in_armhole]
