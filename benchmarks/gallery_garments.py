@@ -71,11 +71,11 @@ def main() -> None:
                 meshes.append(CaptureMesh(cloth[t], garment.faces, LABEL_GARMENT))
             scan = capture_frame(meshes, CaptureSettings(num_points=args.points, num_cameras=24, seed=t))
             centre = posed.joints[t, 0] * np.array([1.0, 1.0, 0.0])  # each panel centred on its pelvis
-            title = f"{kind}" + (f" ({len(garment.rest_vertices)} v)" if garment is not None else "") + f", frame {f}"
+            title = f"{kind}" + (f" {len(garment.rest_vertices)}v" if garment is not None else "") + f" f{f}"
             cells[(kind, f)] = (scan.points - centre, scan.labels, scan.normals, title)
         print(f"{kind}: {time.perf_counter() - t0:.0f} s", flush=True)
     clouds = [cells[(kind, f)] for f in args.frames for kind, _ in COLUMNS]
-    render_grid(clouds, args.out, views=("front",), ncols=len(COLUMNS), mode="label", panel_size=2.4, dpi=90)
+    render_grid(clouds, args.out, views=("front",), ncols=len(COLUMNS), mode="label", panel_size=2.6, dpi=90)
     print(f"wrote {args.out}")
 
 

@@ -357,7 +357,8 @@ def skin_garment(
     """Carry the whole garment onto one posed body by smooth skinning.
 
     Each garment vertex x follows its ``k`` nearest template vertices u of its
-    skin region (torso and legs, or an arm for sleeves: ``Garment.skin_region``)
+    skin region (torso and legs; for sleeves, those and their arm:
+    ``Garment.skin_region``)
     like a pin does (``v_u + vtransf_u @ (x - u)``), blended with inverse square
     distance weights so neighbouring garment vertices move alike (a hem between
     the legs does not tear). Used to place the cloth on the first frame, which
@@ -371,9 +372,10 @@ def skin_garment(
     region = garment.skin_region
     out = np.empty(garment.rest_vertices.shape, dtype=np.float32)
     groups = [(anchor_vertices(body), np.ones(len(out), dtype=bool) if region is None else region == 0)]
-    if region is not None:
-        groups += [(arm_vertices(body, "left"), region == REGION_LEFT_ARM),
-                   (arm_vertices(body, "right"), region == REGION_RIGHT_ARM)]  # fmt: skip
+    if region is not None:  # sleeves follow their arm and the torso (no seam opens at the arm hole)
+        torso = anchor_vertices(body)
+        groups += [(np.concatenate([torso, arm_vertices(body, "left")]), region == REGION_LEFT_ARM),
+                   (np.concatenate([torso, arm_vertices(body, "right")]), region == REGION_RIGHT_ARM)]  # fmt: skip
     for allowed, sel in groups:
         if not sel.any():
             continue

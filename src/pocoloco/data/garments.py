@@ -801,7 +801,7 @@ def _add_sleeve(
     order = np.argsort(phi_loop % (2 * np.pi))
     ang = np.unwrap(phi_loop[order] % (2 * np.pi))
     loop_at = np.stack([np.interp(phi % (2 * np.pi), ang, loop_p[order][:, c], period=2 * np.pi) for c in range(3)], 1)
-    gap = float(np.linalg.norm(first - loop_at, axis=1).mean())
+    gap = float(np.percentile(np.linalg.norm(first - loop_at, axis=1), 25))  # rows crowd where the gap is small
     m = max(1, round(float(gap / e)))
     prev, prev_phi = loop, phi_loop
     new = []
