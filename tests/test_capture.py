@@ -13,10 +13,12 @@ from pocoloco.data.capture import (
     CaptureSettings,
     ScanFrame,
     _Surface,
+    _visibility_reference,
     camera_centres,
     capture_frame,
     loose_share,
     open_tube,
+    possibly_visible_faces,
     visibility,
 )
 
@@ -250,3 +252,70 @@ def test_naked_anny_body_capture_is_on_and_covers_the_surface(anny_body):
     # normals point outwards: a point pushed 1 cm along its normal is outside the body
     occ = scene.compute_occupancy(o3d.core.Tensor(scan.points + 0.01 * scan.normals)).numpy()
     assert occ.mean() < 0.01
+
+
+def _o3d_scene(meshes):
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for m in meshes:
+        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
+                            o3d.core.Tensor(np.asarray(m.faces, np.uint32)))  # fmt: skip
+    return scene
+
+
+def test_fast_visibility_matches_the_reference():
+    """The (N, 3) x (3, C) float32 version gives the same answer as the original."""
+    body, tube = _cylinder_and_tube()
+    meshes = [body, tube]
+    scene = _o3d_scene(meshes)
+    surface = _Surface(meshes)
+    face, pts = surface.sample(6000, np.random.default_rng(0))
+    cams = camera_centres(np.zeros(3), 2.5, 16, -30.0, 90.0)
+    args = (scene, pts, surface.normal[face], surface.side[face], cams, 0.25, 1e-4)
+    seen, oriented = visibility(*args)
+    seen_ref, oriented_ref = _visibility_reference(*args)
+    assert 0.2 < seen.mean() < 0.9
+    assert (seen == seen_ref).mean() > 0.999  # float32 cosines may flip a grazing camera
+    both = seen & seen_ref
+    np.testing.assert_allclose(oriented[both], oriented_ref[both], atol=1e-6)
+
+
+def test_capture_stops_early_with_the_same_points(monkeypatch):
+    """Testing candidates chunk by chunk and stopping once enough are seen keeps the
+    first N visible in draw order: the same frame as testing whole batches."""
+    import pocoloco.data.capture as cap
+
+    meshes = list(_cylinder_and_tube())
+    settings = CaptureSettings(num_points=3000, num_cameras=12, seed=5)
+    monkeypatch.setattr(cap, "_CAPTURE_CHUNK", 500)
+    chunked = capture_frame(meshes, settings)
+    monkeypatch.setattr(cap, "_CAPTURE_CHUNK", 10**9)
+    whole = capture_frame(meshes, settings)
+    for k in ("points", "normals", "labels", "parts"):
+        np.testing.assert_array_equal(getattr(chunked, k), getattr(whole, k))
+
+
+def test_culled_faces_keep_the_visible_surface():
+    """Faces dropped by the vertex probes hold (almost) no visible point, and a capture
+    with culling has the same garment share as one without."""
+    body, tube = _cylinder_and_tube()
+    meshes = [body, tube]
+    scene = _o3d_scene(meshes)
+    surface = _Surface(meshes)
+    cams = camera_centres(np.zeros(3), 2.5, 16, -30.0, 90.0)
+    keep = possibly_visible_faces(surface, scene, cams, 0.25)
+    assert 0.3 < keep.mean() < 0.95  # the covered cylinder middle is dropped
+    face, pts = surface.sample(40000, np.random.default_rng(1))
+    seen, _ = visibility(scene, pts, surface.normal[face], surface.side[face], cams, 0.25, 1e-4)
+    lost = seen & ~keep[face]
+    assert lost.sum() <= 0.002 * seen.sum()
+    probes = sum(len(v) for v, _, _ in surface.sheets)
+    n = probes + 1000  # enough points for the probe pass to run
+    on = capture_frame(meshes, CaptureSettings(num_points=n, num_cameras=16, cull_hidden_faces=True))
+    off = capture_frame(meshes, CaptureSettings(num_points=n, num_cameras=16))
+    assert len(on.points) == len(off.points) == n
+    assert abs(loose_share(on.labels) - loose_share(off.labels)) < 1.5
+    # the covered middle of the cylinder (seen only through the gap) keeps its share
+    mid = lambda f: ((np.abs(f.points[:, 2]) < 0.3) & (f.labels == LABEL_BODY)).mean()
+    assert abs(mid(on) - mid(off)) < 0.005

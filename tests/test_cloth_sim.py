@@ -119,3 +119,78 @@ def test_tiny_simulation_runs_and_stays_outside(body, skirt, collider):
     limit = 0.006 if collider == "mesh" else 0.08
     assert pen.max() < limit, pen
     assert seq.seconds_per_frame > 0
+
+
+@pytest.mark.slow  # a few seconds once the kernels are compiled
+def test_a_settled_state_is_reused_with_the_same_result(body, skirt):
+    """Sequences that start at the same pose settle the same way: reusing the settled
+    cloth skips the settle and gives bit-identical frames (the solver is deterministic)."""
+    t = 4
+    rot = np.zeros((2, t, 24, 3), np.float32)
+    rot[0, :, 1, 0] = -0.4 * np.linspace(0.0, 1.0, t)  # left leg forward
+    rot[1, :, 0, 2] = 0.5 * np.linspace(0.0, 1.0, t)  # turn
+    a, b = body.pose(rot[0]), body.pose(rot[1])
+    settings = dataclasses.replace(ClothSimSettings(), substeps=5, iterations=3, settle_frames=2)
+    first = simulate_garment(body, skirt, a, settings)
+    full = simulate_garment(body, skirt, b, settings)
+    reused = simulate_garment(body, skirt, b, settings, settled=first.settled)
+    np.testing.assert_array_equal(full.vertices, reused.vertices)
+    with pytest.raises(ValueError, match="settled"):
+        other = body.pose(np.full((2, 24, 3), 0.1, np.float32))
+        simulate_garment(body, skirt, other, settings, settled=first.settled)
+
+
+@pytest.mark.slow  # ~30 s of self-contact kernel compilation on a fresh warp cache, ~10 s after
+def test_self_contact_keeps_the_cloth_from_crossing_itself(body):
+    """A wide maxi skirt folds while it settles; without self-contact its folds pass
+    through each other, with it (almost) none do, and the cloth stays off the body."""
+    from pocoloco.data.garments import self_intersections
+
+    g = make_garment("maxi_skirt", body, resolution=0.4, flare=0.5)
+    posed = body.pose(np.zeros((2, 24, 3), np.float32))
+    base = dataclasses.replace(ClothSimSettings(), substeps=5, iterations=3, settle_frames=8)
+    counts = {}
+    for sc in (False, True):
+        seq = simulate_garment(body, g, posed, dataclasses.replace(base, self_contact=sc))
+        assert np.isfinite(seq.vertices).all() and seq.reset_count == 0
+        assert max(s.penetration_max for s in seq.stats) < 0.01
+        counts[sc] = self_intersections(seq.vertices[-1], g.faces)
+    assert counts[False] > 20 and counts[True] <= counts[False] / 4, counts
+
+
+@pytest.mark.slow  # a few seconds once the kernels are compiled
+def test_the_root_frame_simulates_the_same_physics(body, skirt):
+    """A body walking forward: simulated in the world or in a frame translating with the
+    pelvis (velocities corrected when the frame's changes), the cloth ends up the same.
+    (Slowly: the world frame places the body's contacts one substep late, which is
+    ~1 mm here but centimetres at running speed; the root frame has no such lag.)"""
+    t = 8
+    rot = np.zeros((t, 24, 3), np.float32)
+    rot[:, 1, 0] = -0.3 * np.linspace(0.0, 1.0, t)
+    trans = np.zeros((t, 3), np.float32)
+    trans[:, 1] = -0.012 * np.arange(t)  # 0.3 m/s forward (-Y)
+    posed = body.pose(rot, trans)
+    base = dataclasses.replace(ClothSimSettings(), substeps=10, iterations=3, settle_frames=2)
+    world = simulate_garment(body, skirt, posed, base)
+    root = simulate_garment(body, skirt, posed, dataclasses.replace(base, frame="root"))
+    moved = np.linalg.norm(world.vertices[-1] - world.vertices[0], axis=1).mean()
+    assert moved > 0.05  # the skirt travelled with the body
+    assert np.abs(world.vertices - root.vertices).max() < 0.005
+    with pytest.raises(ValueError, match="frame"):
+        simulate_garment(body, skirt, posed, dataclasses.replace(base, frame="pelvis"))
+
+
+@pytest.mark.slow  # a few seconds once the kernels are compiled
+def test_self_contact_that_tears_the_cloth_is_switched_off(body, skirt):
+    """Self-contact with a tiny reach cannot follow a fast spin (its divide-and-truncate
+    bound caps the cloth's speed): the cloth tears, the last good state is restored and
+    the sequence finishes without self-contact."""
+    t = 10
+    rot = np.zeros((t, 24, 3), np.float32)
+    rot[:, 0, 2] = 1.2 * np.maximum(np.arange(t) - 1, 0)  # 30 rad/s about the vertical from frame 2
+    posed = body.pose(rot)
+    settings = dataclasses.replace(ClothSimSettings(), substeps=5, iterations=3, settle_frames=1, self_contact=True,
+                                   self_contact_margin=0.002, self_contact_gap=0.001, frame="root")  # fmt: skip
+    seq = simulate_garment(body, skirt, posed, settings)
+    assert seq.self_contact_off_from is not None and seq.reset_count >= 1
+    assert np.isfinite(seq.vertices).all() and seq.stats[-1].stretch_max < 3.0

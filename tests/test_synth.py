@@ -164,3 +164,24 @@ def test_killed_run_resumes_without_rewriting_frames(tmp_path):
     assert total + rejected == len(list_jobs(dataclasses.replace(SYNTH_PRESETS["tiny"], test_sequences=1))) * 6
     assert len(layout.iter_frames("train")) + len(layout.iter_frames("test")) == total
     json.dumps(card)
+
+
+def test_v1_settings_and_garment_parameters_round_trip(tmp_path):
+    """SYNTH_V1 restores the first pipeline; a subject's garment parameters reach its
+    garment and the dataset card (with the kind's defaults filled in)."""
+    from pocoloco.data.config import SYNTH_V1, SubjectSpec, SynthConfig
+    from pocoloco.data.garments import garment_parameters
+    from pocoloco.data.synth import _subject_assets
+
+    v1 = dataclasses.replace(synth_preset("tiny"), **SYNTH_V1)
+    assert v1.garment_tessellation == "grid" and not v1.cloth_self_contact and not v1.capture_cull_hidden_faces
+    assert SynthConfig.from_dict(json.loads(json.dumps(v1.to_dict()))) == v1
+    maxi = SubjectSpec("m", "maxi_skirt", {"gender": 1.0}, {"hem": 0.6})
+    config = dataclasses.replace(synth_preset("tiny"), subjects=(maxi, synth_preset("tiny").subjects[1]))
+    assert SynthConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+    _, garment = _subject_assets(maxi, config)
+    assert garment.kind == "maxi_skirt" and garment.params["hem"] == 0.6
+    prepare_output(config, tmp_path / "d")
+    card = read_card(tmp_path / "d")
+    assert card["subjects"]["m"]["garment_params"] == {**garment_parameters("maxi_skirt"), "hem": 0.6}
+    assert card["subjects"]["tight"]["garment_params"] is None

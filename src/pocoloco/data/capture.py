@@ -94,6 +94,13 @@ class CaptureSettings:
     max_rounds:        candidate rounds before giving up on ``num_points``.
     noise_std:         metres; std of Gaussian scanner noise along the normal.
     seed:              seed of all randomness (candidates, noise).
+    cull_hidden_faces: first test the mesh vertices and draw candidates only on
+                       faces that may be visible (``possibly_visible_faces``):
+                       fewer rays (1.3-1.5x faster frames with a skirt or a
+                       shirt), the visible surface minus 0.03-0.3 %. Applied
+                       only to frames with cloth (a bare body hides too little
+                       to pay for the probes) and when ``num_points`` is at
+                       least the number of vertex probes.
     """
 
     num_points: int = 40000
@@ -107,6 +114,7 @@ class CaptureSettings:
     max_rounds: int = 8
     noise_std: float = 0.0
     seed: int = 0
+    cull_hidden_faces: bool = False
 
 
 @dataclass
@@ -194,6 +202,7 @@ class _Surface:
 
     def __init__(self, meshes: Sequence[CaptureMesh]):
         tri, normal, side, label, part = [], [], [], [], []
+        self.sheets: list[tuple[np.ndarray, np.ndarray, float]] = []  # (vertices, faces, side) in soup order
         for m in meshes:
             v = np.asarray(m.vertices, dtype=np.float64)
             f = np.asarray(m.faces, dtype=np.int64)
@@ -207,6 +216,7 @@ class _Surface:
                 side.append(np.full(len(f), s))
                 label.append(np.full(len(f), m.label, np.uint8))
                 part.append(fp)
+                self.sheets.append((v, f, s))
         self.tri = np.concatenate(tri)  # (S, 3, 3)
         normal = np.concatenate(normal)
         area2 = np.linalg.norm(normal, axis=1)
@@ -214,9 +224,16 @@ class _Surface:
         self.side = np.concatenate(side)  # (S,) +1 / -1 two-sided, 0 one-sided
         self.label = np.concatenate(label)
         self.part = np.concatenate(part)
+        self.area2 = area2
         self.cdf = np.cumsum(area2)
         if not self.cdf[-1] > 0:
             raise ValueError("meshes have zero total area")
+
+    def restrict(self, keep: np.ndarray) -> None:
+        """Sample only from the soup faces where ``keep`` (S,) is True (area-uniform over them)."""
+        cdf = np.cumsum(np.where(keep, self.area2, 0.0))
+        if cdf[-1] > 0:
+            self.cdf = cdf
 
     def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """n i.i.d. points uniform by area. Returns (face index (n,), points (n, 3))."""
@@ -234,9 +251,82 @@ _VIS_CHUNK = 65536  # points per visibility batch
 
 def visibility(
     scene, points: np.ndarray, normals: np.ndarray, sides: np.ndarray, cameras: np.ndarray,
-    min_cos: float, hit_tolerance: float,
+    min_cos: float, hit_tolerance: float, max_tries: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Which points some camera sees first, and the normals facing that camera.
+
+    Each point tries the cameras that face it (``cos > min_cos``) best-facing
+    first, one any-hit occlusion ray per try, and stops at the first that sees
+    it. The cosines are accumulated axis by axis in float32 (no (N, C, 3)
+    temporaries); :func:`_visibility_reference` is the original.
+
+    Args:
+        scene: an open3d ``RaycastingScene`` holding all triangles.
+        points: (N, 3) surface points; normals: (N, 3) unit face normals.
+        sides: (N,) nonzero = only cameras on the side the normal points to
+            may see the point (one side of cloth; its normal is that side's);
+            0 = either side (the normal is flipped towards the camera).
+        cameras: (C, 3) camera centres.
+        max_tries: try at most this many cameras per point (best-facing first);
+            None = every camera that faces it (exact).
+    Returns:
+        seen (N,) bool, oriented normals (N, 3) (unchanged where not seen).
+    """
+    import open3d as o3d  # deferred: heavy import, optional dependency
+
+    n = len(points)
+    if n > _VIS_CHUNK:  # bound the (N, C) temporaries
+        parts = [visibility(scene, points[i : i + _VIS_CHUNK], normals[i : i + _VIS_CHUNK], sides[i : i + _VIS_CHUNK],
+                            cameras, min_cos, hit_tolerance, max_tries) for i in range(0, n, _VIS_CHUNK)]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    seen = np.zeros(n, dtype=bool)
+    oriented = np.array(normals, copy=True)
+    if n == 0:
+        return seen, oriented
+    p = np.ascontiguousarray(points, dtype=np.float32)
+    nrm = np.ascontiguousarray(normals, dtype=np.float32)
+    cam = np.ascontiguousarray(cameras, dtype=np.float32)
+    # |c - p|^2 and (c - p) . n accumulated one axis at a time: (N, C), no (N, C, 3) temporaries
+    dist2 = np.zeros((n, cam.shape[0]), dtype=np.float32)
+    dot = np.zeros_like(dist2)
+    for a in range(3):
+        d = cam[None, :, a] - p[:, a : a + 1]
+        dist2 += d * d
+        dot += d * nrm[:, a : a + 1]
+    cos = dot / np.sqrt(np.maximum(dist2, 1e-24))
+    score = np.where(np.asarray(sides)[:, None] == 0, np.abs(cos), cos)
+    score[score <= min_cos] = -np.inf  # cameras that cannot see the point
+    order = np.argsort(-score, axis=1)  # best-facing first: most visible points cost one ray
+    facing = np.isfinite(score).sum(1)
+    active = np.flatnonzero(facing > 0)  # points not yet seen that may still be seen
+    for k in range(cam.shape[0] if max_tries is None else min(max_tries, cam.shape[0])):
+        active = active[facing[active] > k]
+        if active.size == 0:
+            break
+        cam_k = order[active, k]
+        origin = cam[cam_k]  # (M, 3)
+        d = p[active] - origin
+        length = np.sqrt(np.einsum("ij,ij->i", d, d))
+        # direction scaled so that t = 1 is `hit_tolerance` before the point:
+        # any hit in (0, 1) occludes it.
+        d *= (np.maximum(length - hit_tolerance, 1e-9) / np.maximum(length, 1e-12))[:, None]
+        rays = np.concatenate([origin, d], axis=1)
+        occluded = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
+        idx = active[~occluded]
+        seen[idx] = True
+        flip = idx[cos[idx, cam_k[~occluded]] < 0]
+        oriented[flip] *= -1.0
+        active = active[occluded]
+    return seen, oriented
+
+
+def _visibility_reference(
+    scene, points: np.ndarray, normals: np.ndarray, sides: np.ndarray, cameras: np.ndarray,
+    min_cos: float, hit_tolerance: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Slow, obviously-correct version of :func:`visibility` (the original
+    implementation: (N, C, 3) temporaries and a full per-point camera sort), kept
+    for the test that compares them.
 
     Args:
         scene: an open3d ``RaycastingScene`` holding all triangles.
@@ -252,7 +342,7 @@ def visibility(
 
     n = len(points)
     if n > _VIS_CHUNK:  # bound the (N, C, 3) temporaries
-        parts = [visibility(scene, points[i : i + _VIS_CHUNK], normals[i : i + _VIS_CHUNK], sides[i : i + _VIS_CHUNK],
+        parts = [_visibility_reference(scene, points[i : i + _VIS_CHUNK], normals[i : i + _VIS_CHUNK], sides[i : i + _VIS_CHUNK],
                             cameras, min_cos, hit_tolerance) for i in range(0, n, _VIS_CHUNK)]
         return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
     seen = np.zeros(n, dtype=bool)
@@ -289,6 +379,48 @@ def visibility(
     return seen, oriented
 
 
+def possibly_visible_faces(
+    surface: _Surface, scene, cameras: np.ndarray, min_cos: float, margin_cos: float = 0.25,
+    offset: float = 1e-3, max_tries: int | None = 16,
+) -> np.ndarray:
+    """Soup faces (S,) bool that may hold a visible point: a face is kept if one of
+    its vertices, or of the faces sharing a vertex with it (one ring of dilation),
+    is seen by some camera. Vertices are tested like candidates (``visibility``)
+    with their area-weighted normal, a cosine threshold ``margin_cos`` lower than
+    the candidates', on cloth ``offset`` m off the surface on their side, and at most
+    ``max_tries`` cameras each (a hidden vertex costs one ray per camera tried).
+    Conservative, not exact: a face whose probes are all hidden but which shows a
+    sliver through a gap is dropped (measured on the pipeline's frames: 0.03-0.3 % of
+    the visible surface, benchmarks/bench_capture_speed.py)."""
+    pts, nrm, sides, spans = [], [], [], []
+    start = 0
+    for v, f, side in surface.sheets:
+        fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        vn = np.zeros_like(v)
+        for k in range(3):
+            np.add.at(vn, f[:, k], fn)
+        vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+        if side != 0.0:
+            vn = side * vn
+        pts.append(v + (offset if side != 0.0 else 0.0) * vn)
+        nrm.append(vn)
+        sides.append(np.full(len(v), side))
+        spans.append((start, len(v), f))
+        start += len(v)
+    seen, _ = visibility(scene, np.concatenate(pts), np.concatenate(nrm), np.concatenate(sides), cameras,
+                         min_cos - margin_cos, max(offset, 1e-4), max_tries=max_tries)  # fmt: skip
+    keep = []
+    for begin, nv, f in spans:
+        vs = seen[begin : begin + nv]
+        near = np.zeros(nv, dtype=bool)
+        near[f[vs[f].any(1)].ravel()] = True  # dilate by one ring
+        keep.append(near[f].any(1))
+    return np.concatenate(keep)
+
+
+_CAPTURE_CHUNK = 16384  # candidates per visibility call; stop as soon as enough are seen
+
+
 def capture_frame(meshes: Sequence[CaptureMesh], settings: CaptureSettings | None = None) -> ScanFrame:
     """Capture one frame: the outer, camera-visible surface as a uniform point cloud.
 
@@ -318,17 +450,29 @@ def capture_frame(meshes: Sequence[CaptureMesh], settings: CaptureSettings | Non
     cameras = camera_centres(center, settings.distance_factor * radius, settings.num_cameras,
                              settings.min_elevation_deg, settings.max_elevation_deg)
 
+    probes = sum(len(v) for v, _, _ in surface.sheets)
+    cloth = any(side != 0.0 for _, _, side in surface.sheets)
+    if settings.cull_hidden_faces and cloth and settings.num_points >= probes:  # the probe pass pays off
+        surface.restrict(possibly_visible_faces(surface, scene, cameras, settings.min_cos))
+
     faces, points, normals = [], [], []
     found, drawn, want = 0, 0, settings.num_points
     batch = int(math.ceil(settings.oversample * want))
     for _ in range(settings.max_rounds):
         face, p = surface.sample(batch, rng)
-        seen, nrm = visibility(scene, p, surface.normal[face], surface.side[face], cameras,
-                               settings.min_cos, settings.hit_tolerance)
-        faces.append(face[seen])
-        points.append(p[seen])
-        normals.append(nrm[seen])
-        found, drawn = found + int(seen.sum()), drawn + batch
+        # test in draw order and stop once `want` are seen: the kept points (the first
+        # `want` visible in draw order) are the same as testing the whole batch
+        for i in range(0, batch, _CAPTURE_CHUNK):
+            sl = slice(i, i + _CAPTURE_CHUNK)
+            seen, nrm = visibility(scene, p[sl], surface.normal[face[sl]], surface.side[face[sl]], cameras,
+                                   settings.min_cos, settings.hit_tolerance)  # fmt: skip
+            faces.append(face[sl][seen])
+            points.append(p[sl][seen])
+            normals.append(nrm[seen])
+            found += int(seen.sum())
+            if found >= want:
+                break
+        drawn += batch
         if found >= want:
             break
         rate = max(found / drawn, 1e-3)  # visible fraction of the (two-sided) area so far

@@ -24,6 +24,24 @@ capsules, which are inscribed in the body and so let the cloth sink in).
 lose contacts (cloth ends up cm deep inside the legs); 3 iterations halve the
 cost with ~4 mm median penetration.
 
+Simulation frame (``ClothSimSettings.frame``): ``"world"`` (the first pipeline) or
+``"root"``, a frame translating with the pelvis. The physics is the same (the cloth's
+velocity is corrected whenever the frame's velocity changes between frames; tested),
+but two things improve: the kinematic pelvis body no longer moves, so the body's
+contacts are not evaluated with the previous substep's pelvis transform (in the world
+frame they are: a walking body then sinks into its skirt by ~1 cm, 3 % of the skirt's
+vertices inside on a walk vs 0.02 % in the root frame), and self-contact's
+divide-and-truncate bound (a particle moves at most a fraction of the detection reach
+per substep) only has to cover motion relative to the pelvis.
+
+Self-contact (``self_contact``): newton VBD's vertex-triangle and edge-edge cloth
+self-contact, detected once per substep, 1.6 cm reach. It removes 85-98 % of the
+crossing triangle pairs, at 2.4-3.2x the simulation time, and its speed cap still
+tears the cloth on fast spins (``benchmarks/bench_cloth_settings.py``).
+
+Sequences that start on the same pose settle the same way: ``ClothSequence.settled``
+can be passed back (``settled=``) to skip the settle (bit-identical results).
+
 Per output frame (fps 25) the simulator records penetration of the garment
 into the *full* body mesh (signed distance via open3d ray casting), the
 maximum edge stretch and a validity flag. Frames with NaN, stretch above
@@ -58,10 +76,29 @@ class ClothSimSettings:
     fps: output frame rate; the body sequence is given at this rate.
     substeps, iterations: VBD substeps per frame and solver iterations per substep.
     collider: ``"capsules"`` or ``"mesh"`` (see module docstring).
+    frame: ``"world"``, or ``"root"``: simulate in a frame translating with the
+        pelvis (the same physics: the cloth's velocity is corrected whenever the
+        frame's changes). Self-contact needs it: its divide-and-truncate bound
+        lets two touching layers move at most about half their gap per substep,
+        so in the world frame the layers of a walking subject's skirt lag behind.
     density: cloth area density [kg/m^2]. tri_ke/tri_ka/tri_kd: membrane
     stretch/area stiffness and damping; edge_ke/edge_kd: bending.
     particle_radius, contact_margin: collision thickness and detection gap [m].
     contact_ke/kd/mu: cloth-body contact stiffness, damping, friction.
+    self_contact: newton VBD cloth self-contact (vertex-triangle and edge-edge).
+    self_contact_margin: distance [m] at which two cloth layers start to repel.
+    self_contact_gap: extra detection reach [m]. VBD's divide-and-truncate bound
+        lets a particle move at most ~0.43 x (margin + gap) per substep, and two
+        touching layers about half their gap: this caps the cloth's speed relative
+        to the simulation frame (1.6 cm at 10 substeps of 4 ms: 1.7 m/s), so use
+        ``frame="root"`` (a walking body's skirt layers otherwise lag and tangle).
+        Measured on a walk (benchmarks/bench_cloth_settings.py): a 1 cm reach lets
+        legs through the cloth (8 of 110 frames > 3 cm), 1.6 cm none; cost 2.1x /
+        2.7x / 3.6x the simulation without self-contact at 1.0 / 1.6 / 2.4 cm.
+    self_contact_fallback: after the first hard failure (explosion) of a sequence
+        with self-contact, restore the last good state and finish without it.
+    self_contact_detection: "pre_init" (detect once per substep) or
+        "pre_post_init" (twice, newton's default; ~10 % slower, same result here).
     settle_frames: frames simulated at the first pose before recording.
     capsule_percentile: percentile of the part vertices' distance to a capsule
         axis used as its radius (100 = enclose every vertex).
@@ -73,6 +110,7 @@ class ClothSimSettings:
     substeps: int = 10
     iterations: int = 5
     collider: str = "mesh"
+    frame: str = "world"
     density: float = 0.15
     tri_ke: float = 1.0e4
     tri_ka: float = 1.0e4
@@ -84,6 +122,11 @@ class ClothSimSettings:
     contact_ke: float = 3.0e4
     contact_kd: float = 1.0e-2
     contact_mu: float = 0.05
+    self_contact: bool = False
+    self_contact_margin: float = 0.004
+    self_contact_gap: float = 0.012
+    self_contact_detection: str = "pre_init"
+    self_contact_fallback: bool = True
     settle_frames: int = 10
     capsule_percentile: float = 90.0
     max_stretch: float = 3.0
@@ -112,7 +155,10 @@ class ClothSequence:
     seconds_per_frame: wall-clock simulation time per output frame (excludes
     settling, kernel compilation and the stats); cpu_seconds_per_frame: the
     same in process CPU time (robust to other load on the machine);
-    reset_count: how often the state was restored after a hard failure.
+    reset_count: how often the state was restored after a hard failure;
+    settled: the cloth state after settling (reusable, see ``simulate_garment``);
+    self_contact_off_from: the frame from which self-contact was switched off
+    after a hard failure (``ClothSimSettings.self_contact_fallback``), or None.
     """
 
     vertices: np.ndarray
@@ -122,6 +168,8 @@ class ClothSequence:
     cpu_seconds_per_frame: float = 0.0
     reset_count: int = 0
     settings: ClothSimSettings = field(default_factory=ClothSimSettings)
+    settled: SettledCloth | None = None
+    self_contact_off_from: int | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -308,23 +356,49 @@ def skin_garment(
 ) -> np.ndarray:
     """Carry the whole garment onto one posed body by smooth skinning.
 
-    Each garment vertex x follows its ``k`` nearest torso/leg template vertices
-    u like a pin does (``v_u + vtransf_u @ (x - u)``), blended with inverse
-    square distance weights so neighbouring garment vertices move alike (a hem
-    between the legs does not tear). Used to place the cloth on the first
-    frame, which differs from the bind pose ``AnnyBody.template`` (anny's zero
-    pose tilts the upper spine and shoulders). Returns (Vg, 3) float32.
+    Each garment vertex x follows its ``k`` nearest template vertices u of its
+    skin region (torso and legs; for sleeves, those and their arm:
+    ``Garment.skin_region``)
+    like a pin does (``v_u + vtransf_u @ (x - u)``), blended with inverse square
+    distance weights so neighbouring garment vertices move alike (a hem between
+    the legs does not tear). Used to place the cloth on the first frame, which
+    differs from the bind pose ``AnnyBody.template`` (anny's zero pose tilts the
+    upper spine and shoulders). Returns (Vg, 3) float32.
     """
     from scipy.spatial import cKDTree
 
-    allowed = anchor_vertices(body)
-    dist, nn = cKDTree(body.template[allowed]).query(garment.rest_vertices, k=k)  # (Vg, k)
-    nn = allowed[nn]
-    w = 1.0 / (dist + 1e-3) ** 2
-    w /= w.sum(1, keepdims=True)
-    off = garment.rest_vertices[:, None] - body.template[nn]  # (Vg, k, 3)
-    moved = vertices[nn] + np.einsum("nkij,nkj->nki", vtransf[nn], off)  # (Vg, k, 3)
-    return (w[..., None] * moved).sum(1).astype(np.float32)
+    from .garments import REGION_LEFT_ARM, REGION_RIGHT_ARM, arm_vertices
+
+    region = garment.skin_region
+    out = np.empty(garment.rest_vertices.shape, dtype=np.float32)
+    groups = [(anchor_vertices(body), np.ones(len(out), dtype=bool) if region is None else region == 0)]
+    if region is not None:  # sleeves follow their arm and the torso (no seam opens at the arm hole)
+        torso = anchor_vertices(body)
+        groups += [(np.concatenate([torso, arm_vertices(body, "left")]), region == REGION_LEFT_ARM),
+                   (np.concatenate([torso, arm_vertices(body, "right")]), region == REGION_RIGHT_ARM)]  # fmt: skip
+    for allowed, sel in groups:
+        if not sel.any():
+            continue
+        x = garment.rest_vertices[sel]
+        dist, nn = cKDTree(body.template[allowed]).query(x, k=k)  # (n, k)
+        nn = allowed[nn]
+        w = 1.0 / (dist + 1e-3) ** 2
+        w /= w.sum(1, keepdims=True)
+        off = x[:, None] - body.template[nn]  # (n, k, 3)
+        moved = vertices[nn] + np.einsum("nkij,nkj->nki", vtransf[nn], off)  # (n, k, 3)
+        out[sel] = (w[..., None] * moved).sum(1)
+    return out
+
+
+@dataclass
+class SettledCloth:
+    """Cloth state after settling on a first frame: particle positions and
+    velocities (Vg, 3) float32, and that frame's body vertices (V, 3) (a settled
+    state is only reused on the same first frame)."""
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    first_frame: np.ndarray
 
 
 def simulate_garment(
@@ -333,6 +407,7 @@ def simulate_garment(
     posed: PosedBody,
     settings: ClothSimSettings | None = None,
     progress: Callable[[int], None] | None = None,
+    settled: SettledCloth | None = None,
 ) -> ClothSequence:
     """Simulate ``garment`` on the body sequence ``posed`` (T frames at ``settings.fps``).
 
@@ -341,11 +416,17 @@ def simulate_garment(
     body held at frame 0, then follows the motion. Give a sequence that starts
     at (or blends from) the rest pose.
 
+    settled: the state a previous call with the same garment, settings and
+        frame 0 reached after settling (``ClothSequence.settled``): the settle
+        is skipped and the result is the same (the simulation is deterministic).
+
     Returns a ClothSequence with (T, Vg, 3) vertices and per-frame stats.
     """
     s = settings or ClothSimSettings()
     if s.collider not in COLLIDERS:
         raise ValueError(f"unknown collider {s.collider!r}; expected one of {COLLIDERS}")
+    if s.frame not in ("world", "root"):
+        raise ValueError(f"frame must be 'world' or 'root', got {s.frame!r}")
     if s.substeps < 1 or s.iterations < 1 or s.fps <= 0:
         raise ValueError("substeps, iterations and fps must be positive")
     T = posed.vertices.shape[0]
@@ -362,6 +443,13 @@ def simulate_garment(
     import newton
 
     device = wp.get_device("cpu")
+    world = posed
+    # the simulation frame: the world, or a frame translating with the pelvis ("root")
+    origin = posed.joints[:, 0].astype(np.float64) if s.frame == "root" else np.zeros((T, 3))
+    posed = PosedBody((world.vertices - origin[:, None]).astype(np.float32),
+                      (world.joints - origin[:, None]).astype(np.float32), world.vtransf)  # fmt: skip
+    # the frame's velocity, constant within a frame (body data is interpolated linearly)
+    frame_velocity = np.diff(origin, axis=0, prepend=origin[:1]) * s.fps  # (T, 3), 0 for frame 0
     pins = pin_positions(garment, posed)  # (T, P, 3)
     pin_idx = np.flatnonzero(garment.pinned)
     x0 = skin_garment(garment, body, posed.vertices[0], posed.vtransf[0])
@@ -408,7 +496,20 @@ def simulate_garment(
         model.shape_collision_aabb_upper.assign(hi)
         model.shape_collision_radius.assign(model.shape_collision_radius.numpy() + 0.5)
 
-    solver = newton.solvers.SolverVBD(model, iterations=s.iterations, integrate_with_external_rigid_solver=True)
+    extra = {}
+    if s.self_contact:
+        freq = newton.solvers.SolverBase.CollisionFrequencyType
+        when = {"pre_init": freq.PRE_INIT, "pre_post_init": freq.PRE_POST_INIT}[s.self_contact_detection]
+        extra = {
+            "particle_enable_self_contact": True,
+            "particle_self_contact_margin": s.self_contact_margin,
+            "particle_self_contact_gap": s.self_contact_gap,
+            "collision_frequency_type": {newton.solvers.SolverBase.CollisionSlot.SOFT_SELF_CONTACT: when},
+        }
+    solvers = [newton.solvers.SolverVBD(
+        model, iterations=s.iterations, integrate_with_external_rigid_solver=True, **extra
+    )]  # fmt: skip
+    self_contact_off_from = None
     pipeline = newton.CollisionPipeline(model, soft_contact_gap=s.contact_margin)
     contacts = pipeline.contacts()
     control = model.control()
@@ -445,14 +546,22 @@ def simulate_garment(
             body_mesh.mesh.refit()
             state0.body_q.assign(np.array([[*root, 0.0, 0.0, 0.0, 1.0]], dtype=np.float32))
         pipeline.collide(state0, contacts)
-        solver.step(state0, state1, control, contacts, dt)
+        solvers[0].step(state0, state1, control, contacts, dt)
         state1.body_q.assign(state0.body_q)
         state0, state1 = state1, state0
 
-    # settle at the first pose
-    for _ in range(s.settle_frames):
-        for _ in range(s.substeps):
-            substep(0, 0.0, None)
+    # settle at the first pose (or restore a settled state of the same first frame)
+    if settled is not None:
+        if settled.positions.shape != x0.shape or not np.array_equal(settled.first_frame, world.vertices[0]):
+            raise ValueError("settled: the state was settled for another garment or first frame")
+        state0.particle_q.assign(settled.positions)
+        state0.particle_qd.assign(settled.velocities)
+    else:
+        for _ in range(s.settle_frames):
+            for _ in range(s.substeps):
+                substep(0, 0.0, None)
+    settled_out = SettledCloth(state0.particle_q.numpy().copy(), state0.particle_qd.numpy().copy(),
+                               world.vertices[0].copy())  # fmt: skip
 
     out = np.zeros((T, len(x0), 3), dtype=np.float32)
     stats: list[ClothFrameStats] = []
@@ -462,22 +571,31 @@ def simulate_garment(
     for t in range(T):
         if t > 0:
             t_start, c_start = time.perf_counter(), time.process_time()
+            dv = frame_velocity[t] - frame_velocity[t - 1]
+            if dv.any():  # the frame changes velocity: the cloth keeps its world velocity
+                state0.particle_qd.assign(state0.particle_qd.numpy() - dv.astype(np.float32))
             vel = (posed.vertices[t] - posed.vertices[t - 1]) / frame_dt if body_mesh is not None else None
             for k in range(s.substeps):
                 substep(t - 1, (k + 1) / s.substeps, vel)
             sim_time += time.perf_counter() - t_start
             cpu_time += time.process_time() - c_start
-        x = state0.particle_q.numpy().copy()
+        x = state0.particle_q.numpy().copy()  # in the simulation frame
         st = frame_stats(x, posed.vertices[t], body.faces, edges, rest_len, s)
-        out[t] = x
+        out[t] = x + origin[t]
         stats.append(st)
         if _is_hard_failure(st):  # restore the last good cloth, at rest
             resets += 1
             state0.particle_q.assign(last_good)
             state0.particle_qd.zero_()
+            if s.self_contact and s.self_contact_fallback and self_contact_off_from is None:
+                # self-contact's speed bound let the cloth tear: go on without it
+                self_contact_off_from = t
+                solvers[0] = newton.solvers.SolverVBD(model, iterations=s.iterations,
+                                                      integrate_with_external_rigid_solver=True)  # fmt: skip
         elif st.valid:
             last_good = x
         if progress is not None:
             progress(t)
     n = max(T - 1, 1)
-    return ClothSequence(out, garment.faces.copy(), stats, sim_time / n, cpu_time / n, resets, s)
+    return ClothSequence(out, garment.faces.copy(), stats, sim_time / n, cpu_time / n, resets, s, settled_out,
+                         self_contact_off_from)  # fmt: skip

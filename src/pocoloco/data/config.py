@@ -15,15 +15,19 @@ from dataclasses import dataclass, field
 class SubjectSpec:
     """One synthetic subject: a body shape and what it wears.
 
-    garment: ``"skirt"`` (dress/skirt, LOOSE subject 2), ``"long_shirt"``
-    (long loose shirt, LOOSE subject 1) or ``"tight"`` (no simulated garment:
-    the body surface stands for tight clothing, the control subject).
+    garment: a kind of ``data.garments.GARMENT_KINDS`` (``"skirt"``: LOOSE subject
+    2, ``"long_shirt"``: LOOSE subject 1, ``"maxi_skirt"``, ``"dress"``,
+    ``"sleeved_shirt"``, ``"wide_trousers"``) or ``"tight"`` (no simulated
+    garment: the body surface stands for tight clothing, the control subject).
     phenotype: anny phenotype parameters in [0, 1] (gender 0 = male, 1 = female).
+    garment_params: the garment's shape parameters (``garments.garment_parameters``
+    lists them with their defaults), e.g. ``{"hem": 0.6, "flare": 0.4}``.
     """
 
     name: str
     garment: str
     phenotype: dict[str, float] = field(default_factory=dict)
+    garment_params: dict[str, float] = field(default_factory=dict)
 
 
 DEFAULT_SUBJECTS: tuple[SubjectSpec, ...] = (
@@ -41,6 +45,22 @@ class SynthConfig:
     ``frames_per_sequence`` stored frames, preceded by ``blend_frames`` that
     move the body from the rest pose into the motion and ``warmup_frames``
     of motion that let the cloth pick up momentum; neither is stored.
+
+    Generation settings (data v2; ``SYNTH_V1`` restores the first pipeline's):
+    garment_tessellation: ``"isotropic"`` (rings of ~2.2 cm / resolution edges)
+        or ``"grid"`` (the first skirt / long_shirt grids, 72 x 36).
+    cloth_self_contact: newton VBD cloth self-contact (~90 % fewer crossing
+        triangles, but 2.4-3.2x the simulation time and, at its 1.6 cm reach, fast
+        spins still tear the cloth: off by default; benchmarks/bench_cloth_settings.py).
+    cloth_frame: ``"root"`` (simulate in a frame translating with the pelvis, the
+        same physics; needed by self-contact) or ``"world"`` (``ClothSimSettings.frame``).
+    cloth_substeps, cloth_iterations: VBD substeps per frame and iterations per
+        substep (v1: 10 x 5; in the root frame 7 x 5 keeps the cloth out of the body
+        better than 10 x 5 did in the world frame, benchmarks/bench_cloth_settings.py).
+    capture_cull_hidden_faces: draw capture candidates only on faces that may be
+        visible (``capture.possibly_visible_faces``).
+    self_intersection_every: count cloth self-intersections (crossing triangle
+        pairs) on every this-many-th stored frame for the dataset card; 0 = never.
     """
 
     subjects: tuple[SubjectSpec, ...] = DEFAULT_SUBJECTS
@@ -55,6 +75,13 @@ class SynthConfig:
     capture_cameras: int = 24
     scanner_noise: float = 0.0
     seed: int = 0
+    garment_tessellation: str = "isotropic"
+    cloth_self_contact: bool = False
+    cloth_frame: str = "root"
+    cloth_substeps: int = 7
+    cloth_iterations: int = 5
+    capture_cull_hidden_faces: bool = True
+    self_intersection_every: int = 10
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -65,6 +92,17 @@ class SynthConfig:
         d["subjects"] = tuple(SubjectSpec(**s) for s in d["subjects"])
         return cls(**d)
 
+
+#: overrides that reproduce the first pipeline (``dataclasses.replace(config, **SYNTH_V1)``)
+SYNTH_V1: dict = {
+    "garment_tessellation": "grid",
+    "cloth_self_contact": False,
+    "cloth_frame": "world",
+    "cloth_substeps": 10,
+    "cloth_iterations": 5,
+    "capture_cull_hidden_faces": False,
+    "self_intersection_every": 0,
+}
 
 SYNTH_PRESETS: dict[str, SynthConfig] = {
     # seconds: for tests and smoke runs
