@@ -67,6 +67,10 @@ placed around the body: draping them needs its own sewing simulator (a warp fork
 With a namespace shim and a stub its pattern layer does run (a two-panel skirt
 assembles to panels + stitches in ~1.3 s of imports), but everything from there to a
 draped, body-fitted 3D mesh would still be ours to write.
+
+Why this module is long: it is the garment library - one builder per kind plus the ring,
+loft and seam-ironing helpers they share; the helpers are private to the builders, and
+splitting kinds across modules would make them public API without a second user.
 """
 
 from __future__ import annotations
