@@ -43,13 +43,17 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
             seed=args.seed,
             train_sequences=args.train_sequences,
             test_sequences=args.test_sequences,
+            heldout_sequences=args.heldout_sequences,
             frames_per_sequence=args.frames,
             num_points=args.points,
         ).items()
         if v is not None
     }
     for k, v in overrides.items():
-        if k != "seed" and v <= 0:
+        if k in ("seed", "heldout_sequences"):
+            if v < 0:
+                raise ValueError(f"--{k.replace('_', '-')} must be >= 0, got {v}")
+        elif v <= 0:
             raise ValueError(f"--{k.replace('_', '-')} must be positive, got {v}")
     config = dataclasses.replace(config, **overrides)
     out = Path(args.out or f"data/{args.preset}")
@@ -97,32 +101,36 @@ def print_card(card: dict, path: Path) -> None:
     title, files_line = _files_status(card, path, scan_frames(path, card=card))
     con.print(escape(f"dataset {path} ({title})"))
     table = Table(title="frames per split")
-    for col in ("subject", "garment", "train", "test", "rejected", "loose %", "pen. max/mean mm"):
+    counts = card.get("counts", {})
+    heldout = any(c.get("heldout", {}).get("frames") for c in counts.values())
+    splits = ("train", "test", "heldout") if heldout else ("train", "test")
+    for col in ("subject", "garment", *splits, "rejected", "loose %", "pen. max/mean mm"):
         table.add_column(col, justify="right" if col != "subject" else "left")
     for name, s in card.get("subjects", {}).items():
-        c = card.get("counts", {}).get(name, {})
+        c = counts.get(name, {})
         pen = s.get("penetration")
         share = card.get("loose_share", {}).get(name)
         table.add_row(
             name,
             s.get("garment_kind", "?"),
-            str(c.get("train", {}).get("frames", "-")),
-            str(c.get("test", {}).get("frames", "-")),
+            *(str(c.get(split, {}).get("frames", "-")) for split in splits),
             str(sum(v.get("rejected_frames", 0) for v in c.values())) if c else "-",
             f"{100 * share:.1f}" if share is not None else "-",
             f"{pen['max_mm']:.1f} / {pen['mean_mm']:.2f}" if pen else "-",
         )
     con.print(table)
-    coverage = card.get("pose_coverage")
-    if coverage:
-        cov = Table(title="test poses: RMS distance of the root-aligned joints to the nearest training pose (cm)")
-        for col in ("subject", "test frames", "median", "p90", "max"):
+    for key, split in (("pose_coverage", "test"), ("pose_coverage_heldout", "heldout")):
+        coverage = card.get(key)
+        if not coverage:
+            continue
+        cov = Table(title=f"{split} poses: RMS distance of the root-aligned joints to the nearest training pose (cm)")
+        for col in ("subject", f"{split} frames", "median", "p90", "max"):
             cov.add_column(col, justify="right" if col != "subject" else "left")
         for name, c in coverage.items():
             cov.add_row(name, str(c["test_frames"]), f"{c['median_cm']:.1f}", f"{c['p90_cm']:.1f}", f"{c['max_cm']:.1f}")
         con.print(cov)
     cfg = card.get("generation_config", {})
-    keys = ("train_sequences", "test_sequences", "frames_per_sequence", "fps", "num_points", "capture_cameras", "seed")
+    keys = ("train_sequences", "test_sequences", "heldout_sequences", "frames_per_sequence", "fps", "num_points", "capture_cameras", "seed")
     con.print("config: " + ", ".join(f"{k}={cfg.get(k)}" for k in keys))
     norm = card.get("normalisation")
     if norm:
@@ -215,6 +223,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                        "(default: the preset's)")  # fmt: skip
     s.add_argument("--test-sequences", type=int, help="motion sequences per subject in the test split "
                                                       "(default: the preset's)")  # fmt: skip
+    s.add_argument("--heldout-sequences", type=int, help="motion sequences per subject in the heldout split: "
+                   "test-style motions from other seeds, for a last check (default: the preset's)")  # fmt: skip
     s.add_argument("--frames", type=int, help="stored frames per sequence (default: the preset's)")
     s.add_argument("--points", type=int, help="points stored per frame (default: the preset's)")
     s.set_defaults(func=cmd_data_synth)

@@ -37,6 +37,12 @@ DEFAULT_SUBJECTS: tuple[SubjectSpec, ...] = (
 )
 
 
+#: the motion kinds of ``tiny`` / ``small`` (``data.motion.CLASSIC_KINDS``; tested equal)
+CLASSIC_MOTION_KINDS: tuple[str, ...] = ("walk", "turn", "dance", "arm_swing", "squat", "kick", "spin")
+#: every kind ``data.motion`` draws (``data.motion.MOTION_KINDS``; tested equal)
+ALL_MOTION_KINDS: tuple[str, ...] = CLASSIC_MOTION_KINDS + ("reach", "crouch", "jump", "run", "bend", "turn_in_place")
+
+
 @dataclass(frozen=True)
 class SynthConfig:
     """Settings of a synthetic capture run (``pocoloco data synth``).
@@ -61,6 +67,13 @@ class SynthConfig:
         visible (``capture.possibly_visible_faces``).
     self_intersection_every: count cloth self-intersections (crossing triangle
         pairs) on every this-many-th stored frame for the dataset card; 0 = never.
+
+    Motions and splits:
+    motion_kinds: the motion kinds sequences draw from (``data.motion.MOTION_KINDS``);
+        the default is the classic seven of ``tiny`` / ``small``.
+    heldout_sequences: sequences per subject of a third split, ``heldout``: test-style
+        motions (test parameter bands, mixed upper bodies) drawn from other seeds than
+        ``test``, for judging a model on motions nobody developed against.
     """
 
     subjects: tuple[SubjectSpec, ...] = DEFAULT_SUBJECTS
@@ -82,6 +95,8 @@ class SynthConfig:
     cloth_iterations: int = 5
     capture_cull_hidden_faces: bool = True
     self_intersection_every: int = 10
+    motion_kinds: tuple[str, ...] = CLASSIC_MOTION_KINDS
+    heldout_sequences: int = 0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -90,6 +105,8 @@ class SynthConfig:
     def from_dict(cls, d: dict) -> "SynthConfig":
         d = dict(d)
         d["subjects"] = tuple(SubjectSpec(**s) for s in d["subjects"])
+        if "motion_kinds" in d:
+            d["motion_kinds"] = tuple(d["motion_kinds"])
         return cls(**d)
 
 
@@ -103,6 +120,29 @@ SYNTH_V1: dict = {
     "capture_cull_hidden_faces": False,
     "self_intersection_every": 0,
 }
+
+def _phenotype(gender: float, height: float, weight: float, age: float = 0.45) -> dict[str, float]:
+    return {"gender": gender, "age": age, "weight": weight, "height": height}
+
+
+#: ``medium``: every loose garment kind on two bodies (sex, height, weight varied) + two tight
+#: bodies; the first skirt, shirt and tight bodies are ``small``'s.
+MEDIUM_SUBJECTS: tuple[SubjectSpec, ...] = (
+    SubjectSpec("skirt_a", "skirt", DEFAULT_SUBJECTS[0].phenotype),
+    SubjectSpec("skirt_b", "skirt", _phenotype(0.85, 0.7, 0.7, 0.6), {"hem": 0.5, "flare": 0.4}),
+    SubjectSpec("maxi_a", "maxi_skirt", _phenotype(1.0, 0.35, 0.3, 0.35)),
+    SubjectSpec("maxi_b", "maxi_skirt", _phenotype(0.9, 0.6, 0.6), {"hem": 0.85, "flare": 0.3}),
+    SubjectSpec("dress_a", "dress", _phenotype(1.0, 0.55, 0.5, 0.4)),
+    SubjectSpec("dress_b", "dress", _phenotype(0.85, 0.4, 0.7, 0.55), {"hem": 0.35}),
+    SubjectSpec("shirt_a", "long_shirt", DEFAULT_SUBJECTS[1].phenotype),
+    SubjectSpec("shirt_b", "long_shirt", _phenotype(0.7, 0.4, 0.35, 0.35), {"hem": 0.7}),
+    SubjectSpec("sleeves_a", "sleeved_shirt", _phenotype(0.1, 0.7, 0.35, 0.4)),
+    SubjectSpec("sleeves_b", "sleeved_shirt", _phenotype(0.0, 0.5, 0.7, 0.6), {"sleeve": 0.3}),
+    SubjectSpec("trousers_a", "wide_trousers", _phenotype(0.7, 0.5, 0.55)),
+    SubjectSpec("trousers_b", "wide_trousers", _phenotype(0.2, 0.65, 0.45, 0.5), {"length": 0.35}),
+    SubjectSpec("tight_a", "tight", DEFAULT_SUBJECTS[2].phenotype),
+    SubjectSpec("tight_b", "tight", _phenotype(0.0, 0.6, 0.7, 0.6)),
+)
 
 SYNTH_PRESETS: dict[str, SynthConfig] = {
     # seconds: for tests and smoke runs
@@ -118,6 +158,16 @@ SYNTH_PRESETS: dict[str, SynthConfig] = {
     ),
     # minutes: the default demo dataset and the one shipped models train on
     "small": SynthConfig(),
+    # ~2 h on 2 cores: 14 subjects, all motion kinds, 800 train + 200 test + 80 held-out frames
+    # each in 40-frame sequences (many short motions cover the pose space)
+    "medium": SynthConfig(
+        subjects=MEDIUM_SUBJECTS,
+        train_sequences=20,
+        test_sequences=5,
+        heldout_sequences=2,
+        frames_per_sequence=40,
+        motion_kinds=ALL_MOTION_KINDS,
+    ),
     # LOOSE's scale (~30K train / ~10K test frames per subject): many cores
     "loose": SynthConfig(
         subjects=DEFAULT_SUBJECTS,

@@ -67,7 +67,9 @@ __all__ = [
 
 FORMAT_NAME = "pocoloco-dataset"
 FORMAT_VERSION = 1
-SPLITS: tuple[str, ...] = ("train", "test")
+#: ``heldout``: test-style motions from other seeds than ``test`` (``SynthConfig.heldout_sequences``);
+#: absent from most datasets (its folders are simply missing)
+SPLITS: tuple[str, ...] = ("train", "test", "heldout")
 
 #: Label value for points whose class is unknown (imported data has no labels).
 LABEL_UNKNOWN = 255
@@ -647,28 +649,35 @@ def card_from_disk(
         card["normalisation"] = {"root_joint": stats["root_joint"], "mean": stats["mean"],
                                  "std": stats["std"], "computed_on": normalise_on}  # fmt: skip
     card["pose_coverage"] = pose_coverage(root, list(card["subjects"]))
+    heldout = pose_coverage(root, list(card["subjects"]), split="heldout")
+    if heldout:
+        card["pose_coverage_heldout"] = heldout
+    else:
+        card.pop("pose_coverage_heldout", None)
     return card
 
 
-def pose_coverage(root: str | os.PathLike, subjects: Sequence[str], root_joint: int = 0) -> dict[str, Any]:
-    """How far the test poses are from the training poses, per subject: for every test frame, the
-    RMS distance (cm) between its root-aligned joints and those of the nearest training frame of the
-    same subject; the distribution as ``{"test_frames", "median_cm", "p90_cm", "max_cm"}``
-    (subjects without train or test frames are left out). Small values mean the test split only
-    re-samples training poses; tens of centimetres mean poses no training frame covers."""
+def pose_coverage(
+    root: str | os.PathLike, subjects: Sequence[str], root_joint: int = 0, split: str = "test"
+) -> dict[str, Any]:
+    """How far the poses of ``split`` (test or heldout) are from the training poses, per subject: for
+    every frame, the RMS distance (cm) between its root-aligned joints and those of the nearest
+    training frame of the same subject; the distribution as ``{"test_frames", "median_cm", "p90_cm",
+    "max_cm"}`` (subjects without train or ``split`` frames are left out). Small values mean the
+    split only re-samples training poses; tens of centimetres mean poses no training frame covers."""
     layout = DatasetLayout(root)
     out: dict[str, Any] = {}
     for s in subjects:
         joints = {}
-        for split in SPLITS:
-            frames = layout.iter_frames(split, [s])
+        for part in ("train", split):
+            frames = layout.iter_frames(part, [s])
             if not frames:
                 break
             j = np.stack([read_frame(p, ["joints"]).joints for _, _, p in frames]).astype(np.float64)  # (F, J, 3)
-            joints[split] = j - j[:, root_joint : root_joint + 1]
-        if len(joints) < len(SPLITS):
+            joints[part] = j - j[:, root_joint : root_joint + 1]
+        if len(joints) < 2:
             continue
-        train, test = joints["train"], joints["test"]
+        train, test = joints["train"], joints[split]
         nearest = np.empty(len(test))
         for a in range(0, len(test), 256):  # (t, F) squared RMS over joints, 256 test frames at a time
             d2 = ((test[a : a + 256, None] - train[None]) ** 2).sum(-1).mean(-1)

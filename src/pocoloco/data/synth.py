@@ -42,7 +42,7 @@ from .format import Motion as StoredMotion
 from .format import read_sequence_meta, write_motion, write_sequence_meta
 from .format import write_subject as format_write_subject
 
-SPLITS = ("train", "test")
+SPLITS = ("train", "test", "heldout")
 
 
 @dataclass(frozen=True)
@@ -64,10 +64,18 @@ def job_seed(config: SynthConfig, job: SequenceJob) -> int:
     return int.from_bytes(hashlib.sha256(key).digest()[:4], "little") & 0x7FFFFFFF
 
 
+def motion_split(split: str) -> str:
+    """The motion style of a dataset split: held-out sequences draw test-style motions (test
+    parameter bands, mixed upper bodies), from their own seeds (``job_seed`` hashes the split)."""
+    return "test" if split == "heldout" else split
+
+
 def list_jobs(config: SynthConfig) -> list[SequenceJob]:
     jobs = []
     for subject in config.subjects:
-        for split, count in (("train", config.train_sequences), ("test", config.test_sequences)):
+        counts = (("train", config.train_sequences), ("test", config.test_sequences),
+                  ("heldout", config.heldout_sequences))  # fmt: skip
+        for split, count in counts:
             jobs += [SequenceJob(subject, split, i) for i in range(count)]
     return jobs
 
@@ -90,6 +98,10 @@ def prepare_output(config: SynthConfig, out: Path) -> None:
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"{layout.card_path}: unreadable dataset card ({e})") from None
         have = card.get("generation_config")
+        try:  # settings added since the card was written take their defaults (the old behaviour)
+            have = _config_json(SynthConfig.from_dict(have))
+        except (TypeError, KeyError, ValueError):
+            pass  # unknown keys: report them below
         if have != wanted:
             keys = sorted(k for k in set(wanted) | set(have or {}) if (have or {}).get(k) != wanted.get(k))
             raise ValueError(
@@ -208,7 +220,8 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
     # 1-2. motion and posed body for every simulated frame
     t0 = time.perf_counter()
     motion = generate_motion(
-        seed, config.frames_per_sequence + config.warmup_frames, split=job.split, fps=config.fps, body=body
+        seed, config.frames_per_sequence + config.warmup_frames, split=motion_split(job.split), fps=config.fps,
+        kinds=config.motion_kinds, body=body,
     )
     full = rest_to_motion(motion, config.blend_frames, body=body)
     start = full.num_frames - config.frames_per_sequence  # first stored frame
