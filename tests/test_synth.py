@@ -185,3 +185,52 @@ def test_v1_settings_and_garment_parameters_round_trip(tmp_path):
     card = read_card(tmp_path / "d")
     assert card["subjects"]["m"]["garment_params"] == {**garment_parameters("maxi_skirt"), "hem": 0.6}
     assert card["subjects"]["tight"]["garment_params"] is None
+
+
+def test_heldout_split_draws_test_style_motions_from_its_own_seeds(tmp_path):
+    """A heldout split: its own sequences, counted in the card with its own pose coverage, loadable
+    as a dataset split, and motions unlike both the train and the test ones."""
+    from pocoloco.data.dataset import PointCloudDataset
+
+    tight = next(s for s in synth_preset("tiny").subjects if s.garment == "tight")
+    config = dataclasses.replace(synth_preset("tiny"), subjects=(tight,), heldout_sequences=1)
+    assert [j.split for j in list_jobs(config)] == ["train", "test", "heldout"]
+    out = tmp_path / "d"
+    r = run_cli("data", "synth", "--preset", "tiny", "--out", str(out), "--heldout-sequences", "1")
+    assert r.returncode == 0, r.stderr
+    card = read_card(out)
+    assert card["generation_config"]["heldout_sequences"] == 1
+    assert {s: c["heldout"]["frames"] for s, c in card["counts"].items()} == {"skirt": 4, "tight": 4}
+    assert set(card["pose_coverage_heldout"]) == {"skirt", "tight"}
+    layout = DatasetLayout(out)
+    motion = {split: np.load(layout.sequence_dir("tight", split, f"{split}_0000") / "motion.npz")["joint_rotvecs"]
+              for split in ("train", "test", "heldout")}  # fmt: skip
+    assert not np.allclose(motion["heldout"], motion["test"]) and not np.allclose(motion["heldout"], motion["train"])
+    assert len(PointCloudDataset(out, "heldout", num_points=64)) == 8
+    info = run_cli("data", "info", str(out))
+    assert "heldout poses" in info.stdout and "heldout_sequences=1" in info.stdout
+    assert run_cli("data", "synth", "--preset", "tiny", "--out", str(tmp_path / "e"),
+                   "--heldout-sequences", "-1").returncode == 2  # fmt: skip
+
+
+def test_medium_preset_covers_garments_bodies_and_motions():
+    from pocoloco.data.config import ALL_MOTION_KINDS, CLASSIC_MOTION_KINDS
+    from pocoloco.data.garments import GARMENT_KINDS
+    from pocoloco.data.motion import CLASSIC_KINDS, MOTION_KINDS
+
+    assert CLASSIC_MOTION_KINDS == CLASSIC_KINDS and ALL_MOTION_KINDS == MOTION_KINDS
+    assert synth_preset("small").motion_kinds == CLASSIC_KINDS
+    medium = synth_preset("medium")
+    assert medium.motion_kinds == MOTION_KINDS and medium.heldout_sequences > 0
+    assert len(medium.subjects) >= 8 and len({s.name for s in medium.subjects}) == len(medium.subjects)
+    assert medium.train_sequences * medium.frames_per_sequence >= 800
+    assert medium.test_sequences * medium.frames_per_sequence >= 200
+    bodies: dict[str, set] = {}
+    for s in medium.subjects:
+        bodies.setdefault(s.garment, set()).add(tuple(sorted(s.phenotype.items())))
+    assert set(bodies) == set(GARMENT_KINDS) | {"tight"}
+    assert all(len(b) >= 2 for b in bodies.values()), bodies  # every kind on two bodies at least
+    # a card written before these settings existed still resumes (they take their defaults)
+    assert dataclasses.replace(medium, motion_kinds=CLASSIC_KINDS, heldout_sequences=0) == SYNTH_PRESETS["small"].__class__.from_dict(
+        {k: v for k, v in dataclasses.replace(medium, motion_kinds=CLASSIC_KINDS, heldout_sequences=0).to_dict().items()
+         if k not in ("motion_kinds", "heldout_sequences")})
