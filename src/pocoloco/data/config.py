@@ -61,6 +61,10 @@ class SynthConfig:
         visible (``capture.possibly_visible_faces``).
     self_intersection_every: count cloth self-intersections (crossing triangle
         pairs) on every this-many-th stored frame for the dataset card; 0 = never.
+    frame_storage: how frame files store their arrays (``format.FRAME_STORAGES``):
+        ``"float32"`` (exact, uncompressed) or ``"compact"`` (deflated, float16 normals and
+        skinning transforms, int16 fixed-point positions within 0.1 mm: ~37 % of the bytes,
+        benchmarks/bench_frame_storage.py). Readers need not know which.
     """
 
     subjects: tuple[SubjectSpec, ...] = DEFAULT_SUBJECTS
@@ -82,6 +86,7 @@ class SynthConfig:
     cloth_iterations: int = 5
     capture_cull_hidden_faces: bool = True
     self_intersection_every: int = 10
+    frame_storage: str = "float32"
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -37,6 +37,7 @@ from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS
 from .config import SubjectSpec, SynthConfig
 from ..utils.atomic import save_npz_atomic
 from .capture import LABEL_GARMENT, LABEL_NAMES
+from .format import FRAME_STORAGES
 from .format import DatasetLayout, Frame, SubjectAsset, make_card, read_frame, refresh_card, write_card, write_frame
 from .format import Motion as StoredMotion
 from .format import read_sequence_meta, write_motion, write_sequence_meta
@@ -76,12 +77,19 @@ def _config_json(config: SynthConfig) -> dict:
     return json.loads(json.dumps(config.to_dict()))
 
 
+#: SynthConfig fields added after datasets were generated, with the value those runs used: a card
+#: without the key was generated with that value (so such a run still resumes).
+_FIELDS_ADDED_LATER: dict = {"frame_storage": "float32"}
+
+
 def prepare_output(config: SynthConfig, out: Path) -> None:
     """Create ``out`` or check it holds a run of the same configuration.
 
     Raises ValueError when ``out`` is a non-empty folder that is not a dataset
     or a dataset generated with other settings (naming the differing keys).
     """
+    if config.frame_storage not in FRAME_STORAGES:
+        raise ValueError(f"frame_storage must be one of {FRAME_STORAGES}, got {config.frame_storage!r}")
     layout = DatasetLayout(out)
     wanted = _config_json(config)
     if layout.card_path.exists():
@@ -90,6 +98,8 @@ def prepare_output(config: SynthConfig, out: Path) -> None:
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"{layout.card_path}: unreadable dataset card ({e})") from None
         have = card.get("generation_config")
+        if isinstance(have, dict):
+            have = {**{k: v for k, v in _FIELDS_ADDED_LATER.items() if k in wanted}, **have}
         if have != wanted:
             keys = sorted(k for k in set(wanted) | set(have or {}) if (have or {}).get(k) != wanted.get(k))
             raise ValueError(
@@ -265,6 +275,7 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
                     garment_vertices=None if cloth_vertices is None else cloth_vertices[i],
                     frame_index=i,
                 ),
+                storage=config.frame_storage,
             )
             timings["write"] += time.perf_counter() - tw
             shares.append(100.0 * float(np.mean(scan.labels == LABEL_GARMENT)))
