@@ -74,6 +74,10 @@ class SynthConfig:
     heldout_sequences: sequences per subject of a third split, ``heldout``: test-style
         motions (test parameter bands, mixed upper bodies) drawn from other seeds than
         ``test``, for judging a model on motions nobody developed against.
+    frame_storage: how frame files store their arrays (``format.FRAME_STORAGES``):
+        ``"float32"`` (exact, uncompressed) or ``"compact"`` (deflated, float16 normals and
+        skinning transforms, int16 fixed-point positions within 0.1 mm: ~37 % of the bytes,
+        benchmarks/bench_frame_storage.py). Readers need not know which.
     """
 
     subjects: tuple[SubjectSpec, ...] = DEFAULT_SUBJECTS
@@ -97,6 +101,7 @@ class SynthConfig:
     self_intersection_every: int = 10
     motion_kinds: tuple[str, ...] = CLASSIC_MOTION_KINDS
     heldout_sequences: int = 0
+    frame_storage: str = "float32"
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

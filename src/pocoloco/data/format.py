@@ -23,6 +23,11 @@ data imported from published scans): ``labels``, ``parts``,
 Every reader validates at the boundary and raises a one-line
 ``ValueError("<path>: <problem>")``.
 
+Frame storage (:data:`FRAME_STORAGES`, chosen per file by :func:`write_frame`; :func:`read_frame`
+tells them apart from the file itself, so a dataset may mix them): ``"float32"`` (the default: the
+arrays as listed, uncompressed) or ``"compact"`` (deflated, ~37 % of the bytes, reads back within
+:data:`COMPACT_MAX_ERROR`; see :func:`encode_compact`).
+
 Integrity: the card records the size and CRC-32 of every frame file (``frame_files``, written by
 :func:`refresh_card`). :func:`check_frames` (what training and evaluation call) compares the frame
 files present with the card's records and each ``sequence.json`` using only directory listings and
@@ -57,7 +62,8 @@ from ..utils.atomic import save_npz_atomic, write_json_atomic
 
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "SPLITS", "LABEL_UNKNOWN", "FRAME_KEYS", "REQUIRED_FRAME_KEYS",
-    "OPTIONAL_FRAME_KEYS", "Frame", "write_frame", "read_frame", "DatasetLayout", "make_card",
+    "OPTIONAL_FRAME_KEYS", "FRAME_STORAGES", "COMPACT_MAX_ERROR", "Frame", "write_frame", "read_frame",
+    "encode_compact", "frame_storage", "DatasetLayout", "make_card",
     "read_card", "write_card", "compute_normalisation", "refresh_card", "card_from_disk", "pose_coverage",
     "SubjectAsset", "write_subject", "read_subject", "Motion", "write_motion", "read_motion",
     "write_sequence_meta", "read_sequence_meta",
@@ -90,6 +96,23 @@ REQUIRED_FRAME_KEYS: tuple[str, ...] = ("points", "normals", "joints", "frame_in
 OPTIONAL_FRAME_KEYS: tuple[str, ...] = tuple(k for k in FRAME_KEYS if k not in REQUIRED_FRAME_KEYS)
 
 _FRAME_NAME = re.compile(r"^(\d+)\.npz$")
+
+#: How a frame file stores its arrays (:func:`write_frame`'s ``storage``).
+FRAME_STORAGES: tuple[str, ...] = ("float32", "compact")
+
+#: Largest absolute error of each key read back from a ``"compact"`` frame (metres for positions),
+#: guaranteed by :func:`encode_compact` (an array it cannot store within it stays float32):
+#: ``normals`` and ``vtransf`` are float16 when within +-1 (half the float16 spacing below 1 is
+#: 2^-12), positions int16 fixed point. ``joints``, ``labels``, ``parts``, ``frame_index`` are exact.
+COMPACT_MAX_ERROR: dict[str, float] = {
+    "points": 1e-4, "body_vertices": 1e-4, "garment_vertices": 1e-4, "normals": 2.0**-12, "vtransf": 2.0**-12,
+}  # fmt: skip
+
+_STORAGE_MEMBER = "frame_storage"  # 0-d str array naming the storage; absent in float32 frames
+_HALF_KEYS: tuple[str, ...] = ("normals", "vtransf")
+_FIXED_POINT_KEYS: tuple[str, ...] = ("points", "body_vertices", "garment_vertices")
+_Q16_MAX = 32767  # int16 codes used: -_Q16_MAX..._Q16_MAX
+_HALF_MAX = 1.0 + 2.0**-12  # float16 only for arrays within +-1 (float32 unit vectors may pass 1 a little)
 
 
 # --------------------------------------------------------------------------- frames
@@ -197,13 +220,103 @@ def _validate_frame_arrays(src: str, raw: Mapping[str, Any]) -> dict[str, np.nda
     return out
 
 
-def write_frame(path: str | os.PathLike, frame: Frame, compress: bool = False) -> None:
-    """Validate ``frame`` and write it atomically as an npz (uncompressed by default)."""
+def write_frame(path: str | os.PathLike, frame: Frame, compress: bool = False, *, storage: str = "float32") -> None:
+    """Validate ``frame`` and write it atomically as an npz.
+
+    storage: ``"float32"`` (the arrays in their ``FRAME_KEYS`` dtypes, uncompressed unless
+    ``compress``; the bytes are what this function always wrote) or ``"compact"``
+    (:func:`encode_compact`, always deflated).
+    """
+    if storage not in FRAME_STORAGES:
+        raise ValueError(f"write_frame: storage must be one of {FRAME_STORAGES}, got {storage!r}")
     missing = [k for k in REQUIRED_FRAME_KEYS if getattr(frame, k) is None]
     if missing:
         raise ValueError(f"{os.fspath(path)}: frame lacks required fields {missing}")
     arrays = _validate_frame_arrays(os.fspath(path), frame.to_arrays())
-    save_npz_atomic(path, compress=compress, **arrays)
+    if storage == "compact":
+        save_npz_atomic(path, compress=True, **encode_compact(arrays))
+    else:
+        save_npz_atomic(path, compress=compress, **arrays)
+
+
+def encode_compact(arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The npz members of a ``"compact"`` frame holding the validated frame ``arrays``.
+
+    - ``frame_storage``: ``"compact"`` (how :func:`read_frame` recognises the file);
+    - ``normals``, ``vtransf``: float16 (unit directions and blended skinning rotations, entries
+      in [-1, 1]: error <= 2^-12 per entry, ~0.02 degrees; an array with an entry beyond +-1 stays
+      float32);
+    - ``points``, ``body_vertices``, ``garment_vertices``: int16 fixed point per axis,
+      ``<key>_q16`` (n, 3) int16 codes q and ``<key>_q16_scale`` (2, 3) float64 rows origin o and
+      step s, read back as ``o + q * s`` with o the middle of the array's bounding box and
+      s = half its extent / 32767: error <= s / 2, 0.015 mm for a 2 m tall frame; a key whose
+      error would exceed ``COMPACT_MAX_ERROR`` (an extent over ~13 m) stays float32;
+    - ``joints``, ``labels``, ``parts``, ``frame_index``: unchanged (exact).
+
+    Positions are not stored as float16: its spacing is ~1 mm between 1 and 2 m and ~2 mm
+    between 2 and 4 m, and root translations reach several metres (float16 offsets from the pelvis
+    joint err up to 0.5 mm within 2 m of it, more beyond). Fixed point costs the same 2 bytes.
+    Renamed members (``points_q16``) make a reader that does not know this storage fail with
+    "missing key 'points'" instead of reading codes as coordinates.
+    """
+    out: dict[str, np.ndarray] = {_STORAGE_MEMBER: np.asarray("compact")}
+    for key, arr in arrays.items():
+        if key in _HALF_KEYS and arr.size and np.abs(arr).max() <= _HALF_MAX:
+            out[key] = arr.astype(np.float16)
+        elif key in _FIXED_POINT_KEYS and arr.size:
+            x = arr.astype(np.float64)
+            lo, hi = x.min(axis=0), x.max(axis=0)
+            step = (hi - lo) / (2 * _Q16_MAX)
+            rounding = np.abs(x).max() * 2.0**-24  # of the float32 result
+            if step.max() / 2 + rounding > COMPACT_MAX_ERROR[key]:
+                out[key] = arr
+                continue
+            origin = (lo + hi) / 2
+            step = np.where(step > 0, step, 1.0)  # a flat axis: every code is 0
+            codes = np.clip(np.rint((x - origin) / step), -_Q16_MAX, _Q16_MAX).astype(np.int16)
+            out[f"{key}_q16"] = codes
+            out[f"{key}_q16_scale"] = np.stack([origin, step])
+        else:
+            out[key] = arr
+    return out
+
+
+def _decode_compact(src: str, names: set[str], raw: dict[str, np.ndarray]) -> None:
+    """Turn the fixed-point members of a compact frame (in ``raw``) back into float32 positions,
+    in place; ``names`` (the archive's members) gains the decoded keys."""
+    for key in _FIXED_POINT_KEYS:
+        q_name, scale_name = f"{key}_q16", f"{key}_q16_scale"
+        if q_name not in names:
+            continue
+        names.add(key)
+        if q_name not in raw:  # not asked for
+            continue
+        if scale_name not in raw:
+            raise ValueError(f"{src}: missing key '{scale_name}'")
+        codes, scale = raw.pop(q_name), raw.pop(scale_name)
+        if codes.dtype != np.int16 or codes.ndim != 2 or codes.shape[1] != 3:
+            raise ValueError(f"{src}: '{q_name}' must be int16 of shape (n, 3), got {codes.dtype} {codes.shape}")
+        if scale.dtype.kind != "f" or scale.shape != (2, 3) or not np.isfinite(scale).all():
+            raise ValueError(f"{src}: '{scale_name}' must be a finite (2, 3) float array, got {scale.dtype} "
+                             f"{scale.shape}")  # fmt: skip
+        raw[key] = (scale[0] + codes * scale[1]).astype(np.float32)
+
+
+def _storage_of(src: str, raw: Mapping[str, np.ndarray]) -> str:
+    """The storage a frame archive declares (its ``frame_storage`` member; float32 without one)."""
+    if _STORAGE_MEMBER not in raw:
+        return "float32"
+    marker = raw[_STORAGE_MEMBER]
+    value = str(marker.reshape(())[()]) if marker.dtype.kind == "U" and marker.size == 1 else repr(marker)
+    if value not in FRAME_STORAGES:
+        raise ValueError(f"{src}: unknown frame storage {value} (this code reads {', '.join(FRAME_STORAGES)})")
+    return value
+
+
+def frame_storage(path: str | os.PathLike) -> str:
+    """``"float32"`` or ``"compact"``: how the frame file at ``path`` stores its arrays."""
+    src = os.fspath(path)
+    return _storage_of(src, load_npz(src, [_STORAGE_MEMBER])[1])
 
 
 def load_npz(path: str, keys: Iterable[str] | None) -> tuple[set[str], dict[str, np.ndarray]]:
@@ -231,6 +344,9 @@ def read_frame(path: str | os.PathLike, keys: Sequence[str] | None = None, *, al
     A requested key that is absent raises, unless ``allow_missing`` and the
     key is optional (then it is None).
 
+    Either storage (:data:`FRAME_STORAGES`) is read, recognised from the file; arrays come back
+    in their ``FRAME_KEYS`` dtypes (float32 positions, normals and ``vtransf``) either way.
+
     Raises ``ValueError("<path>: <problem>")`` for a truncated/corrupt archive,
     a missing key, a wrong shape, or NaN/inf values.
     """
@@ -241,7 +357,12 @@ def read_frame(path: str | os.PathLike, keys: Sequence[str] | None = None, *, al
         unknown = [k for k in keys if k not in FRAME_KEYS]
         if unknown:
             raise ValueError(f"read_frame: unknown frame keys {unknown}; known: {list(FRAME_KEYS)}")
-    names, raw = load_npz(src, keys)
+    members = None if keys is None else [_STORAGE_MEMBER] + [
+        m for k in keys for m in ((k, f"{k}_q16", f"{k}_q16_scale") if k in _FIXED_POINT_KEYS else (k,))
+    ]  # fmt: skip
+    names, raw = load_npz(src, members)
+    if _storage_of(src, raw) == "compact":
+        _decode_compact(src, names, raw)
     needed = REQUIRED_FRAME_KEYS if keys is None else [
         k for k in keys if not (allow_missing and k in OPTIONAL_FRAME_KEYS)
     ]  # fmt: skip
@@ -640,7 +761,8 @@ def card_from_disk(
                     keep = _is_record(rec) and rec[0] == path.stat().st_size
                     records[path.name] = list(rec) if keep else frame_record(path)
                 files[key] = records
-            counts[s][split] = {"sequences": len(seqs), "frames": frames, "rejected_frames": rejected}
+            if seqs or split != "heldout":  # the optional split is counted only where it exists
+                counts[s][split] = {"sequences": len(seqs), "frames": frames, "rejected_frames": rejected}
     card["counts"] = counts
     card["frame_files"] = files
     paths = [p for _, _, p in layout.iter_frames(normalise_on, list(card["subjects"]))]

@@ -37,6 +37,7 @@ from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS
 from .config import SubjectSpec, SynthConfig
 from ..utils.atomic import save_npz_atomic
 from .capture import LABEL_GARMENT, LABEL_NAMES
+from .format import FRAME_STORAGES
 from .format import DatasetLayout, Frame, SubjectAsset, make_card, read_frame, refresh_card, write_card, write_frame
 from .format import Motion as StoredMotion
 from .format import read_sequence_meta, write_motion, write_sequence_meta
@@ -90,6 +91,8 @@ def prepare_output(config: SynthConfig, out: Path) -> None:
     Raises ValueError when ``out`` is a non-empty folder that is not a dataset
     or a dataset generated with other settings (naming the differing keys).
     """
+    if config.frame_storage not in FRAME_STORAGES:
+        raise ValueError(f"frame_storage must be one of {FRAME_STORAGES}, got {config.frame_storage!r}")
     layout = DatasetLayout(out)
     wanted = _config_json(config)
     if layout.card_path.exists():
@@ -98,7 +101,9 @@ def prepare_output(config: SynthConfig, out: Path) -> None:
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"{layout.card_path}: unreadable dataset card ({e})") from None
         have = card.get("generation_config")
-        try:  # settings added since the card was written take their defaults (the old behaviour)
+        # settings added since the card was written take their defaults: a SynthConfig field added
+        # later must default to what runs before it did (frame_storage float32, heldout_sequences 0...)
+        try:
             have = _config_json(SynthConfig.from_dict(have))
         except (TypeError, KeyError, ValueError):
             pass  # unknown keys: report them below
@@ -278,6 +283,7 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
                     garment_vertices=None if cloth_vertices is None else cloth_vertices[i],
                     frame_index=i,
                 ),
+                storage=config.frame_storage,
             )
             timings["write"] += time.perf_counter() - tw
             shares.append(100.0 * float(np.mean(scan.labels == LABEL_GARMENT)))
