@@ -187,17 +187,27 @@ def test_v1_settings_and_garment_parameters_round_trip(tmp_path):
     assert card["subjects"]["tight"]["garment_params"] is None
 
 
-def test_heldout_split_draws_test_style_motions_from_its_own_seeds(tmp_path):
-    """A heldout split: its own sequences, counted in the card with its own pose coverage, loadable
-    as a dataset split, and motions unlike both the train and the test ones."""
+def test_heldout_split_draws_test_style_motions_from_its_own_seeds(tiny_dataset, tmp_path):
+    """``data heldout`` adds a heldout split to an existing dataset (its card written before the
+    setting existed): its own sequences, counted in the card with its own pose coverage, loadable as
+    a dataset split, motions unlike the train and test ones, and train / test files untouched."""
+    import shutil
+
     from pocoloco.data.dataset import PointCloudDataset
 
     tight = next(s for s in synth_preset("tiny").subjects if s.garment == "tight")
     config = dataclasses.replace(synth_preset("tiny"), subjects=(tight,), heldout_sequences=1)
     assert [j.split for j in list_jobs(config)] == ["train", "test", "heldout"]
     out = tmp_path / "d"
-    r = run_cli("data", "synth", "--preset", "tiny", "--out", str(out), "--heldout-sequences", "1")
+    shutil.copytree(tiny_dataset, out)
+    card = json.loads((out / "card.json").read_text())
+    for key in ("heldout_sequences", "motion_kinds", "frame_storage"):  # as a card from before them
+        card["generation_config"].pop(key)
+    (out / "card.json").write_text(json.dumps(card))
+    before = {p: _digest(p) for p in sorted(out.rglob("*.npz"))}
+    r = run_cli("data", "heldout", str(out), "--sequences", "1")
     assert r.returncode == 0, r.stderr
+    assert all(_digest(p) == d for p, d in before.items())
     card = read_card(out)
     assert card["generation_config"]["heldout_sequences"] == 1
     assert {s: c["heldout"]["frames"] for s, c in card["counts"].items()} == {"skirt": 4, "tight": 4}
@@ -209,6 +219,10 @@ def test_heldout_split_draws_test_style_motions_from_its_own_seeds(tmp_path):
     assert len(PointCloudDataset(out, "heldout", num_points=64)) == 8
     info = run_cli("data", "info", str(out))
     assert "heldout poses" in info.stdout and "heldout_sequences=1" in info.stdout
+    assert run_cli("data", "verify", str(out)).returncode == 0
+    for args, message in ((["--sequences", "0"], "--sequences must be >= 1"), ([], "no card.json")):
+        bad = run_cli("data", "heldout", str(out if args else tmp_path / "none"), *args)
+        assert bad.returncode == 2 and message in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
     assert run_cli("data", "synth", "--preset", "tiny", "--out", str(tmp_path / "e"),
                    "--heldout-sequences", "-1").returncode == 2  # fmt: skip
 
@@ -230,7 +244,10 @@ def test_medium_preset_covers_garments_bodies_and_motions():
         bodies.setdefault(s.garment, set()).add(tuple(sorted(s.phenotype.items())))
     assert set(bodies) == set(GARMENT_KINDS) | {"tight"}
     assert all(len(b) >= 2 for b in bodies.values()), bodies  # every kind on two bodies at least
-    # a card written before these settings existed still resumes (they take their defaults)
-    assert dataclasses.replace(medium, motion_kinds=CLASSIC_KINDS, heldout_sequences=0) == SYNTH_PRESETS["small"].__class__.from_dict(
-        {k: v for k, v in dataclasses.replace(medium, motion_kinds=CLASSIC_KINDS, heldout_sequences=0).to_dict().items()
-         if k not in ("motion_kinds", "heldout_sequences")})
+    # a card written before these settings existed reads as the values its run used
+    from pocoloco.data.config import FIELDS_ADDED_LATER, config_of_card
+
+    old = {k: v for k, v in synth_preset("small").to_dict().items() if k not in FIELDS_ADDED_LATER}
+    assert config_of_card(old) == dataclasses.replace(synth_preset("small"), **FIELDS_ADDED_LATER)
+    with pytest.raises(ValueError, match="generation_config"):
+        config_of_card({"no_such_setting": 1})

@@ -25,15 +25,6 @@ __all__ = ["register"]
 
 
 def cmd_data_synth(args: argparse.Namespace) -> None:
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
     # lazy: the synth extra (newton, warp, open3d) is only needed to generate data
     from pocoloco.data.synth import synthesize
 
@@ -62,15 +53,35 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
     out = Path(args.out or f"data/{args.preset}")
     con = console()
     con.print(f"[bold]pocoloco data synth[/] preset={args.preset} -> {out} (workers={args.workers})")
+    card = _with_progress(con, lambda progress: synthesize(config, out, workers=args.workers, progress=progress))
+    print_card(card, out)
+
+
+def _with_progress(con, run):
+    """run(progress) under a rich frame-count progress bar; its result."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), TimeRemainingColumn(), console=con) as bar:  # fmt: skip
         task = bar.add_task("frames", total=None)
+        return run(lambda done, total: bar.update(task, completed=done, total=total))
 
-        def progress(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
 
-        card = synthesize(config, out, workers=args.workers, progress=progress)
-    print_card(card, out)
+def cmd_data_heldout(args: argparse.Namespace) -> None:
+    # lazy: the synth extra (newton, warp, open3d) is only needed to generate data
+    from pocoloco.data.synth import add_heldout
+
+    con = console()
+    con.print(f"[bold]pocoloco data heldout[/] {args.path}: {args.sequences} sequence(s) per subject")
+    card = _with_progress(con, lambda progress: add_heldout(args.path, args.sequences, args.workers, progress))
+    print_card(card, Path(args.path))
 
 
 def cmd_data_info(args: argparse.Namespace) -> None:
@@ -215,7 +226,7 @@ def cmd_data_import(args: argparse.Namespace) -> None:
 
 def register(sub: argparse._SubParsersAction) -> None:
     data = sub.add_parser("data", help="synthetic data: generate, inspect, verify, preview, export, import").add_subparsers(
-        dest="data_command", required=True, metavar="{synth,info,verify,preview,export,import}")  # fmt: skip
+        dest="data_command", required=True, metavar="{synth,heldout,info,verify,preview,export,import}")  # fmt: skip
 
     s = data.add_parser("synth", help="generate (or resume) a synthetic capture dataset")
     s.add_argument("--preset", default="small", help=f"one of {', '.join(SYNTH_PRESETS)} (default: small)")
@@ -235,6 +246,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="float32: exact, uncompressed frame files; compact: deflated, float16 normals and skinning "
                         "transforms, positions within 0.1 mm, ~37%% of the bytes (default: the preset's, float32)")  # fmt: skip
     s.set_defaults(func=cmd_data_synth)
+
+    s = data.add_parser("heldout", help="draw (or extend) a dataset's heldout split: test-style motions from "
+                        "new seeds, generated with the dataset's own settings; train and test untouched")  # fmt: skip
+    s.add_argument("path", help="a dataset made by `pocoloco data synth`")
+    s.add_argument("--sequences", type=int, default=2, help="heldout sequences per subject (default 2)")
+    s.add_argument("--workers", type=int, default=1, help="parallel worker processes (default 1)")
+    s.set_defaults(func=cmd_data_heldout)
 
     s = data.add_parser("info", help="print a dataset's card as tables (and whether its frame files are all there)")
     s.add_argument("path", help="dataset folder (holds card.json)")

@@ -149,6 +149,25 @@ MEDIUM_SUBJECTS: tuple[SubjectSpec, ...] = (
     SubjectSpec("tight_b", "tight", _phenotype(0.0, 0.6, 0.7, 0.6)),
 )
 
+#: settings added to SynthConfig after datasets were generated, with the value those runs used: a
+#: card's ``generation_config`` without the key was generated that way (a new field goes here)
+FIELDS_ADDED_LATER: dict = {
+    **SYNTH_V1,
+    "motion_kinds": CLASSIC_MOTION_KINDS,
+    "heldout_sequences": 0,
+    "frame_storage": "float32",
+}
+
+
+def config_of_card(generation_config: dict) -> SynthConfig:
+    """The SynthConfig a dataset card's ``generation_config`` was generated with (keys it lacks take
+    the value runs before them used, ``FIELDS_ADDED_LATER``); ValueError if it is not one."""
+    try:
+        return SynthConfig.from_dict({**FIELDS_ADDED_LATER, **generation_config})
+    except (TypeError, KeyError, ValueError, AttributeError) as e:
+        raise ValueError(f"not a synthetic dataset's generation_config ({e})") from None
+
+
 SYNTH_PRESETS: dict[str, SynthConfig] = {
     # seconds: for tests and smoke runs
     "tiny": SynthConfig(
