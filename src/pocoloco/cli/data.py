@@ -50,8 +50,6 @@ def _check_synth_modes(args: argparse.Namespace) -> None:
         raise ValueError("--slurm-partition and --slurm-time need --launch slurm")
     if args.launch and args.workers is not None:
         raise ValueError("--workers does not apply to --launch: each shard uses --cpus-per-shard workers")
-    if args.workers is not None and args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
 
 
 def cmd_data_synth(args: argparse.Namespace) -> None:

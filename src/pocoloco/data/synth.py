@@ -264,6 +264,7 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
     record_path = layout.sequence_meta_path(job.subject.name, job.split, job.name)
     if record_path.exists():
         record = read_sequence_meta(record_path)
+        (seq_dir / "cloth.npz").unlink(missing_ok=True)  # left by a kill right after sequence.json
         if progress:
             progress(config.frames_per_sequence)
         return record
