@@ -3,6 +3,7 @@ same bytes as one process, start safely at once, resume after a kill; bad input 
 
 import dataclasses
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -142,6 +143,17 @@ def test_submitit_local_launch_gives_the_same_bytes(tiny_dataset, tmp_path):
     assert len(list((out / ".submitit").glob("*/*_result.pkl"))) == 2  # nothing resubmitted
 
 
+def test_a_timed_out_shard_job_is_requeued_with_the_same_call():
+    """submitit calls ``checkpoint`` when a job reaches its time limit or is preempted; the job is
+    resubmitted with what it returns (the shard then resumes from its files)."""
+    pytest.importorskip("submitit")
+    from pocoloco.data.distributed import ShardJob
+
+    job = ShardJob()
+    again = job.checkpoint({"seed": 0}, "/data/d", 3, 8, workers=2)
+    assert again.function is job and again.args == ({"seed": 0}, "/data/d", 3, 8) and again.kwargs == {"workers": 2}
+
+
 # ------------------------------------------------------------------------------ user errors
 @pytest.mark.parametrize("args, message", [
     (["--shard", "3/2"], "--shard must be K/N with 1 <= K <= N"),
@@ -168,6 +180,15 @@ def test_launch_without_submitit_says_what_to_install(monkeypatch, capsys, tmp_p
     code, err = _cli(capsys, "data", "synth", "--preset", "tiny", "--out", str(tmp_path / "d"),
                      "--launch", "local", "--shards", "2")  # fmt: skip
     assert code == 2 and "pip install 'pocoloco[cluster]'" in err and len(err.strip().splitlines()) == 1
+
+
+def test_slurm_launch_off_a_cluster_is_one_line(capsys, tmp_path):
+    pytest.importorskip("submitit")
+    if shutil.which("srun"):
+        pytest.skip("this machine is a slurm host")
+    code, err = _cli(capsys, "data", "synth", "--preset", "tiny", "--out", str(tmp_path / "d"),
+                     "--launch", "slurm", "--shards", "2", "--slurm-partition", "cpu")  # fmt: skip
+    assert code == 2 and "could not submit the slurm jobs" in err and len(err.strip().splitlines()) == 1, err
 
 
 # ------------------------------------------------------------------------------ kill and resume

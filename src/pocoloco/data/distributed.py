@@ -7,7 +7,8 @@ sequences -- into ``out`` (a folder every job sees: a shared filesystem). It wai
 shards done, then writes the dataset card (``data.synth.finalize_dataset``).
 
 Rerunning the same launch resumes: only shards with sequences still missing are submitted, and
-those skip their finished sequences. submitit is the optional ``cluster`` extra
+those skip their finished sequences. A job stopped at its time limit (or preempted) is requeued
+by submitit and resumes the same way (:class:`ShardJob`). submitit is the optional ``cluster`` extra
 (``pip install pocoloco[cluster]``); its job files and logs go to ``out/.submitit`` unless
 ``log_dir`` is given.
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import os
 import re
+import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,7 +25,7 @@ from pathlib import Path
 
 from .config import SynthConfig
 
-__all__ = ["BACKENDS", "LaunchSettings", "launch_synth", "run_shard"]
+__all__ = ["BACKENDS", "LaunchSettings", "ShardJob", "launch_synth", "run_shard"]
 
 BACKENDS = ("slurm", "local")
 
@@ -78,6 +80,21 @@ def run_shard(config_dict: dict, out: str, shard: int, num_shards: int, workers:
     return {"shard": shard, "sequences": len(records), "frames_stored": sum(r["num_stored"] for r in records)}
 
 
+class ShardJob:
+    """The callable submitted per shard: :func:`run_shard`, and requeued with the same arguments when
+    slurm (or the local executor) stops it at its time limit or preempts it (submitit calls
+    ``checkpoint``); the requeued job resumes the shard from the files already written."""
+
+    def __call__(self, config_dict: dict, out: str, shard: int, num_shards: int, workers: int = 1) -> dict:
+        return run_shard(config_dict, out, shard, num_shards, workers)
+
+    def checkpoint(self, *args, **kwargs):
+        """submitit's hook on timeout / preemption: the same call again."""
+        from submitit.helpers import DelayedSubmission
+
+        return DelayedSubmission(self, *args, **kwargs)
+
+
 def _submitit():
     try:
         import submitit
@@ -124,16 +141,17 @@ def launch_synth(
         progress(n - len(todo), n)
     if todo:
         log_dir = Path(settings.log_dir) if settings.log_dir is not None else out / ".submitit"
-        executor = submitit.AutoExecutor(folder=log_dir / "%j", cluster=settings.backend)
         params = {"name": "pocoloco-synth", "timeout_min": settings.time_minutes, "nodes": 1, "tasks_per_node": 1,
                   "cpus_per_task": settings.cpus_per_shard}  # fmt: skip
         if settings.backend == "slurm":
             params.update(slurm_partition=settings.partition, slurm_array_parallelism=len(todo))
-        executor.update_parameters(**params)
+        m = len(todo)
         try:
-            submitted = executor.map_array(run_shard, [config.to_dict()] * len(todo), [os.fspath(out)] * len(todo),
-                                           todo, [n] * len(todo), [settings.cpus_per_shard] * len(todo))  # fmt: skip
-        except (OSError, RuntimeError) as e:  # no sbatch, slurm refused the array ...
+            executor = submitit.AutoExecutor(folder=log_dir / "%j", cluster=settings.backend)
+            executor.update_parameters(**params)
+            submitted = executor.map_array(ShardJob(), [config.to_dict()] * m, [os.fspath(out)] * m, todo, [n] * m,
+                                           [settings.cpus_per_shard] * m)  # fmt: skip
+        except (OSError, RuntimeError, subprocess.SubprocessError) as e:  # not a slurm host, sbatch refused ...
             raise ValueError(f"could not submit the {settings.backend} jobs: {str(e).splitlines()[0]}") from None
         _wait(submitted, todo, n, settings.poll_seconds, progress)
     return finalize_dataset(config, out, workers=settings.cpus_per_shard, wall_seconds=time.perf_counter() - t0,
