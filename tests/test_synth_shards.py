@@ -143,6 +143,28 @@ def test_submitit_local_launch_gives_the_same_bytes(tiny_dataset, tmp_path):
     assert len(list((out / ".submitit").glob("*/*_result.pkl"))) == 2  # nothing resubmitted
 
 
+def test_failed_shards_are_one_line_naming_the_shard_and_its_log(tmp_path):
+    """A shard that raises (here: a file where its first sequence's folder goes) fails the launch
+    with one line: how many shards failed, the first one's error and its log."""
+    pytest.importorskip("submitit")
+    from pocoloco.data.distributed import LaunchSettings, launch_synth
+
+    config = synth_preset("tiny")
+    out = tmp_path / "d"
+    prepare_output(config, out)
+    layout = DatasetLayout(out)
+    for job in list_jobs(config):
+        blocker = layout.sequence_dir(job.subject.name, job.split, job.name)
+        blocker.parent.mkdir(parents=True, exist_ok=True)
+        blocker.write_text("not a folder")
+    settings = LaunchSettings(backend="local", shards=2, time_minutes=10, poll_seconds=0.5)
+    with pytest.raises(ValueError) as e:
+        launch_synth(config, out, settings)
+    msg = str(e.value)
+    assert "2 of 2 shards failed; shard 1/2: FileExistsError" in msg and "_log.err" in msg, msg
+    assert "\n" not in msg and read_card(out)["status"] == "incomplete"
+
+
 def test_a_timed_out_shard_job_is_requeued_with_the_same_call():
     """submitit calls ``checkpoint`` when a job reaches its time limit or is preempted; the job is
     resubmitted with what it returns (the shard then resumes from its files)."""
