@@ -15,7 +15,7 @@ import pytest
 
 from pocoloco.cli import main
 from pocoloco.data.config import SYNTH_PRESETS, synth_preset
-from pocoloco.data.format import DatasetLayout, read_card, read_frame
+from pocoloco.data.format import DatasetLayout, read_card, read_frame, write_card
 from pocoloco.data.synth import (
     CLOTH_COST,
     finalize_dataset,
@@ -101,6 +101,23 @@ def test_concurrent_starts_create_one_card(tmp_path):
         assert not errors, errors
         assert read_card(out)["status"] == "incomplete"
         assert [p.name for p in out.iterdir()] == ["card.json"]
+
+
+@pytest.mark.parametrize("hard_links", [True, False])
+def test_exclusive_card_write_never_replaces_a_card(tmp_path, monkeypatch, hard_links):
+    """write_card(exclusive=True) creates card.json or leaves the existing one (and no temporary
+    file); without hard links (some filesystems) it falls back to a checked rename."""
+    if not hard_links:
+        monkeypatch.setattr("os.link", lambda *a, **k: (_ for _ in ()).throw(PermissionError("no links")))
+    config = synth_preset("tiny")
+    prepare_output(config, tmp_path / "d")
+    first = (tmp_path / "d" / "card.json").read_text()
+    card = {**json.loads(first), "status": "complete"}
+    assert not write_card(tmp_path / "d", card, exclusive=True)
+    assert (tmp_path / "d" / "card.json").read_text() == first
+    assert [p.name for p in (tmp_path / "d").iterdir()] == ["card.json"]
+    assert write_card(tmp_path / "e", card, exclusive=True)
+    assert read_card(tmp_path / "e")["status"] == "complete"
 
 
 # ------------------------------------------------------------------------------ same bytes
