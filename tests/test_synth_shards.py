@@ -41,8 +41,9 @@ def assert_same_dataset(a: Path, b: Path, ignore: tuple[str, ...] = ()) -> None:
     """Every file of ``a`` and ``b`` is the same bytes, except the timings in sequence.json and
     card.json (and the card's creation time; ``ignore``: more keys of the card's ``generation``).
     submitit's job folder is not compared."""
-    files = lambda root: sorted(p.relative_to(root) for p in root.rglob("*")  # noqa: E731
-                                if p.is_file() and ".submitit" not in p.parts)  # fmt: skip
+    def files(root: Path) -> list[Path]:
+        return sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file() and ".submitit" not in p.parts)
+
     assert files(a) == files(b)
     for rel in files(a):
         if rel.name == "sequence.json":
@@ -81,19 +82,19 @@ def test_concurrent_starts_create_one_card(tmp_path):
     """Shards starting at the same moment on an empty folder all pass prepare_output (no 'folder is not
     empty' from seeing another's temporary card) and leave one valid card."""
     config = synth_preset("tiny")
-    for attempt in range(10):
+
+    def start(out: Path, barrier: threading.Barrier, errors: list) -> None:
+        barrier.wait()
+        try:
+            prepare_output(config, out)
+        except Exception as e:  # noqa: BLE001 (collected, asserted below)
+            errors.append(e)
+
+    for attempt in range(10):  # the old check failed 9 attempts in 10
         out = tmp_path / f"d{attempt}"
         barrier = threading.Barrier(8)
-        errors = []
-
-        def start() -> None:
-            barrier.wait()
-            try:
-                prepare_output(config, out)
-            except Exception as e:  # noqa: BLE001 (collected, asserted below)
-                errors.append(e)
-
-        threads = [threading.Thread(target=start) for _ in range(8)]
+        errors: list = []
+        threads = [threading.Thread(target=start, args=(out, barrier, errors)) for _ in range(8)]
         for t in threads:
             t.start()
         for t in threads:

@@ -63,7 +63,12 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
     )
 
     # lazy: the synth extra (newton, warp, open3d) is only needed to generate data
-    from pocoloco.data.synth import finalize_dataset, missing_jobs, synthesize, synthesize_shard
+    from pocoloco.data.synth import (
+        finalize_dataset,
+        missing_jobs,
+        synthesize,
+        synthesize_shard,
+    )
 
     _check_synth_modes(args)
     shard = _parse_shard(args.shard) if args.shard else None

@@ -124,7 +124,14 @@ def launch_synth(
     the jobs cannot be submitted or a shard fails (naming it and its log; rerun to resume). An
     interrupt (Ctrl-C) cancels the jobs still running.
     """
-    from .synth import finalize_dataset, list_jobs, missing_jobs, prepare_output, shard_assignment, write_subject
+    from .synth import (
+        finalize_dataset,
+        list_jobs,
+        missing_jobs,
+        prepare_output,
+        shard_assignment,
+        write_subject,
+    )
 
     settings.check()
     submitit = _submitit()

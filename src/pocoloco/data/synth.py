@@ -42,9 +42,8 @@ import numpy as np
 
 from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS
 from .config import SubjectSpec, SynthConfig
-from ..utils.atomic import save_npz_atomic
+from ..utils.atomic import output_folder, save_npz_atomic
 from .capture import LABEL_GARMENT, LABEL_NAMES
-from ..utils.atomic import output_folder
 from .format import DatasetLayout, Frame, SubjectAsset, make_card, read_frame, refresh_card, write_card, write_frame
 from .format import Motion as StoredMotion
 from .format import read_sequence_meta, write_motion, write_sequence_meta
