@@ -204,7 +204,9 @@ def test_a_timed_out_shard_job_is_requeued_with_the_same_call():
     (["--shards", "4"], "--shards needs --launch"),
     (["--launch", "local"], "--launch needs --shards N"),
     (["--launch", "local", "--shards", "2", "--slurm-partition", "cpu"], "need --launch slurm"),
-    (["--launch", "slurm", "--shards", "0"], "shards must be >= 1"),
+    (["--launch", "slurm", "--shards", "0"], "--shards must be >= 1"),
+    (["--launch", "slurm", "--shards", "2", "--slurm-time", "0"], "--slurm-time must be >= 1"),
+    (["--launch", "local", "--shards", "2", "--cpus-per-shard", "0"], "--cpus-per-shard must be >= 1"),
     (["--launch", "local", "--shards", "2", "--workers", "2"], "--workers does not apply to --launch"),
     (["--finalize-only"], "not a pocoloco dataset"),
 ])  # fmt: skip

@@ -50,6 +50,9 @@ def _check_synth_modes(args: argparse.Namespace) -> None:
         raise ValueError("--slurm-partition and --slurm-time need --launch slurm")
     if args.launch and args.workers is not None:
         raise ValueError("--workers does not apply to --launch: each shard uses --cpus-per-shard workers")
+    for flag in ("--shards", "--cpus-per-shard", "--slurm-time"):
+        if launch_only[flag] is not None and launch_only[flag] < 1:
+            raise ValueError(f"{flag} must be >= 1, got {launch_only[flag]}")
 
 
 def cmd_data_synth(args: argparse.Namespace) -> None:
@@ -96,9 +99,10 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
         return
     launch = None
     if args.launch:
-        launch = LaunchSettings(backend=args.launch, shards=args.shards, cpus_per_shard=args.cpus_per_shard or 1,
-                                time_minutes=args.slurm_time or LaunchSettings.time_minutes,
-                                partition=args.slurm_partition, log_dir=args.log_dir)  # fmt: skip
+        given = {k: v for k, v in (("cpus_per_shard", args.cpus_per_shard), ("time_minutes", args.slurm_time))
+                 if v is not None}  # fmt: skip
+        launch = LaunchSettings(backend=args.launch, shards=args.shards, partition=args.slurm_partition,
+                                log_dir=args.log_dir, **given)  # fmt: skip
         launch.check()
     what = f"workers={workers}"
     if shard:
