@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 from pathlib import Path
 
 from pocoloco.cli.common import console, progress_bar
 from pocoloco.data.config import SYNTH_PRESETS, synth_preset
+from pocoloco.data.distributed import BACKENDS, LaunchSettings, launch_synth
 from pocoloco.data.format import (
     FRAME_STORAGES,
     SPLITS,
@@ -24,10 +26,47 @@ from pocoloco.viz.preview import preview_dataset
 __all__ = ["register"]
 
 
+def _parse_shard(text: str) -> tuple[int, int]:
+    """``--shard K/N`` -> (K, N); a one-line error unless 1 <= K <= N."""
+    m = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", text)
+    if not m or not 1 <= int(m[1]) <= int(m[2]):
+        raise ValueError(f"--shard must be K/N with 1 <= K <= N (e.g. 3/8), got {text!r}")
+    return int(m[1]), int(m[2])
+
+
+def _check_synth_modes(args: argparse.Namespace) -> None:
+    """One mode at a time: a shard, the finalisation, a launch or a whole run; one-line errors."""
+    modes = [f for f, on in (("--shard", args.shard), ("--finalize-only", args.finalize_only),
+                             ("--launch", args.launch)) if on]  # fmt: skip
+    if len(modes) > 1:
+        raise ValueError(f"{' and '.join(modes)} cannot be combined")
+    launch_only = {"--shards": args.shards, "--cpus-per-shard": args.cpus_per_shard, "--log-dir": args.log_dir,
+                   "--slurm-partition": args.slurm_partition, "--slurm-time": args.slurm_time}  # fmt: skip
+    given = [k for k, v in launch_only.items() if v is not None]
+    if given and not args.launch:
+        raise ValueError(f"{given[0]} needs --launch slurm|local")
+    if args.launch and args.shards is None:
+        raise ValueError("--launch needs --shards N")
+    if args.launch != "slurm" and (args.slurm_partition is not None or args.slurm_time is not None):
+        raise ValueError("--slurm-partition and --slurm-time need --launch slurm")
+    if args.launch and args.workers is not None:
+        raise ValueError("--workers does not apply to --launch: each shard uses --cpus-per-shard workers")
+    for flag in ("--shards", "--cpus-per-shard", "--slurm-time"):
+        if launch_only[flag] is not None and launch_only[flag] < 1:
+            raise ValueError(f"{flag} must be >= 1, got {launch_only[flag]}")
+
+
 def cmd_data_synth(args: argparse.Namespace) -> None:
     # lazy: the synth extra (newton, warp, open3d) is only needed to generate data
-    from pocoloco.data.synth import synthesize
+    from pocoloco.data.synth import (
+        finalize_dataset,
+        missing_jobs,
+        synthesize,
+        synthesize_shard,
+    )
 
+    _check_synth_modes(args)
+    shard = _parse_shard(args.shard) if args.shard else None
     config = synth_preset(args.preset)
     overrides = {
         k: v
@@ -51,14 +90,47 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
         overrides["frame_storage"] = args.frame_storage
     config = dataclasses.replace(config, **overrides)
     out = Path(args.out or f"data/{args.preset}")
+    workers = args.workers or 1
     con = console()
-    con.print(f"[bold]pocoloco data synth[/] preset={args.preset} -> {out} (workers={args.workers})")
-    card = _with_progress(con, lambda progress: synthesize(config, out, workers=args.workers, progress=progress))
-    print_card(card, out)
+    if args.finalize_only:
+        print_card(finalize_dataset(config, out), out)
+        return
+    launch = None
+    if args.launch:
+        given = {k: v for k, v in (("cpus_per_shard", args.cpus_per_shard), ("time_minutes", args.slurm_time))
+                 if v is not None}  # fmt: skip
+        launch = LaunchSettings(backend=args.launch, shards=args.shards, partition=args.slurm_partition,
+                                log_dir=args.log_dir, **given)  # fmt: skip
+        launch.check()
+    what = f"workers={workers}"
+    if shard:
+        what = f"shard {shard[0]}/{shard[1]}, workers={workers}"
+    elif launch:
+        what = f"{args.shards} shards on {args.launch}, {launch.cpus_per_shard} cpus each"
+    con.print(f"[bold]pocoloco data synth[/] preset={args.preset} -> {out} ({what})")
+
+    def run(progress):
+        if launch:
+            return launch_synth(config, out, launch, progress=progress)
+        if shard:
+            return synthesize_shard(config, out, *shard, workers=workers, progress=progress)
+        return synthesize(config, out, workers=workers, progress=progress)
+
+    result = _with_progress(con, run, "shards done" if launch else "frames")
+    if shard:
+        left = len(missing_jobs(config, out))
+        frames = sum(r["num_stored"] for r in result)
+        con.print(f"shard {shard[0]}/{shard[1]}: {len(result)} sequences done ({frames} frames stored); "
+                  f"{left} sequences of the dataset still missing")  # fmt: skip
+        if not left:
+            con.print(f"all shards are done: `pocoloco data synth --preset {args.preset} --out {out} --finalize-only` "
+                      "writes the dataset card (with the same options)")  # fmt: skip
+        return
+    print_card(result, out)
 
 
-def _with_progress(con, run):
-    """run(progress) under a rich frame-count progress bar; its result."""
+def _with_progress(con, run, what: str = "frames"):
+    """run(progress) under a rich progress bar counting ``what``; its result."""
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -70,7 +142,7 @@ def _with_progress(con, run):
 
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), TimeRemainingColumn(), console=con) as bar:  # fmt: skip
-        task = bar.add_task("frames", total=None)
+        task = bar.add_task(what, total=None)
         return run(lambda done, total: bar.update(task, completed=done, total=total))
 
 
@@ -154,8 +226,9 @@ def print_card(card: dict, path: Path) -> None:
     gen = card.get("generation")
     if gen:
         per = gen["cpu_seconds_per_frame"]
+        how = f"{gen['shards']} shards x {gen['workers']}" if gen.get("shards") else str(gen["workers"])
         con.print("generation: " + ", ".join(f"{k} {v:.3f} s/frame" for k, v in per.items())
-                  + f"; wall {gen['wall_seconds_last_run']:.0f} s with {gen['workers']} worker(s)")  # fmt: skip
+                  + f"; wall {gen['wall_seconds_last_run']:.0f} s with {how} worker(s)")  # fmt: skip
     con.print(files_line)
     if card.get("status", "complete") != "complete":
         con.print("[yellow]incomplete: rerun the same `pocoloco data synth` command to resume[/]")
@@ -231,7 +304,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s = data.add_parser("synth", help="generate (or resume) a synthetic capture dataset")
     s.add_argument("--preset", default="small", help=f"one of {', '.join(SYNTH_PRESETS)} (default: small)")
     s.add_argument("--out", help="output folder (default: data/PRESET); rerun the same command to resume")
-    s.add_argument("--workers", type=int, default=1, help="parallel worker processes, one sequence each (default 1)")
+    s.add_argument("--workers", type=int, help="parallel worker processes, one sequence each (default 1)")
     s.add_argument("--seed", type=int, help="seed of everything random: bodies' motions, garments, capture "
                                             "(default: the preset's, 0)")  # fmt: skip
     s.add_argument("--train-sequences", type=int, help="motion sequences per subject in the train split "
@@ -245,6 +318,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--frame-storage", choices=FRAME_STORAGES,
                    help="float32: exact, uncompressed frame files; compact: deflated, float16 normals and skinning "
                         "transforms, positions within 0.1 mm, ~37%% of the bytes (default: the preset's, float32)")  # fmt: skip
+    g = s.add_argument_group("shards (big datasets; README: Generating big datasets on a cluster)")
+    g.add_argument("--shard", metavar="K/N",
+                   help="generate only shard K of N (a fixed, cost-balanced share of the sequences) into --out; "
+                        "shards may run at once (on a shared filesystem); the card is left incomplete")  # fmt: skip
+    g.add_argument("--finalize-only", action="store_true",
+                   help="write the card of a dataset whose shards are all done, generating nothing "
+                        "(a one-line error saying how many sequences are missing otherwise)")  # fmt: skip
+    g.add_argument("--launch", choices=BACKENDS,
+                   help="submit --shards jobs through submitit (slurm: a job array; local: subprocesses here), "
+                        "wait for them and write the card; rerun to resume (needs pocoloco[cluster])")  # fmt: skip
+    g.add_argument("--shards", type=int, help="with --launch: number of shards (jobs)")
+    g.add_argument("--cpus-per-shard", type=int, help="with --launch: CPUs per job, as many worker processes (default 1)")
+    g.add_argument("--slurm-partition", help="with --launch slurm: the partition (default: the cluster's)")
+    g.add_argument("--slurm-time", type=int, metavar="MIN",
+                   help=f"with --launch slurm: time limit per job in minutes (default {LaunchSettings.time_minutes})")  # fmt: skip
+    g.add_argument("--log-dir", help="with --launch: submitit's job files and logs (default: OUT/.submitit)")
     s.set_defaults(func=cmd_data_synth)
 
     s = data.add_parser("heldout", help="draw (or extend) a dataset's heldout split: test-style motions from "

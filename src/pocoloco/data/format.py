@@ -664,12 +664,21 @@ def read_card(root: str | os.PathLike) -> dict[str, Any]:
     return card
 
 
-def write_card(root: str | os.PathLike, card: Mapping[str, Any]) -> None:
-    """Validate ``card`` (format name, version, subjects, normalisation) and write it atomically."""
+def write_card(root: str | os.PathLike, card: Mapping[str, Any], exclusive: bool = False) -> bool:
+    """Validate ``card`` (format name, version, subjects, normalisation) and write it atomically.
+
+    exclusive: only create the card: if ``card.json`` exists (another process wrote it first)
+    leave it and return False. Returns True when the card was written."""
     path = os.path.join(os.fspath(root), "card.json")
     card = dict(card)
     _validate_card(path, card)
-    write_json_atomic(path, card)
+    try:
+        write_json_atomic(path, card, exclusive=exclusive)
+    except FileExistsError:
+        if not exclusive:
+            raise
+        return False
+    return True
 
 
 # --------------------------------------------------------------------------- statistics

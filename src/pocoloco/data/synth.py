@@ -17,6 +17,13 @@ A killed run resumes where it stopped: finished sequences are skipped,
 already-written frames are kept and not rewritten. Sequences run in parallel
 worker processes (``workers``). The dataset card (counts, normalisation,
 loose-region share, penetration, timings) is written when all are done.
+
+Shards: ``synthesize_shard(config, out, k, n)`` runs only shard k of n (a fixed,
+cost-balanced share of the jobs, :func:`shard_assignment`) into the same folder,
+e.g. one shard per cluster job on a shared filesystem; any number of shards may
+start at once. It leaves the card "incomplete"; ``finalize_dataset`` writes it
+once every sequence is done (``data.distributed`` launches the shards). A frame is
+the same bytes whichever shard or worker generates it.
 """
 
 from __future__ import annotations
@@ -33,14 +40,25 @@ from pathlib import Path
 
 import numpy as np
 
-from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS
-from .config import SubjectSpec, SynthConfig, config_of_card
-from ..utils.atomic import save_npz_atomic
+from ..utils.atomic import output_folder, save_npz_atomic
 from .capture import LABEL_GARMENT, LABEL_NAMES
-from .format import FRAME_STORAGES
-from .format import DatasetLayout, Frame, SubjectAsset, make_card, read_frame, refresh_card, write_card, write_frame
+from .cloth_stats import merge_cloth_stats, summarise_cloth_stats
+from .config import SubjectSpec, SynthConfig, config_of_card
+from .format import (
+    FRAME_STORAGES,
+    DatasetLayout,
+    Frame,
+    SubjectAsset,
+    make_card,
+    read_frame,
+    read_sequence_meta,
+    refresh_card,
+    write_card,
+    write_frame,
+    write_motion,
+    write_sequence_meta,
+)
 from .format import Motion as StoredMotion
-from .format import read_sequence_meta, write_motion, write_sequence_meta
 from .format import write_subject as format_write_subject
 
 SPLITS = ("train", "test", "heldout")
@@ -81,43 +99,101 @@ def list_jobs(config: SynthConfig) -> list[SequenceJob]:
     return jobs
 
 
+#: expected cost of a garment subject's sequence relative to a tight one's (same length): cloth
+#: simulation dominates (``shard_assignment``; measured in README "Generating big datasets")
+CLOTH_COST = 4.0
+
+
+def job_cost(job: SequenceJob) -> float:
+    """Expected relative cost of a job (a run's sequences all have the same length)."""
+    return 1.0 if job.subject.garment == "tight" else CLOTH_COST
+
+
+def shard_assignment(config: SynthConfig, num_shards: int) -> list[list[int]]:
+    """Which jobs each of ``num_shards`` shards runs: indices into ``list_jobs(config)``.
+
+    Longest-processing-time-first greedy: the jobs, by decreasing :func:`job_cost` (ties in
+    ``list_jobs`` order), each go to the shard with the least expected cost so far (ties: the
+    lowest shard), so tight (cheap) subjects' sequences spread evenly over the shards. A shard's
+    jobs run in ``list_jobs`` order (a subject's sequences in a row reuse its settled cloth). Depends
+    only on ``config`` and ``num_shards``: every shard computes the same assignment.
+    """
+    if num_shards < 1:
+        raise ValueError(f"num_shards must be >= 1, got {num_shards}")
+    jobs = list_jobs(config)
+    load = [0.0] * num_shards
+    shards: list[list[int]] = [[] for _ in range(num_shards)]
+    for i in sorted(range(len(jobs)), key=lambda i: -job_cost(jobs[i])):  # stable sort
+        k = min(range(num_shards), key=lambda k: (load[k], k))
+        shards[k].append(i)
+        load[k] += job_cost(jobs[i])
+    return [sorted(s) for s in shards]
+
+
+def check_shard(shard: int, num_shards: int) -> None:
+    """ValueError unless 1 <= shard <= num_shards."""
+    if num_shards < 1 or not 1 <= shard <= num_shards:
+        raise ValueError(f"shard must be K/N with 1 <= K <= N, got {shard}/{num_shards}")
+
+
+def missing_jobs(config: SynthConfig, out: str | os.PathLike) -> list[SequenceJob]:
+    """The jobs whose ``sequence.json`` (written last, marks a sequence done) is not in ``out`` yet."""
+    layout = DatasetLayout(out)
+    return [j for j in list_jobs(config) if not layout.sequence_meta_path(j.subject.name, j.split, j.name).exists()]
+
+
 def _config_json(config: SynthConfig) -> dict:
     return json.loads(json.dumps(config.to_dict()))
+
+
+def _is_card_temp(name: str) -> bool:
+    return name.startswith(".card.json.") and name.endswith(".tmp")
 
 
 def prepare_output(config: SynthConfig, out: Path) -> None:
     """Create ``out`` or check it holds a run of the same configuration.
 
+    Safe when several processes (shards) run it at once: the first creates ``card.json``
+    (exclusively, before anything else in the folder), the others find it and check it.
     Raises ValueError when ``out`` is a non-empty folder that is not a dataset
     or a dataset generated with other settings (naming the differing keys).
     """
     if config.frame_storage not in FRAME_STORAGES:
         raise ValueError(f"frame_storage must be one of {FRAME_STORAGES}, got {config.frame_storage!r}")
+    out = output_folder(out)
+    layout = DatasetLayout(out)
+    # listed before looking for the card: the card is created first and never removed, so other
+    # entries while it is missing are not a (concurrent) run's
+    entries = [p for p in out.iterdir() if not _is_card_temp(p.name)] if out.is_dir() else []
+    if not layout.card_path.exists():
+        if entries:
+            raise ValueError(f"{out}: folder exists, is not empty and is not a pocoloco dataset")
+        out.mkdir(parents=True, exist_ok=True)
+        write_card(out, _base_card(config, status="incomplete"), exclusive=True)  # False: another won
+    _check_card_config(config, out)
+
+
+def _check_card_config(config: SynthConfig, out: Path) -> None:
+    """ValueError unless ``out/card.json`` is readable and records ``config``."""
     layout = DatasetLayout(out)
     wanted = _config_json(config)
-    if layout.card_path.exists():
-        try:
-            card = json.loads(layout.card_path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"{layout.card_path}: unreadable dataset card ({e})") from None
-        have = card.get("generation_config")
-        try:  # settings added since the card was written: the value runs before them used
-            have = _config_json(config_of_card(have))
-        except ValueError:
-            pass  # not readable as a config: the keys that differ are reported below
-        if isinstance(have, dict):  # the held-out split may be added to or extended later
-            have = {**have, "heldout_sequences": wanted["heldout_sequences"]}
-        if have != wanted:
-            keys = sorted(k for k in set(wanted) | set(have or {}) if (have or {}).get(k) != wanted.get(k))
-            raise ValueError(
-                f"{out}: holds a dataset generated with a different configuration "
-                f"(differs in: {', '.join(keys)}); choose another --out"
-            )
-        return
-    if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out}: folder exists, is not empty and is not a pocoloco dataset")
-    out.mkdir(parents=True, exist_ok=True)
-    write_card(out, _base_card(config, status="incomplete"))
+    try:
+        card = json.loads(layout.card_path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{layout.card_path}: unreadable dataset card ({e})") from None
+    have = card.get("generation_config")
+    try:  # settings added since the card was written: the value runs before them used
+        have = _config_json(config_of_card(have))
+    except ValueError:
+        pass  # not readable as a config: the keys that differ are reported below
+    if isinstance(have, dict):  # the held-out split may be added to or extended later
+        have = {**have, "heldout_sequences": wanted["heldout_sequences"]}
+    if have != wanted:
+        keys = sorted(k for k in set(wanted) | set(have or {}) if (have or {}).get(k) != wanted.get(k))
+        raise ValueError(
+            f"{out}: holds a dataset generated with a different configuration "
+            f"(differs in: {', '.join(keys)}); choose another --out"
+        )
 
 
 def add_heldout(
@@ -205,7 +281,8 @@ def cloth_settings(config: SynthConfig):
 
 
 def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
-    """subjects/<name>/subject.npz: body template, faces, UVs, garment rest mesh."""
+    """subjects/<name>/subject.npz: body template, faces, UVs, garment rest mesh (atomically;
+    processes writing it at once write the same bytes)."""
     path = DatasetLayout(out).subject_path(subject.name)
     if path.exists():
         return
@@ -236,6 +313,7 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
     record_path = layout.sequence_meta_path(job.subject.name, job.split, job.name)
     if record_path.exists():
         record = read_sequence_meta(record_path)
+        (seq_dir / "cloth.npz").unlink(missing_ok=True)  # left by a kill right after sequence.json
         if progress:
             progress(config.frames_per_sequence)
         return record
@@ -326,13 +404,11 @@ def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Cal
         "segments": [list(s) for s in motion.segments],
         "first_stored_motion_frame": config.warmup_frames,
         "loose_share_percent": float(np.mean(shares)) if shares else 0.0,
-        "penetration": _summarise_penetration(penetration),
+        "penetration": summarise_cloth_stats(penetration),
         "seconds": timings,
     }
     write_sequence_meta(record_path, record)
-    cache = seq_dir / "cloth.npz"
-    if cache.exists():
-        cache.unlink()
+    (seq_dir / "cloth.npz").unlink(missing_ok=True)
     return record
 
 
@@ -363,7 +439,7 @@ def _simulate_cached(body, garment, posed, seq_dir: Path, start: int, settings=N
             with np.load(cache) as z:
                 return z["vertices"], json.loads(str(z["stats"])), float(z["seconds"])
         except Exception:  # a corrupt cache is simply recomputed
-            cache.unlink()
+            cache.unlink(missing_ok=True)
     t0 = time.perf_counter()
     key = (subject_key, repr(settings))
     settled = _SETTLED.get(key)
@@ -386,26 +462,6 @@ def _simulate_cached(body, garment, posed, seq_dir: Path, start: int, settings=N
     seconds = time.perf_counter() - t0  # simulation and its checks
     save_npz_atomic(cache, vertices=vertices, stats=np.array(json.dumps(stats)), seconds=np.float64(seconds))
     return vertices, stats, seconds
-
-
-def _summarise_penetration(stats: list[dict]) -> dict:
-    if not stats:
-        return {}
-    valid = [s for s in stats if s["valid"]] or stats
-    out = {
-        "max_mm": 1000.0 * max(s["penetration_max"] for s in valid),
-        "mean_mm": 1000.0 * float(np.mean([s["penetration_mean"] for s in valid])),
-        "fraction_percent": 100.0 * float(np.mean([s["penetration_fraction"] for s in valid])),
-        "stretch_max": max(s["stretch_max"] for s in valid),
-    }
-    if "self_contact" in valid[0]:
-        out["self_contact_frames_percent"] = 100.0 * float(np.mean([s["self_contact"] for s in valid]))
-    inter = [s["self_intersections"] for s in valid if s.get("self_intersections") is not None]
-    if inter:
-        out["self_intersection_pairs_mean"] = float(np.mean(inter))
-        out["self_intersection_frames_percent"] = 100.0 * float(np.mean(np.array(inter) > 0))
-        out["self_intersection_frames_counted"] = len(inter)
-    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -446,12 +502,33 @@ def synthesize(
     progress(done_frames, total_frames) is called as frames complete.
     """
     out = Path(out)
-    prepare_output(config, out)
     t0 = time.perf_counter()
+    records = synthesize_shard(config, out, 1, 1, workers=workers, progress=progress)
+    return finalize_card(config, out, records, wall_seconds=time.perf_counter() - t0, workers=workers)
+
+
+def synthesize_shard(
+    config: SynthConfig,
+    out: str | os.PathLike,
+    shard: int,
+    num_shards: int,
+    workers: int = 1,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[dict]:
+    """Generate (or resume) shard ``shard`` of ``num_shards`` (1-based, :func:`shard_assignment`)
+    of a dataset into ``out``; the card is not finalised (:func:`finalize_dataset` does, once all
+    shards are done). Returns the shard's sequence records in ``list_jobs`` order.
+
+    progress(done_frames, total_frames) is called as the shard's frames complete.
+    """
+    check_shard(shard, num_shards)
+    out = Path(out)
+    prepare_output(config, out)
     for subject in config.subjects:
         write_subject(config, out, subject)
+    indices = shard_assignment(config, num_shards)[shard - 1]
     jobs = list_jobs(config)
-    total = len(jobs) * config.frames_per_sequence
+    total = len(indices) * config.frames_per_sequence
     done = 0
 
     def tick(n: int) -> None:
@@ -462,8 +539,8 @@ def synthesize(
 
     records = []
     if workers <= 1:
-        for job in jobs:
-            records.append(run_sequence(config, out, job, progress=tick))
+        for i in indices:
+            records.append(run_sequence(config, out, jobs[i], progress=tick))
     else:
         import multiprocessing as mp
 
@@ -472,44 +549,56 @@ def synthesize(
         with ProcessPoolExecutor(
             max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(), queue)
         ) as pool:
-            futures = [pool.submit(_worker, config.to_dict(), str(out), i) for i in range(len(jobs))]
+            futures = [pool.submit(_worker, config.to_dict(), str(out), i) for i in indices]
             pending = set(futures)
             while pending:
                 while not queue.empty():
                     tick(queue.get())
                 finished = {f for f in pending if f.done()}
                 for f in finished:
-                    records.append(f.result())
+                    f.result()  # raises a worker's error at once
                 pending -= finished
                 time.sleep(0.2)
+            records = [f.result() for f in futures]  # in job order, whichever finished first
         while not queue.empty():
             tick(queue.get())
-    card = finalize_card(config, out, records, wall_seconds=time.perf_counter() - t0, workers=workers)
-    return card
+    return records
 
 
-def _merge_penetration(pens: list[dict]) -> dict:
-    """A subject's cloth statistics from its sequences' (means of per-sequence means)."""
-    out = {
-        "max_mm": max(p["max_mm"] for p in pens),
-        "mean_mm": float(np.mean([p["mean_mm"] for p in pens])),
-        "fraction_percent": float(np.mean([p["fraction_percent"] for p in pens])),
-        "stretch_max": max(p["stretch_max"] for p in pens),
-    }
-    counted = [p for p in pens if p.get("self_intersection_frames_counted")]
-    if counted:
-        w = np.array([p["self_intersection_frames_counted"] for p in counted], dtype=np.float64)
-        pairs = [p["self_intersection_pairs_mean"] for p in counted]
-        out["self_intersection_pairs_mean"] = float(np.average(pairs, weights=w))
-        out["self_intersection_frames_percent"] = float(
-            np.average([p["self_intersection_frames_percent"] for p in counted], weights=w)
-        )
-    return out
+def finalize_dataset(
+    config: SynthConfig, out: str | os.PathLike, workers: int = 1, wall_seconds: float | None = None,
+    shards: int | None = None,
+) -> dict:
+    """Write the final card of a dataset whose sequences are all done (by shards, say), generating
+    nothing. Returns the card.
+
+    Raises ValueError when ``out`` is not a dataset of ``config`` or sequences are missing (how
+    many, and the first). ``workers``, ``shards`` and ``wall_seconds`` (default: this call's) are
+    recorded in the card's ``generation``.
+    """
+    t0 = time.perf_counter()
+    out = Path(out)
+    if not DatasetLayout(out).card_path.exists():
+        raise ValueError(f"{out}: not a pocoloco dataset (no card.json); generate it first")
+    _check_card_config(config, out)
+    jobs = list_jobs(config)
+    missing = missing_jobs(config, out)
+    if missing:
+        first = missing[0]
+        raise ValueError(f"{out}: {len(missing)} of {len(jobs)} sequences are not done yet (the first: "
+                         f"{first.subject.name}/{first.split}/{first.name}); finish the shards first")  # fmt: skip
+    for subject in config.subjects:  # normally written by the shards already
+        write_subject(config, out, subject)
+    layout = DatasetLayout(out)
+    records = [read_sequence_meta(layout.sequence_meta_path(j.subject.name, j.split, j.name)) for j in jobs]
+    wall = time.perf_counter() - t0 if wall_seconds is None else wall_seconds
+    return finalize_card(config, out, records, wall_seconds=wall, workers=workers, shards=shards)
 
 
-def finalize_card(config: SynthConfig, out: Path, records: list[dict], wall_seconds: float, workers: int) -> dict:
-    """Loose share, penetration and timings from the sequence records, then
-    counts and normalisation (on train) recounted from disk -> card.json."""
+def finalize_card(config: SynthConfig, out: Path, records: list[dict], wall_seconds: float, workers: int,
+                  shards: int | None = None) -> dict:
+    """Loose share, penetration and timings from the sequence records (in ``list_jobs`` order),
+    then counts and normalisation (on train) recounted from disk -> card.json."""
     card = _base_card(config, status="complete")
     for subject in config.subjects:
         mine = [r for r in records if r["subject"] == subject.name]
@@ -524,7 +613,7 @@ def finalize_card(config: SynthConfig, out: Path, records: list[dict], wall_seco
         card["subjects"][subject.name].update(
             loose_share_percent=share,
             penetration=(
-                _merge_penetration(pens)
+                merge_cloth_stats(pens)
                 if pens
                 else None
             ),
@@ -534,6 +623,7 @@ def finalize_card(config: SynthConfig, out: Path, records: list[dict], wall_seco
     frames = sum(r["num_frames"] for r in records)
     card["generation"] = {
         "workers": workers,
+        **({"shards": shards} if shards is not None else {}),
         "wall_seconds_last_run": wall_seconds,
         "cpu_seconds_per_frame": {k: v / max(frames, 1) for k, v in seconds.items()},
     }

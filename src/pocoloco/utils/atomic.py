@@ -39,11 +39,17 @@ def _fsync_dir(folder: str) -> None:
 
 
 @contextlib.contextmanager
-def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
+def atomic_open(path: str | os.PathLike, mode: str = "wb", exclusive: bool = False) -> Iterator[IO[Any]]:
     """Context manager yielding a file object whose content replaces ``path`` on success.
 
     ``mode`` is ``"wb"`` (default) or ``"w"`` (text, UTF-8). Parent folders are
     created. On an exception inside the block the destination is untouched.
+
+    exclusive: create ``path`` only if it does not exist yet, else raise ``FileExistsError``
+    and leave it as it is (several processes racing to create the same file: exactly one
+    wins). The temporary file is hard-linked to ``path`` (atomic on POSIX filesystems, NFS
+    included); where hard links are not supported it is renamed after a last existence
+    check (a narrow race remains there).
     """
     if mode not in ("wb", "w"):
         raise ValueError(f"atomic_open: mode must be 'wb' or 'w', got {mode!r}")
@@ -59,12 +65,29 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
             yield f
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        if exclusive:
+            _link_or_rename(tmp, path)
+        else:
+            os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
     _fsync_dir(folder)
+
+
+def _link_or_rename(tmp: str, path: str) -> None:
+    """Move ``tmp`` to ``path`` if ``path`` does not exist (FileExistsError otherwise)."""
+    try:
+        os.link(tmp, path)  # fails with FileExistsError if path exists, atomically
+    except FileExistsError:
+        raise
+    except OSError:  # no hard links on this filesystem
+        if os.path.exists(path):
+            raise FileExistsError(path) from None
+        os.replace(tmp, path)
+        return
+    os.unlink(tmp)
 
 
 def atomic_write(path: str | os.PathLike, write_fn: Callable[[IO[bytes]], Any]) -> None:
@@ -83,10 +106,11 @@ def save_npz_atomic(path: str | os.PathLike, compress: bool = False, **arrays: A
     atomic_write(path, lambda f: saver(f, **arrays))
 
 
-def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> None:
-    """Write ``obj`` as JSON (UTF-8, sorted insertion order kept) to ``path`` atomically."""
+def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2, exclusive: bool = False) -> None:
+    """Write ``obj`` as JSON (UTF-8, sorted insertion order kept) to ``path`` atomically
+    (``exclusive``: only if ``path`` does not exist, see :func:`atomic_open`)."""
     text = json.dumps(obj, indent=indent, ensure_ascii=False, allow_nan=False) + "\n"
-    with atomic_open(path, "w") as f:
+    with atomic_open(path, "w", exclusive=exclusive) as f:
         f.write(text)
 
 
