@@ -64,6 +64,13 @@ def test_cli_info_and_preview(tiny_dataset, tmp_path):
 
     img = np.asarray(Image.open(png).convert("RGB")).astype(float)
     assert img.std() > 10  # not blank
+    one = tmp_path / "one.png"  # one subject, front views only: half as wide, half as tall
+    r = run_cli("data", "preview", str(tiny_dataset), "--out", str(one), "--num", "2", "--subject", "tight", "--front-only")
+    assert r.returncode == 0, r.stderr
+    small = np.asarray(Image.open(one).convert("RGB"))
+    assert small.shape[0] < img.shape[0] and small.shape[1] < img.shape[1]
+    r = run_cli("data", "preview", str(tiny_dataset), "--subject", "nobody")
+    assert r.returncode == 2 and "no subject 'nobody'" in r.stderr and "skirt, tight" in r.stderr, r.stderr
 
 
 def test_cli_export_ply(tiny_dataset, tmp_path):

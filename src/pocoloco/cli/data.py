@@ -268,7 +268,10 @@ def cmd_data_verify(args: argparse.Namespace) -> None:
 
 
 def cmd_data_preview(args: argparse.Namespace) -> None:
-    path = preview_dataset(Path(args.path), out=args.out, num=args.num, split=args.split, seed=args.seed)
+    subjects = [s.strip() for s in args.subject.split(",")] if args.subject else None
+    views = ("front",) if args.front_only else ("front", "side")
+    path = preview_dataset(Path(args.path), out=args.out, num=args.num, split=args.split, seed=args.seed,
+                           subjects=subjects, views=views)  # fmt: skip
     print(f"wrote {path}")
 
 
@@ -361,6 +364,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--num", type=int, default=4, help="frames per subject, evenly spaced (default 4)")
     s.add_argument("--split", default="train", choices=SPLITS, help="split to show (default train)")
     s.add_argument("--seed", type=int, default=0, help="seed of the point subsets drawn (default 0)")
+    s.add_argument("--subject", help="only these subjects, comma-separated, in this order (default: all)")
+    s.add_argument("--front-only", action="store_true", help="front views only (default: front and side)")
     s.set_defaults(func=cmd_data_preview)
 
     s = data.add_parser("export", help="write frames as PLY (points, normals, labels) or POP-style NPZ")
