@@ -15,7 +15,13 @@ into the body (max / mean mm, % of garment vertices inside), cloth self-intersec
 timings), loose-garment share of the points.
 
     python benchmarks/bench_synth_v2.py --preset small --frames 24 --workers 2 --repeats 3 \\
-        [--variant v2 "v2 sc: cloth_self_contact=True"] [--out benchmarks/results/synth_v2.json]
+        [--variant v2 "v2 sc: cloth_self_contact=True"] [--out benchmarks/results/synth_v2.json] \\
+        [--before-src /path/to/an/older/checkout/src]
+
+``--before-src``: also time the pipeline as an older checkout of pocoloco has it ("before": its
+code and its preset, e.g. ``git worktree add /tmp/before dd882a9`` = main before data v2). Every
+setting then runs in its own Python process (``PYTHONPATH`` = that checkout's ``src``), timed
+inside it around ``synthesize`` only, so imports and start-up count for none of them.
 """
 
 from __future__ import annotations
@@ -87,6 +93,34 @@ def summarise(card: dict, wall: float, inter: dict) -> dict:
                 cpu_seconds_per_frame=card["generation"]["cpu_seconds_per_frame"], subjects=subjects)  # fmt: skip
 
 
+_DRIVER = """
+import dataclasses, json, sys, time
+from pocoloco.data.config import synth_preset
+from pocoloco.data.synth import synthesize
+a = json.loads(sys.argv[1])
+config = dataclasses.replace(synth_preset(a["preset"]), frames_per_sequence=a["frames"],
+                             train_sequences=a["train"], test_sequences=a["test"], **a["overrides"])
+t0 = time.perf_counter()
+synthesize(config, a["out"], workers=a["workers"])
+print(json.dumps({"wall": time.perf_counter() - t0}))
+"""
+
+
+def run_in_process(src: str, args, overrides: dict, out: Path) -> tuple[dict, float]:
+    """Generate with the pocoloco under ``src`` in a fresh Python: (card, wall seconds of synthesize)."""
+    import subprocess
+    import sys
+
+    spec = dict(preset=args.preset, frames=args.frames, train=args.train_sequences, test=args.test_sequences,
+                overrides=overrides, out=str(out), workers=args.workers)  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": src}
+    r = subprocess.run([sys.executable, "-c", _DRIVER, json.dumps(spec)], env=env, capture_output=True, text=True)
+    if r.returncode:
+        raise RuntimeError(f"generation under {src} failed: {r.stderr[-2000:]}")
+    wall = json.loads(r.stdout.strip().splitlines()[-1])["wall"]
+    return json.loads((out / "card.json").read_text()), wall
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="small")
@@ -97,6 +131,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--variant", nargs="*", default=["v2"], help='"name: key=value ..." (SynthConfig overrides)')
     ap.add_argument("--out", default="benchmarks/results/synth_v2.json")
+    ap.add_argument("--before-src", help="src folder of an older pocoloco checkout, timed as 'before'")
     args = ap.parse_args()
 
     from pocoloco.data.config import SYNTH_V1, synth_preset
@@ -104,33 +139,44 @@ def main() -> None:
 
     base = dataclasses.replace(synth_preset(args.preset), frames_per_sequence=args.frames,
                                train_sequences=args.train_sequences, test_sequences=args.test_sequences)  # fmt: skip
-    settings = [("v1", dataclasses.replace(base, **SYNTH_V1))]
-    settings += [(n, dataclasses.replace(base, **o)) for n, o in map(parse_variant, args.variant)]
+    here = str(Path(__file__).resolve().parents[1] / "src")
+    variants = [("v1", SYNTH_V1)] + list(map(parse_variant, args.variant))
+    settings = [(n, dataclasses.replace(base, **o)) for n, o in variants]
+    sources = {n: (here, o) for n, o in variants}
+    if args.before_src:
+        settings.insert(0, ("before", base))  # (its config is the older checkout's preset)
+        sources["before"] = (str(Path(args.before_src).resolve()), {})
     runs: dict[str, list[dict]] = {name: [] for name, _ in settings}
     for rep in range(args.repeats):
         for name, config in settings:
             with tempfile.TemporaryDirectory() as tmp:
-                t0 = time.perf_counter()
-                card = synthesize(config, Path(tmp) / "d", workers=args.workers)
-                wall = time.perf_counter() - t0
+                if args.before_src:
+                    card, wall = run_in_process(*sources[name][:1], args, sources[name][1], Path(tmp) / "d")
+                else:
+                    t0 = time.perf_counter()
+                    card = synthesize(config, Path(tmp) / "d", workers=args.workers)
+                    wall = time.perf_counter() - t0
                 inter = self_intersection_stats(Path(tmp) / "d") if rep == 0 else {}
             runs[name].append(summarise(card, wall, inter))
             print(f"repeat {rep} {name}: {wall:.1f} s wall, {runs[name][-1]['stored_frames']} frames, "
                   f"load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
 
-    v1_wall = statistics.median(r["wall_seconds"] for r in runs["v1"])
+    ref = settings[0][0]  # "before" when timed, else "v1"
+    v1_wall = statistics.median(r["wall_seconds"] for r in runs[ref])
     rows = []
     for name, config in settings:
         rs = runs[name]
         wall = statistics.median(r["wall_seconds"] for r in rs)
         # per-repeat speed-up against the v1 run of the same repeat (same load), then the median
-        ratios = [a["wall_seconds"] / b["wall_seconds"] for a, b in zip(runs["v1"], rs)]
+        ratios = [a["wall_seconds"] / b["wall_seconds"] for a, b in zip(runs[ref], rs)]
         first = rs[0]  # quality is deterministic: every repeat generates the same data
         rows.append(dict(
-            setting=name, overrides={k: v for k, v in config.to_dict().items() if k != "subjects"},
+            setting=name, reference=ref,
+            overrides=("the older checkout's preset" if name == "before" else
+                       {k: v for k, v in config.to_dict().items() if k != "subjects"}),
             wall_seconds_median=wall, wall_seconds=[r["wall_seconds"] for r in rs],
-            frames_per_second=first["stored_frames"] / wall, speedup_vs_v1_median=statistics.median(ratios),
-            speedup_vs_v1_of_medians=v1_wall / wall, per_repeat_speedup=ratios,
+            frames_per_second=first["stored_frames"] / wall, speedup_median=statistics.median(ratios),
+            speedup_of_medians=v1_wall / wall, per_repeat_speedup=ratios,
             cpu_seconds_per_frame=first["cpu_seconds_per_frame"], stored_frames=first["stored_frames"],
             rejected_frames=first["rejected_frames"], subjects=first["subjects"],
         ))  # fmt: skip
@@ -138,12 +184,12 @@ def main() -> None:
     print(f"\npreset {args.preset}: {len(base.subjects)} subjects x {args.train_sequences + args.test_sequences} "
           f"sequences x {args.frames} stored frames, {args.workers} workers, median of {args.repeats} "
           f"(settings interleaved)")  # fmt: skip
-    print("| setting | wall s | frames/s | speed-up vs v1 | CPU s/frame: motion, sim, capture, write | rejected |")
+    print(f"| setting | wall s | frames/s | speed-up vs {ref} | CPU s/frame: motion, sim, capture, write | rejected |")
     print("|---|---|---|---|---|---|")
     for r in rows:
         c = r["cpu_seconds_per_frame"]
         print(f"| {r['setting']} | {r['wall_seconds_median']:.1f} | {r['frames_per_second']:.2f} | "
-              f"{r['speedup_vs_v1_median']:.2f}x | {c['motion']:.3f}, {c['simulation']:.3f}, {c['capture']:.3f}, "
+              f"{r['speedup_median']:.2f}x | {c['motion']:.3f}, {c['simulation']:.3f}, {c['capture']:.3f}, "
               f"{c['write']:.3f} | {r['rejected_frames']} / {r['stored_frames'] + r['rejected_frames']} |")  # fmt: skip
     print("\n| setting | subject | loose % | rejected | pen. max / mean mm | % inside | stretch max | "
           "self-int. pairs / frame | frames with self-int. % |")  # fmt: skip

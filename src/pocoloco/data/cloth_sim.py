@@ -351,14 +351,18 @@ def _quat_z_to(d: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- simulation
 
 
+#: rest distance over which a sleeve's placement blends from the torso's motion to its arm's
+SLEEVE_BLEND_M = 0.12
+
+
 def skin_garment(
     garment: Garment, body: AnnyBody, vertices: np.ndarray, vtransf: np.ndarray, k: int = 16
 ) -> np.ndarray:
     """Carry the whole garment onto one posed body by smooth skinning.
 
     Each garment vertex x follows its ``k`` nearest template vertices u of its
-    skin region (torso and legs; for sleeves, those and their arm:
-    ``Garment.skin_region``)
+    skin region (torso and legs; for sleeves, a blend from the torso's at the arm hole to
+    their arm's ``SLEEVE_BLEND_M`` further out: ``Garment.skin_region``)
     like a pin does (``v_u + vtransf_u @ (x - u)``), blended with inverse square
     distance weights so neighbouring garment vertices move alike (a hem between
     the legs does not tear). Used to place the cloth on the first frame, which
@@ -370,23 +374,34 @@ def skin_garment(
     from .garments import REGION_LEFT_ARM, REGION_RIGHT_ARM, arm_vertices
 
     region = garment.skin_region
-    out = np.empty(garment.rest_vertices.shape, dtype=np.float32)
-    groups = [(anchor_vertices(body), np.ones(len(out), dtype=bool) if region is None else region == 0)]
-    if region is not None:  # sleeves follow their arm and the torso (no seam opens at the arm hole)
-        torso = anchor_vertices(body)
-        groups += [(np.concatenate([torso, arm_vertices(body, "left")]), region == REGION_LEFT_ARM),
-                   (np.concatenate([torso, arm_vertices(body, "right")]), region == REGION_RIGHT_ARM)]  # fmt: skip
-    for allowed, sel in groups:
-        if not sel.any():
-            continue
-        x = garment.rest_vertices[sel]
+    rest = garment.rest_vertices
+
+    def skin(sel: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+        x = rest[sel]
         dist, nn = cKDTree(body.template[allowed]).query(x, k=k)  # (n, k)
         nn = allowed[nn]
         w = 1.0 / (dist + 1e-3) ** 2
         w /= w.sum(1, keepdims=True)
         off = x[:, None] - body.template[nn]  # (n, k, 3)
         moved = vertices[nn] + np.einsum("nkij,nkj->nki", vtransf[nn], off)  # (n, k, 3)
-        out[sel] = (w[..., None] * moved).sum(1)
+        return (w[..., None] * moved).sum(1)
+
+    out = np.empty(rest.shape, dtype=np.float32)
+    torso = anchor_vertices(body)
+    if region is None:
+        out[:] = skin(np.ones(len(out), dtype=bool), torso)
+        return out
+    body_part = region == 0
+    out[body_part] = skin(body_part, torso)
+    # a sleeve blends from the torso's motion at the arm hole to its arm's over SLEEVE_BLEND_M
+    # of rest distance from the body part (no seam opens at the arm hole, the cuff follows the arm)
+    for side, code in (("left", REGION_LEFT_ARM), ("right", REGION_RIGHT_ARM)):
+        sel = region == code
+        if not sel.any():
+            continue
+        d, _ = cKDTree(rest[body_part]).query(rest[sel]) if body_part.any() else (np.full(sel.sum(), np.inf), None)
+        t = np.clip(d / SLEEVE_BLEND_M, 0.0, 1.0)[:, None]
+        out[sel] = (1.0 - t) * skin(sel, torso) + t * skin(sel, arm_vertices(body, side))
     return out
 
 
