@@ -104,6 +104,12 @@ def test_existing_output_of_another_configuration_is_refused(tmp_path):
     other = dataclasses.replace(config, seed=7, num_points=3000)
     with pytest.raises(ValueError, match="different configuration.*num_points, seed"):
         prepare_output(other, tmp_path / "d")
+    # a split may grow (job i of a split is the same whatever the count), not shrink
+    prepare_output(dataclasses.replace(config, train_sequences=3, heldout_sequences=2), tmp_path / "d")
+    (tmp_path / "d" / "card.json").write_text((tmp_path / "d" / "card.json").read_text().replace(
+        '"train_sequences": 1', '"train_sequences": 3'))  # fmt: skip
+    with pytest.raises(ValueError, match="holds 3 train sequences per subject; a dataset can grow but not shrink"):
+        prepare_output(config, tmp_path / "d")
 
 
 def _descendants(pid: int) -> set[int]:

@@ -173,6 +173,10 @@ def prepare_output(config: SynthConfig, out: Path) -> None:
     _check_card_config(config, out)
 
 
+#: sequence counts a dataset can grow in (job i of a split is the same whatever the count)
+_GROWABLE = ("train_sequences", "test_sequences", "heldout_sequences")
+
+
 def _check_card_config(config: SynthConfig, out: Path) -> None:
     """ValueError unless ``out/card.json`` is readable and records ``config``."""
     layout = DatasetLayout(out)
@@ -186,8 +190,12 @@ def _check_card_config(config: SynthConfig, out: Path) -> None:
         have = _config_json(config_of_card(have))
     except ValueError:
         pass  # not readable as a config: the keys that differ are reported below
-    if isinstance(have, dict):  # the held-out split may be added to or extended later
-        have = {**have, "heldout_sequences": wanted["heldout_sequences"]}
+    if isinstance(have, dict):  # a split may grow later (more sequences of the same runs), not shrink
+        for key in _GROWABLE:
+            if isinstance(have.get(key), int) and have[key] > wanted[key]:
+                raise ValueError(f"{out}: holds {have[key]} {key.replace('_', ' ')} per subject; a dataset can "
+                                 f"grow but not shrink: ask for at least {have[key]}")  # fmt: skip
+            have = {**have, key: wanted[key]}
     if have != wanted:
         keys = sorted(k for k in set(wanted) | set(have or {}) if (have or {}).get(k) != wanted.get(k))
         raise ValueError(
