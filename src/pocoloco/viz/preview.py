@@ -36,7 +36,7 @@ def preview_dataset(
             f = read_frame(path, keys=["points", "normals", "labels"])
             rng = np.random.default_rng(seed)
             keep = rng.choice(len(f.points), size=min(len(f.points), 12_000), replace=False)
-            title = f"{subject} ({garment}) {sequence}/{Path(path).stem}"
+            title = f"{subject}: {garment} {sequence.rsplit('_', 1)[-1]}/{int(Path(path).stem)}"
             clouds.append((f.points[keep], f.labels[keep], f.normals[keep], title))
     if not clouds:
         raise ValueError(f"{root}: no frames in split {split!r} to preview")
