@@ -43,7 +43,14 @@ import time
 import numpy as np
 import torch
 
-from pocoloco.apps.completion import DEFAULT_CANDIDATES, REGIONS, complete, draw_candidates, region_mask, score_hole
+from pocoloco.apps.completion import (
+    DEFAULT_CANDIDATES,
+    REGIONS,
+    complete,
+    draw_candidates,
+    region_mask,
+    score_hole,
+)
 from pocoloco.data import format as fmt
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.evaluation.baselines import select_frames
@@ -71,6 +78,26 @@ def _mean_se(v: list[float]) -> tuple[float, float]:
     if len(a) == 0:
         return float("nan"), float("nan")
     return float(a.mean()), float(a.std(ddof=1) / np.sqrt(len(a))) if len(a) > 1 else float("nan")
+
+
+def summarise(rows: list[dict], regions: list[str], methods: list[str]) -> dict[str, dict]:
+    """Per region (and "all"): each method's mean scores and, paired by row, its mean difference to
+    fresh (+- standard error) and the share of rows where it is <= fresh."""
+    summary: dict[str, dict] = {}
+    for region in [*regions, "all"]:
+        sel = [r for r in rows if region in ("all", r["region"])]
+        if not sel:
+            continue
+        summary[region] = {"n": len(sel)}
+        for name in methods:
+            s = {k: _mean_se([r[name][k] for r in sel])[0] for k in KEYS}
+            if name != "fresh" and "fresh" in methods:
+                for k in ("s2m_cm", "m2s_cm"):
+                    diff = [r[name][k] - r["fresh"][k] for r in sel]
+                    s[f"{k}_minus_fresh"], s[f"{k}_minus_fresh_se"] = _mean_se(diff)
+                    s[f"{k}_le_fresh_share"] = float(np.mean([d <= 0 for d in diff if np.isfinite(d)] or [np.nan]))
+            summary[region][name] = s
+    return summary
 
 
 def markdown_table(summary: dict[str, dict], methods: list[str]) -> str:
@@ -157,22 +184,10 @@ def main(argv: list[str] | None = None) -> dict:
                 print(f"{row['frame']} {region:>11} seed {seed} (removed {100 * row['removed_share']:.0f} %): "
                       + ", ".join(f"{n} {row[n]['s2m_cm']:.2f}/{row[n]['m2s_cm']:.2f}/{100 * row[n]['far_share']:.0f}%"
                                   f" ({row[n]['num']:.0f})" for n in args.methods), flush=True)  # fmt: skip
+        write_json_atomic(f"{args.out}.partial", jsonable({"rows": rows}))  # survives an interrupted run
     seconds = time.perf_counter() - t_start
 
-    summary: dict[str, dict] = {}
-    for region in [*args.regions, "all"]:
-        sel = [r for r in rows if region in ("all", r["region"])]
-        if not sel:
-            continue
-        summary[region] = {"n": len(sel)}
-        for name in args.methods:
-            s = {k: _mean_se([r[name][k] for r in sel])[0] for k in KEYS}
-            if name != "fresh" and "fresh" in args.methods:
-                for k in ("s2m_cm", "m2s_cm"):
-                    diff = [r[name][k] - r["fresh"][k] for r in sel]
-                    s[f"{k}_minus_fresh"], s[f"{k}_minus_fresh_se"] = _mean_se(diff)
-                    s[f"{k}_le_fresh_share"] = float(np.mean([d <= 0 for d in diff if np.isfinite(d)] or [np.nan]))
-            summary[region][name] = s
+    summary = summarise(rows, args.regions, args.methods)
     print(f"\nhole S2M / M2S cm (mean), far = generated points > 5 cm off, #gen, s per completion; "
           f"d = paired mean difference to fresh +- s.e. ({len(chosen)} frames x {len(args.seeds)} seeds)")
     print(f"{'region':>11} {'n':>3} {'method':>9} {'S2M':>6} {'M2S':>6} {'far %':>6} {'#gen':>5} {'s':>6} "

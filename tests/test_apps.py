@@ -8,7 +8,13 @@ import pytest
 import torch
 
 from pocoloco.apps.animation import animate, flicker_cm, load_motion, warp_by_body
-from pocoloco.apps.common import chain_timesteps, denoise_from, repaint_resampling, subset, to_normalised
+from pocoloco.apps.common import (
+    chain_timesteps,
+    denoise_from,
+    repaint_resampling,
+    subset,
+    to_normalised,
+)
 from pocoloco.apps.completion import (
     candidate_seeds,
     choose_candidate,
@@ -122,7 +128,7 @@ def test_completion_sample_init_starts_from_the_samples_hole_points(loaded, seq)
     model, norm, cfg = loaded
     fr = seq[1][0]
     partial = fr.points[~region_mask(fr.points, fr.joints, "hem")]
-    kw = dict(num=1, sampler="ddpm", steps=3, seeds=[5], radius=0.3, max_cos=None)  # distance-only hole test
+    kw = {"num": 1, "sampler": "ddpm", "steps": 3, "seeds": [5], "radius": 0.3, "max_cos": None}  # distance-only hole test
     comp = complete(model, norm, cfg, partial, fr.joints, 64, init="sample", t=1, coverage=0.75, candidates=1, **kw)
     assert comp.init == "sample" and comp.t == 1 and comp.num_known == 48
     full = sample_clouds(model, norm, cfg, fr.joints, 1, 64, sampler="ddpm", steps=3, seeds=[5]).points[0]
@@ -207,7 +213,7 @@ def test_best_of_k_picks_the_candidate_closest_to_the_visible_scan(loaded, seq):
     assert cands.points.shape == (2, 3, 32, 3) and cands.seeds[1, 0] == 5
     plain = sample_clouds(model, norm, cfg, fr.joints, 1, 32, steps=2, seeds=[5]).points[0]
     np.testing.assert_allclose(cands.points[1, 0], plain, atol=1e-5)  # candidate 0: the seed's plain sample
-    kw = dict(num=2, steps=2, seeds=[4, 5], candidates=3)
+    kw = {"num": 2, "steps": 2, "seeds": [4, 5], "candidates": 3}
     comp = complete(model, norm, cfg, partial, fr.joints, 32, **kw)
     assert comp.chosen.tolist() == [choose_candidate(cands.points[b], partial)[0] for b in range(2)]
     again = complete(model, norm, cfg, partial, fr.joints, 32, samples=cands, **kw)  # drawn once, reused

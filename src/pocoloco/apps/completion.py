@@ -67,10 +67,27 @@ from pocoloco.evaluation.metrics import nearest
 from pocoloco.methods.pocoloco.sampling import sample_clouds
 from pocoloco.ops.knn import knn_numpy
 
-__all__ = ["CandidateSamples", "Completion", "DEFAULT_CANDIDATES", "DEFAULT_MAX_COS", "DEFAULT_RADIUS_M",
-           "DEFAULT_SAMPLE_T", "INITS", "REGIONS", "Region", "candidate_seeds", "choose_candidate", "complete",
-           "draw_candidates", "estimate_coverage", "estimate_normals", "hole_points", "region_mask", "score_hole",
-           "visible_distance"]  # fmt: skip
+__all__ = [
+    "DEFAULT_CANDIDATES",
+    "DEFAULT_MAX_COS",
+    "DEFAULT_RADIUS_M",
+    "DEFAULT_SAMPLE_T",
+    "INITS",
+    "REGIONS",
+    "CandidateSamples",
+    "Completion",
+    "Region",
+    "candidate_seeds",
+    "choose_candidate",
+    "complete",
+    "draw_candidates",
+    "estimate_coverage",
+    "estimate_normals",
+    "hole_points",
+    "region_mask",
+    "score_hole",
+    "visible_distance",
+]  # fmt: skip
 
 INITS = ("sample", "noise")
 #: default start step of the harmonising chain for init="sample" (0 = no chain)
@@ -371,7 +388,7 @@ def complete(
         covs = [c0] * num
     if not estimated:
         covs = [float(coverage)] * num
-    n_known = [min(int(round(c * num_points)), M) for c in covs]
+    n_known = [min(round(c * num_points), M) for c in covs]
     mask = np.zeros((num, num_points), bool)
     xk = np.zeros((num, num_points, C), np.float32)
     picks = [subset(M, n_known[b], [seeds[b], 1]) for b in range(num)]
