@@ -1,25 +1,37 @@
-"""Scan completion: Chamfer of inpainted regions vs. the same region of a fresh full sample.
+"""Scan completion scored on the hole: generated points vs. the removed surface, against a fresh sample.
 
-For ``--frames`` test frames (evenly spaced, as ``pocoloco eval``) and every region of
-``--regions`` (``pocoloco.apps.completion.REGIONS``: all scan points within a radius of a joint,
-e.g. the left hand, the right knee, or between the knees = the hem), the region is removed from
-the full scan, the rest is completed and scored with
-:func:`pocoloco.apps.completion.evaluate_completion` (PocoLoco Chamfer, cm, vs. an N-point
-subset of the scan, so densities match):
+For ``--frames`` held-out frames (evenly spaced over the split, so spread over the subjects),
+every region of ``--regions`` (:data:`pocoloco.apps.completion.REGIONS`: below the knees, one
+knee, one hand) and every seed, the region's points are removed from the full scan (with its
+normals, as a scan file would carry them) and the rest is completed into ``--points`` points.
+Each method's *generated* points are scored on the hole with
+:func:`pocoloco.apps.completion.score_hole` (cm):
 
-* inpaint: ``complete`` (init "sample": a full sample's hole points renoised to ``--t`` and
-  inpainted with the scan points kept): its generated points vs. the GT points of the region;
-  "full": the whole completed cloud vs. the GT;
-* noise: plain RePaint (generated points from pure noise, probe coverage), the same;
-* fresh: a fresh full sample of the pose (same seed), restricted to its points whose nearest GT
-  point lies in the region (oracle selection); "full": the whole fresh sample vs. the GT;
-* fresh-hole: the same fresh sample's points farthest from the partial scan (no GT used: the
-  completion's starting points, before harmonising).
+* hole S2M: removed scan points -> nearest generated point (is the hole covered?);
+* hole M2S: generated points -> nearest point of the full scan (are they on the surface?);
+* far: share of generated points more than 5 cm off the full scan; s: seconds per completion.
 
-    python benchmarks/bench_completion.py --ckpt default --data data/small
-    python benchmarks/bench_completion.py --ckpt runs/small --data data/small --frames 2 --points 1024
+Methods (``--methods``, :data:`METHODS`):
 
-Prints a table per region and writes ``--out`` (JSON, default benchmarks/results/completion.json).
+* ``fresh``: a fresh full sample of the pose (the output's seed); its "generated points" are
+  those whose nearest full-scan point lies in the removed region (an oracle selection);
+* ``repaint``: plain RePaint from pure noise (``init="noise"``, probe coverage);
+* ``old``: the previous default: init "sample", one candidate, distance-only hole test with a
+  6 cm radius, no resampling;
+* ``new``: ``complete``'s defaults (best-of-K candidates, normal-cone hole test);
+* ``k1``, ``resample``, ``t0``, ``est_normals``: the new default with one candidate / RePaint
+  resampling in the chain (4 passes, jumps of 5 steps) / no chain / the scan's normals estimated
+  from its points (a scan file without normals), to see what each piece does.
+
+The K candidate samples are drawn once per (frame, seed) and shared by the sample-init methods
+(candidate 0 is the fresh sample); each method's seconds include its share (K x one sample).
+Paired differences (method - fresh, per frame, region and seed) are printed with their standard
+errors.
+
+    nice -n 15 python benchmarks/bench_completion.py --frames 9 --seeds 0 1
+    nice -n 15 python benchmarks/bench_completion.py --frames 1 --regions right_knee --out /tmp/c.json
+
+Writes ``--out`` (JSON, default benchmarks/results/completion.json).
 """
 
 from __future__ import annotations
@@ -31,23 +43,76 @@ import time
 import numpy as np
 import torch
 
-from pocoloco.apps.completion import DEFAULT_RADIUS_M, REGIONS, evaluate_completion
+from pocoloco.apps.completion import (
+    DEFAULT_CANDIDATES,
+    REGIONS,
+    complete,
+    draw_candidates,
+    region_mask,
+    score_hole,
+)
 from pocoloco.data import format as fmt
-from pocoloco.engine.checkpoint import resolve_checkpoint
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.evaluation.baselines import select_frames
-from pocoloco.methods.pocoloco import load_denoiser
+from pocoloco.evaluation.metrics import nearest
+from pocoloco.methods import load_method
 from pocoloco.utils.atomic import jsonable, write_json_atomic
 
-KEYS = ("inpaint_chamfer_cm", "noise_chamfer_cm", "fresh_hole_chamfer_cm", "fresh_chamfer_cm",
-        "inpaint_full_chamfer_cm", "noise_full_chamfer_cm", "fresh_full_chamfer_cm", "coverage_estimated",
-        "coverage_true", "num_generated", "num_gt_region", "num_fresh_region")  # fmt: skip
+#: method name -> keyword arguments of ``complete`` (None: the fresh sample itself)
+METHODS: dict[str, dict | None] = {
+    "fresh": None,
+    "repaint": {"init": "noise"},
+    "old": {"candidates": 1, "radius": 0.06, "max_cos": None},
+    "new": {},
+    "k1": {"candidates": 1},
+    "resample": {"resample": 4, "jump": 5},
+    "t0": {"t": 0},
+    "est_normals": {"partial_normals": None},
+}
+KEYS = ("s2m_cm", "m2s_cm", "far_share", "num", "seconds")
 
 
-def _nanstat(fn, values: list[float]) -> float:
-    """fn (np.nanmean / np.nanmedian) of values; NaN (no warning) if all are NaN."""
-    v = np.asarray(values, np.float64)
-    return float(fn(v)) if np.isfinite(v).any() else float("nan")
+def _mean_se(v: list[float]) -> tuple[float, float]:
+    a = np.asarray(v, np.float64)
+    a = a[np.isfinite(a)]
+    if len(a) == 0:
+        return float("nan"), float("nan")
+    return float(a.mean()), float(a.std(ddof=1) / np.sqrt(len(a))) if len(a) > 1 else float("nan")
+
+
+def summarise(rows: list[dict], regions: list[str], methods: list[str]) -> dict[str, dict]:
+    """Per region (and "all"): each method's mean scores and, paired by row, its mean difference to
+    fresh (+- standard error) and the share of rows where it is <= fresh."""
+    summary: dict[str, dict] = {}
+    for region in [*regions, "all"]:
+        sel = [r for r in rows if region in ("all", r["region"])]
+        if not sel:
+            continue
+        summary[region] = {"n": len(sel)}
+        for name in methods:
+            s = {k: _mean_se([r[name][k] for r in sel])[0] for k in KEYS}
+            if name != "fresh" and "fresh" in methods:
+                for k in ("s2m_cm", "m2s_cm"):
+                    diff = [r[name][k] - r["fresh"][k] for r in sel]
+                    s[f"{k}_minus_fresh"], s[f"{k}_minus_fresh_se"] = _mean_se(diff)
+                    s[f"{k}_le_fresh_share"] = float(np.mean([d <= 0 for d in diff if np.isfinite(d)] or [np.nan]))
+            summary[region][name] = s
+    return summary
+
+
+def markdown_table(summary: dict[str, dict], methods: list[str]) -> str:
+    """The summary as a markdown table (one row per region and method; differences to fresh paired)."""
+    lines = ["| region (n) | method | hole S2M cm | hole M2S cm | > 5 cm off | #gen | s | S2M - fresh | M2S - fresh |",
+             "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for region, s in summary.items():
+        for name in methods:
+            m = s[name]
+            d = ["", ""] if "s2m_cm_minus_fresh" not in m else [
+                f"{m[k + '_minus_fresh']:+.2f} +- {m[k + '_minus_fresh_se']:.2f} ({100 * m[k + '_le_fresh_share']:.0f} % <=)"
+                for k in ("s2m_cm", "m2s_cm")]  # fmt: skip
+            lines.append(f"| {region} ({s['n']}) | {name} | {m['s2m_cm']:.2f} | {m['m2s_cm']:.2f} | "
+                         f"{100 * m['far_share']:.1f} % | {m['num']:.0f} | {m['seconds']:.1f} | {d[0]} | {d[1]} |")
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -55,75 +120,93 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--ckpt", default="default", help="checkpoint / run folder, or 'default' (the shipped model)")
     p.add_argument("--data", default="data/small", help="dataset folder")
     p.add_argument("--split", default="test")
-    p.add_argument("--frames", type=int, default=6, help="frames, evenly spaced over the split (default 6)")
-    p.add_argument("--regions", nargs="+", default=list(REGIONS), help=f"from {', '.join(REGIONS)}")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one completion per seed (default 0)")
+    p.add_argument("--frames", type=int, default=9, help="frames, evenly spaced over the split (default 9)")
+    p.add_argument("--regions", nargs="+", default=["below_knees", "right_knee", "left_hand"],
+                   help=f"from {', '.join(REGIONS)} (default below_knees right_knee left_hand)")  # fmt: skip
+    p.add_argument("--methods", nargs="+", default=["fresh", "repaint", "old", "new"],
+                   help=f"from {', '.join(METHODS)} (default fresh repaint old new)")  # fmt: skip
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="one completion per seed (default 0 1)")
     p.add_argument("--points", type=int, default=2048, help="N points per cloud (default 2048)")
-    p.add_argument("--sampler", default="dpm++")
-    p.add_argument("--steps", type=int, help="sampler steps (default: the sampler's)")
-    p.add_argument("--coverage-radius", type=float, default=DEFAULT_RADIUS_M,
-                   help=f"coverage radius, m (default {DEFAULT_RADIUS_M})")  # fmt: skip
-    p.add_argument("--t", type=int, help="start step of the harmonising chain (default: complete's, 100)")
-    p.add_argument("--no-noise", action="store_true", help="skip the plain-RePaint (init noise) comparison")
+    p.add_argument("--candidates", type=int, default=DEFAULT_CANDIDATES,
+                   help=f"K candidates drawn per (frame, seed) (default {DEFAULT_CANDIDATES})")  # fmt: skip
     p.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     p.add_argument("--out", default="benchmarks/results/completion.json")
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    unknown = [r for r in args.regions if r not in REGIONS]
-    if unknown:
-        p.error(f"unknown regions {unknown}; choose from {', '.join(REGIONS)}")
+    for name, known in (("regions", REGIONS), ("methods", METHODS)):
+        unknown = [r for r in getattr(args, name) if r not in known]
+        if unknown:
+            p.error(f"unknown {name} {unknown}; choose from {', '.join(known)}")
 
-    ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
-    model, norm, config = load_denoiser(ckpt)
+    method = load_method(resolve_ckpt_arg(args.ckpt), expect="pocoloco")
+    if method.outfit_names():
+        p.error("this benchmark takes a model without outfit codes")
+    model, norm, config = method.denoiser_for(None), method.normalisation, method.config
     layout = fmt.DatasetLayout(args.data)
     frames = layout.iter_frames(args.split, layout.subjects())
     chosen = [frames[i] for i in select_frames(frames, args.frames)]
+    K = max([args.candidates] + [int(METHODS[m].get("candidates", args.candidates)) for m in args.methods
+                                 if METHODS[m] is not None])  # fmt: skip
     rows = []
-    t0 = time.perf_counter()
+    t_start = time.perf_counter()
     for subject, sequence, path in chosen:
-        fr = fmt.read_frame(path, ["points", "joints"])
-        for region in args.regions:
-            for seed in args.seeds:
-                m = evaluate_completion(model, norm, config, fr.points, fr.joints, region, args.points,
-                                        seed=seed, sampler=args.sampler, steps=args.steps,
-                                        radius=args.coverage_radius, t=args.t, noise=not args.no_noise)  # fmt: skip
-                if m is None:
+        fr = fmt.read_frame(path, ["points", "normals", "joints"])
+        for seed in args.seeds:
+            t0 = time.perf_counter()
+            cands = draw_candidates(model, norm, config, fr.joints, args.points, [seed], K)
+            per_sample = (time.perf_counter() - t0) / K
+            fresh = cands.points[0, 0]  # candidate 0 has the output's seed: the fresh sample
+            fresh_in = None
+            for region in args.regions:
+                inside = region_mask(fr.points, fr.joints, region)
+                if not inside.any() or inside.all():
                     continue
-                rows.append({"frame": f"{subject}/{sequence}/{path.stem}", "subject": subject, "region": region,
-                             "seed": seed, **m})  # fmt: skip
-                print(f"{rows[-1]['frame']} {region:>10} seed {seed}: region: inpaint {m['inpaint_chamfer_cm']:.2f} "
-                      f"cm, noise {m['noise_chamfer_cm']:.2f}, fresh-hole {m['fresh_hole_chamfer_cm']:.2f}, fresh "
-                      f"{m['fresh_chamfer_cm']:.2f}; whole cloud: "
-                      f"inpaint {m['inpaint_full_chamfer_cm']:.2f}, fresh {m['fresh_full_chamfer_cm']:.2f} "
-                      f"(coverage {m['coverage_estimated']:.2f} est. / {m['coverage_true']:.2f} true)",
-                      flush=True)  # fmt: skip
-    seconds = time.perf_counter() - t0
-    means, medians = {}, {}
-    for region in args.regions:
-        sel = [r for r in rows if r["region"] == region]
-        if sel:
-            means[region] = {k: _nanstat(np.nanmean, [r[k] for r in sel]) for k in KEYS} | {"n": len(sel)}
-            medians[region] = {k: _nanstat(np.nanmedian, [r[k] for r in sel]) for k in KEYS} | {"n": len(sel)}
-    for label, table in (("median", medians), ("mean", means)):
-        print(f"\n{label:>6}: Chamfer cm of the removed region (inpaint / noise = plain RePaint / fresh) and of the "
-              f"whole cloud")  # fmt: skip
-        print(f"{'region':>10} {'n':>3} {'inpaint':>8} {'noise':>7} {'fr-hole':>8} {'fresh':>7} {'full inp':>9} "
-              f"{'full noi':>9} "
-              f"{'full fr':>8} {'cov est':>8} {'cov true':>9} {'#gen':>5} {'#gt':>5}")  # fmt: skip
-        for region, m in table.items():
-            print(f"{region:>10} {m['n']:>3} {m['inpaint_chamfer_cm']:>8.2f} {m['noise_chamfer_cm']:>7.2f} "
-                  f"{m['fresh_hole_chamfer_cm']:>8.2f} "
-                  f"{m['fresh_chamfer_cm']:>7.2f} {m['inpaint_full_chamfer_cm']:>9.2f} "
-                  f"{m['noise_full_chamfer_cm']:>9.2f} {m['fresh_full_chamfer_cm']:>8.2f} "
-                  f"{m['coverage_estimated']:>8.2f} {m['coverage_true']:>9.2f} {m['num_generated']:>5.0f} "
-                  f"{m['num_gt_region']:>5.0f}")  # fmt: skip
-    result = {"checkpoint": str(ckpt), "data": args.data, "split": args.split, "frames": len(chosen),
-              "regions": {r: {"joints": list(REGIONS[r][0]), "radius_m": REGIONS[r][1]} for r in args.regions},
-              "seeds": args.seeds, "points": args.points, "sampler": args.sampler, "steps": args.steps,
-              "coverage_radius_m": args.coverage_radius, "t": args.t, "threads": torch.get_num_threads(),
-              "machine": platform.processor() or platform.machine(), "seconds_total": seconds,
-              "means": means, "medians": medians, "rows": rows}  # fmt: skip
+                partial, partial_n = fr.points[~inside], fr.normals[~inside]
+                row = {"frame": f"{subject}/{sequence}/{path.stem}", "subject": subject, "region": region,
+                       "seed": seed, "removed_share": float(inside.mean())}  # fmt: skip
+                for name in args.methods:
+                    kw = METHODS[name]
+                    if kw is None:
+                        fresh_in = inside[nearest(fresh, fr.points)[1]]
+                        m = score_hole(fresh[fresh_in], fr.points, inside) | {"seconds": per_sample}
+                    else:
+                        kw = {"candidates": args.candidates, "partial_normals": partial_n} | kw
+                        t0 = time.perf_counter()
+                        comp = complete(model, norm, config, partial, fr.joints, args.points, seeds=[seed],
+                                        samples=None if kw.get("init") == "noise" else cands, **kw)  # fmt: skip
+                        sec = time.perf_counter() - t0
+                        if kw.get("init") != "noise":
+                            sec += kw["candidates"] * per_sample
+                        m = score_hole(comp.points[0][~comp.known[0]], fr.points, inside) | {"seconds": sec}
+                    row[name] = m
+                rows.append(row)
+                print(f"{row['frame']} {region:>11} seed {seed} (removed {100 * row['removed_share']:.0f} %): "
+                      + ", ".join(f"{n} {row[n]['s2m_cm']:.2f}/{row[n]['m2s_cm']:.2f}/{100 * row[n]['far_share']:.0f}%"
+                                  f" ({row[n]['num']:.0f})" for n in args.methods), flush=True)  # fmt: skip
+        write_json_atomic(f"{args.out}.partial", jsonable({"rows": rows}))  # survives an interrupted run
+    seconds = time.perf_counter() - t_start
+
+    summary = summarise(rows, args.regions, args.methods)
+    print(f"\nhole S2M / M2S cm (mean), far = generated points > 5 cm off, #gen, s per completion; "
+          f"d = paired mean difference to fresh +- s.e. ({len(chosen)} frames x {len(args.seeds)} seeds)")
+    print(f"{'region':>11} {'n':>3} {'method':>9} {'S2M':>6} {'M2S':>6} {'far %':>6} {'#gen':>5} {'s':>6} "
+          f"{'d S2M':>13} {'d M2S':>13}")  # fmt: skip
+    for region, s in summary.items():
+        for name in args.methods:
+            m = s[name]
+            d = ("" if name == "fresh" or "fresh" not in args.methods else
+                 f"{m['s2m_cm_minus_fresh']:>+6.2f}+-{m['s2m_cm_minus_fresh_se']:<5.2f} "
+                 f"{m['m2s_cm_minus_fresh']:>+6.2f}+-{m['m2s_cm_minus_fresh_se']:<5.2f}")  # fmt: skip
+            print(f"{region:>11} {s['n']:>3} {name:>9} {m['s2m_cm']:>6.2f} {m['m2s_cm']:>6.2f} "
+                  f"{100 * m['far_share']:>6.1f} {m['num']:>5.0f} {m['seconds']:>6.1f} {d}")  # fmt: skip
+    print("\n" + markdown_table(summary, args.methods))
+    result = {"checkpoint": str(method.path), "data": args.data, "split": args.split, "frames": len(chosen),
+              "regions": {r: vars(REGIONS[r]) for r in args.regions}, "seeds": args.seeds, "points": args.points,
+              "candidates": args.candidates, "methods": {m: METHODS[m] for m in args.methods},
+              "settings": "complete's defaults unless the method says otherwise; the scan's normals are passed",
+              "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
+              "seconds_total": seconds, "summary": summary, "rows": rows}  # fmt: skip
     write_json_atomic(args.out, jsonable(result))
     print(f"wrote {args.out}")
     return result

@@ -5,20 +5,34 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from pocoloco.apps.animation import animate, flicker_cm, load_motion, warp_by_body
-from pocoloco.apps.common import chain_timesteps, denoise_from, subset, to_normalised
+from pocoloco.apps.common import (
+    chain_timesteps,
+    denoise_from,
+    repaint_resampling,
+    subset,
+    to_normalised,
+)
 from pocoloco.apps.completion import (
+    candidate_seeds,
+    choose_candidate,
     complete,
+    draw_candidates,
     estimate_coverage,
+    estimate_normals,
     hole_points,
     region_mask,
+    score_hole,
 )
 from pocoloco.apps.editing import _bones, edit, moving_region, nearest_bone
 from pocoloco.cli import main
 from pocoloco.data.format import DatasetLayout, read_frame
 from pocoloco.data.published import read_ply, write_ply
-from pocoloco.diffusion.samplers import make_timesteps
+from pocoloco.diffusion.sampler_base import PerSampleRNG
+from pocoloco.diffusion.samplers import make_timesteps, sample_ddpm
+from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.methods import train
 from pocoloco.methods.pocoloco import load_denoiser, sample_clouds, train_preset
 
@@ -114,8 +128,8 @@ def test_completion_sample_init_starts_from_the_samples_hole_points(loaded, seq)
     model, norm, cfg = loaded
     fr = seq[1][0]
     partial = fr.points[~region_mask(fr.points, fr.joints, "hem")]
-    kw = dict(num=1, sampler="ddpm", steps=3, seeds=[5], radius=0.3)
-    comp = complete(model, norm, cfg, partial, fr.joints, 64, init="sample", t=1, coverage=0.75, **kw)
+    kw = {"num": 1, "sampler": "ddpm", "steps": 3, "seeds": [5], "radius": 0.3, "max_cos": None}  # distance-only hole test
+    comp = complete(model, norm, cfg, partial, fr.joints, 64, init="sample", t=1, coverage=0.75, candidates=1, **kw)
     assert comp.init == "sample" and comp.t == 1 and comp.num_known == 48
     full = sample_clouds(model, norm, cfg, fr.joints, 1, 64, sampler="ddpm", steps=3, seeds=[5]).points[0]
     start = full[hole_points(full, partial, 0.3, num=16)[0]]
@@ -126,6 +140,135 @@ def test_completion_sample_init_starts_from_the_samples_hole_points(loaded, seq)
     assert noise.t == 1000 and np.linalg.norm(noise.points[0, 48:] - start, axis=1).mean() > 0.05
     with pytest.raises(ValueError, match="unknown completion init"):
         complete(model, norm, cfg, partial, fr.joints, 64, init="magic")
+
+
+class _GaussianDenoiser:
+    """The exact x0 predictor for data x0 ~ N(0, I): E[x0 | x_t] = sqrt(abar_t) x_t; counts its calls."""
+
+    prediction_type = "sample"
+
+    def __init__(self, schedule):
+        self.ab = torch.as_tensor(schedule.alphas_cumprod, dtype=torch.float64)
+        self.calls = 0
+
+    def __call__(self, x, t, cond):
+        self.calls += 1
+        return (self.ab[t].to(x.dtype).view(-1, 1, 1) ** 0.5) * x
+
+
+def test_repaint_resampling_one_pass_is_the_ddpm_chain_and_keeps_known_points():
+    schedule = NoiseSchedule.from_kind("linear", 1000)
+    ts = make_timesteps(1000, 12)
+    noise = PerSampleRNG([1, 2]).randn((50, 3))
+    mask = torch.zeros(2, 50, dtype=torch.bool)
+    mask[:, :20] = True
+    known = (mask, torch.randn(2, 50, 3, generator=torch.Generator().manual_seed(0)))
+    den = _GaussianDenoiser(schedule)
+    plain = sample_ddpm(den, schedule, noise, timesteps=ts, rng=PerSampleRNG([1, 2]), known=known)
+    for jump in (1, 5, 12):  # resample 1: the plain chain bit for bit, whatever the jump
+        out = repaint_resampling(den, schedule, noise, None, ts, PerSampleRNG([1, 2]), None, known, 1, jump)
+        assert torch.equal(out, plain)
+    den.calls = 0
+    out = repaint_resampling(den, schedule, noise, None, ts, PerSampleRNG([1, 2]), None, known, 3, 5)
+    assert den.calls == 3 * len(ts) and torch.equal(out[:, :20], known[1][:, :20])  # known points exact
+    assert not torch.equal(out[:, 20:], plain[:, 20:])
+
+
+def test_repaint_resampling_jumps_keep_the_marginals():
+    # data N(0, I) with its exact denoiser: the jumps back are q(x_a | x_b), so the output stays N(0, I)
+    schedule = NoiseSchedule.from_kind("linear", 1000)
+    ts = make_timesteps(1000, 50)
+    noise = PerSampleRNG([3]).randn((20000, 3))
+    den = _GaussianDenoiser(schedule)
+    plain = sample_ddpm(den, schedule, noise, timesteps=ts, rng=PerSampleRNG([3]))
+    jumped = repaint_resampling(den, schedule, noise, None, ts, PerSampleRNG([3]), None, None, 4, 10)
+    assert abs(jumped.std().item() - plain.std().item()) < 0.02 and abs(jumped.mean().item()) < 0.02
+
+
+def test_resampling_options_are_validated(loaded, seq):
+    model, norm, cfg = loaded
+    fr = seq[1][0]
+    with pytest.raises(ValueError, match="resample and jump must be >= 1"):
+        denoise_from(model, norm, cfg, fr.joints, None, 10, "ddpm", 2, [0], num_points=8, resample=0)
+    partial = fr.points[~region_mask(fr.points, fr.joints, "hem")]
+    for bad, message in (({"jump": 0}, "resample and jump"), ({"candidates": 0}, "candidates must be >= 1"),
+                         ({"t": -1}, r"t must be in \[0, 1000\]"), ({"max_cos": 0.0}, r"max_cos must be in")):
+        with pytest.raises(ValueError, match=message):
+            complete(model, norm, cfg, partial, fr.joints, 16, steps=2, **bad)
+
+
+def test_best_of_k_picks_the_candidate_closest_to_the_visible_scan(loaded, seq):
+    rng = np.random.default_rng(1)
+    scan = rng.normal(size=(300, 3))
+    samples = np.stack([scan[:200] + off for off in ([0.3, 0, 0], [0.01, 0, 0], [0.1, 0, 0])]).astype(np.float32)
+    i, d = choose_candidate(samples, scan)
+    brute = [np.sqrt(((scan[:, None] - s[None]) ** 2).sum(-1)).min(1).mean() for s in samples]
+    assert i == 1 and np.allclose(d, brute)
+    assert candidate_seeds(7, 1) == [7] and candidate_seeds(7, 3)[:2] == candidate_seeds(7, 2)
+    assert len(set(candidate_seeds(7, 4) + candidate_seeds(8, 4))) == 8
+    model, norm, cfg = loaded
+    fr = seq[1][0]
+    partial = fr.points[~region_mask(fr.points, fr.joints, "hem")]
+    cands = draw_candidates(model, norm, cfg, fr.joints, 32, [4, 5], 3, steps=2)
+    assert cands.points.shape == (2, 3, 32, 3) and cands.seeds[1, 0] == 5
+    plain = sample_clouds(model, norm, cfg, fr.joints, 1, 32, steps=2, seeds=[5]).points[0]
+    np.testing.assert_allclose(cands.points[1, 0], plain, atol=1e-5)  # candidate 0: the seed's plain sample
+    kw = {"num": 2, "steps": 2, "seeds": [4, 5], "candidates": 3}
+    comp = complete(model, norm, cfg, partial, fr.joints, 32, **kw)
+    assert comp.chosen.tolist() == [choose_candidate(cands.points[b], partial)[0] for b in range(2)]
+    again = complete(model, norm, cfg, partial, fr.joints, 32, samples=cands, **kw)  # drawn once, reused
+    np.testing.assert_array_equal(again.points, comp.points)
+    with pytest.raises(ValueError, match="samples must be draw_candidates"):
+        complete(model, norm, cfg, partial, fr.joints, 32, samples=cands, **(kw | {"seeds": [4, 6]}))
+
+
+def _ellipsoid(n, rng, axes=(0.3, 0.2, 0.5)):
+    d = rng.normal(size=(n, 3))
+    u = d / np.linalg.norm(d, axis=1, keepdims=True)
+    p = u * np.asarray(axes)
+    g = p / np.asarray(axes) ** 2  # gradient of the implicit function: the outward normal
+    return p, g / np.linalg.norm(g, axis=1, keepdims=True)
+
+
+def test_hole_test_finds_the_removed_cap_not_points_off_the_surface():
+    rng = np.random.default_rng(2)
+    surf, nrm = _ellipsoid(30000, rng)
+    keep = surf[:, 2] < 0.3  # the cap z > 0.3 is removed from the scan
+    scan, scan_n = surf[keep], nrm[keep]
+    pts, pn = _ellipsoid(1000, rng)
+    low = pts[:, 2] < 0.0
+    sample = np.where(low[:, None], pts + 0.08 * pn, pts)  # the lower half 8 cm too wide: off-surface, not a hole
+    cap = pts[:, 2] > 0.38
+    dist_only = hole_points(sample, scan, radius=0.03)[0]
+    assert set(np.flatnonzero(low)) <= set(dist_only.tolist())  # distance alone takes the wide half as a hole
+    for normals in (scan_n, None):  # the scan's normals, or estimated from its points
+        idx, cov = hole_points(sample, scan, radius=0.03, normals=normals, max_cos=0.8)
+        assert set(np.flatnonzero(cap)) <= set(idx.tolist())  # where the cap was
+        assert not low[idx].any() and (pts[idx, 2] > 0.25).all()  # not where the sample is merely off
+        assert cov == pytest.approx(1 - len(idx) / len(sample))
+    est = estimate_normals(scan, at=np.arange(0, len(scan), 97))
+    assert np.abs((est * scan_n[::97]).sum(1)).min() > 0.95  # unoriented PCA normals match the true ones
+
+
+def test_score_hole_against_brute_force():
+    rng = np.random.default_rng(3)
+    scan = rng.normal(size=(400, 3)).astype(np.float32)
+    inside = scan[:, 0] > 0.8
+    gen = scan[inside][::2] + rng.normal(scale=0.05, size=(int(inside.sum() + 1) // 2, 3)).astype(np.float32)
+    gen = np.concatenate([gen, [[5.0, 0.0, 0.0]]]).astype(np.float32)  # one point far off
+
+    def dist(a, b):
+        return np.sqrt(((a[:, None].astype(np.float64) - b[None]) ** 2).sum(-1)).min(1)
+
+    s = score_hole(gen, scan, inside)
+    assert s["s2m_cm"] == pytest.approx(100 * dist(scan[inside], gen).mean(), rel=1e-5)
+    assert s["m2s_cm"] == pytest.approx(100 * dist(gen, scan).mean(), rel=1e-5)
+    assert s["far_share"] == pytest.approx((dist(gen, scan) > 0.05).mean()) and s["num"] == len(gen)
+    empty = score_hole(np.zeros((0, 3)), scan, inside)  # nothing generated: the hole stays open
+    assert empty["s2m_cm"] == pytest.approx(100 * dist(scan[inside], scan[~inside]).mean(), rel=1e-5)
+    assert np.isnan(empty["m2s_cm"]) and empty["num"] == 0
+    with pytest.raises(ValueError, match="the region holds no scan point"):
+        score_hole(gen, scan, np.zeros(len(scan), bool))
 
 
 # ----------------------------------------------------------------------------------- editing
@@ -257,13 +400,15 @@ def test_cli_complete_edit_animate_write_their_outputs(run, seq, tmp_path, capsy
     common = ["--ckpt", str(run), "--steps", "2", "--device", "cpu"]
     out = tmp_path / "c"
     argv = ["complete", *common, "--partial", str(tmp_path / "partial.ply"), "--joints", str(tmp_path / "j0.npy"),
-            "--points", "32", "--num", "2", "--coverage", "0.75", "--out", str(out)]  # fmt: skip
+            "--points", "32", "--num", "2", "--coverage", "0.75", "--candidates", "2", "--resample", "2", "--jump", "1",
+            "--out", str(out)]  # fmt: skip
     assert main(argv) == 0, capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["completed_000.ply", "completed_001.ply", "completion.json",
                                                      "completion.png", "known.npy"]  # fmt: skip
     known = np.load(out / "known.npy")
     assert known.shape == (2, 32) and known.sum() == 48
-    assert json.loads((out / "completion.json").read_text())["num_known"] == 24
+    info = json.loads((out / "completion.json").read_text())
+    assert info["num_known"] == 24 and info["resample"] == 2 and len(info["visible_distance_cm"][1]) == 2
     assert read_ply(out / "completed_001.ply").points.shape == (32, 3)
     out = tmp_path / "e"
     assert main(["edit", *common, "--source", str(tmp_path / "src.ply"), "--joints", str(tmp_path / "j1.npy"),
@@ -315,6 +460,9 @@ def test_cli_bad_inputs_one_line_and_nothing_written(run, seq, tmp_path, capsys)
         (["complete", "--partial", str(tmp_path / "mm.ply"), "--joints", j], "millimetres"),
         (["complete", "--partial", str(tmp_path / "far.ply"), "--joints", j], "m from the pose's root joint"),
         (["complete", "--partial", str(tmp_path / "ok.ply"), "--joints", j, "--coverage", "2"], "--coverage must be"),
+        (["complete", "--partial", str(tmp_path / "ok.ply"), "--joints", j, "--candidates", "0"], "--candidates must"),
+        (["complete", "--partial", str(tmp_path / "ok.ply"), "--joints", j, "--jump", "0"], "--jump must be >= 1"),
+        (["complete", "--partial", str(tmp_path / "ok.ply"), "--joints", j, "--t", "1001"], "--t must be in [0, 1000]"),
         (["edit", "--source", str(tmp_path / "ok.ply"), "--joints", j, "--mode", "region"], "needs --source-joints"),
         (["edit", "--source", str(tmp_path / "ok.ply"), "--joints", j, "--t", "0"], "--t must be in [1, 1000]"),
         (["edit", "--source", str(tmp_path / "ok.ply"), "--joints", j, "--points", "5000"], "fewer than the 5000"),

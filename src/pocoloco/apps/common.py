@@ -29,6 +29,7 @@ import torch
 from pocoloco.data.dataset import Normalisation
 from pocoloco.data.format import read_frame
 from pocoloco.data.published import read_ply
+from pocoloco.diffusion.sampler_base import SamplerRun
 from pocoloco.diffusion.samplers import (
     SAMPLER_STEPS,
     PerSampleRNG,
@@ -79,6 +80,8 @@ def denoise_from(
     seeds: Sequence[int] = (0,),
     known: tuple[np.ndarray, np.ndarray] | None = None,
     num_points: int | None = None,
+    resample: int = 1,
+    jump: int = 1,
 ) -> np.ndarray:
     """Run the reverse chain from step ``t`` under one pose, in the *normalised* frame.
 
@@ -95,6 +98,11 @@ def denoise_from(
         known: (mask (B, N) bool, x0_known (B, N, C) normalised) points kept (RePaint without
             resampling: known points are replaced by q(x_s | x0_known) after every step).
         num_points: N when neither x0 nor known is given.
+        resample, jump: RePaint's resampling (Lugmayr et al. 2022, Algorithm 1 and its jump
+            schedule): after every ``jump`` steps of the chain, go back up over them (x_a ~
+            q(x_a | x_b) = N(sqrt(abar_a / abar_b) x_b, (1 - abar_a / abar_b) I)) and redo them,
+            ``resample`` passes in all (1: off, the default). With resample > 1 every step is an
+            ancestral DDPM step whatever ``sampler`` is; denoiser calls = steps x resample.
     Returns:
         (B, N, C) float32 normalised clouds (``normalisation.denormalise(out[..., :3], root)``).
     """
@@ -102,6 +110,8 @@ def denoise_from(
     den = config.denoiser
     C, J, T = int(den.point_channels), int(den.num_joints), int(config.num_timesteps)
     timesteps = chain_timesteps(t, T, sampler, steps)
+    if resample < 1 or jump < 1:
+        raise ValueError(f"resample and jump must be >= 1, got {resample} and {jump}")
     seeds = [int(s) for s in seeds]
     if x0 is not None:
         x0 = np.asarray(x0, np.float32)
@@ -133,11 +143,48 @@ def denoise_from(
     was_training = model.training
     model.eval()
     try:
-        out = sample(sampler, model, schedule, noise, cond, timesteps=timesteps, rng=rng,
-                     prediction_type=config.prediction_type, **kw)  # fmt: skip
+        if resample > 1:
+            out = repaint_resampling(model, schedule, noise, cond, timesteps, rng, config.prediction_type,
+                                     kw.get("known"), resample, jump)  # fmt: skip
+        else:
+            out = sample(sampler, model, schedule, noise, cond, timesteps=timesteps, rng=rng,
+                         prediction_type=config.prediction_type, **kw)  # fmt: skip
     finally:
         model.train(was_training)
     return out.float().cpu().numpy()
+
+
+def repaint_resampling(model: torch.nn.Module, schedule: NoiseSchedule, noise: torch.Tensor, cond: Any,
+                       timesteps: list[int], rng: PerSampleRNG | None, prediction_type: str | None,
+                       known: tuple[torch.Tensor, torch.Tensor] | None, resample: int,
+                       jump: int) -> torch.Tensor:  # fmt: skip
+    """Ancestral DDPM over ``timesteps`` (descending) with RePaint's resampling (Lugmayr et al.
+    2022, Algorithm 1): the chain is cut into segments of ``jump`` steps; each segment is run,
+    then the state is diffused back to the segment's start with q(x_a | x_b) (all points; the
+    known ones are then re-imposed at a) and the segment is run again, ``resample`` passes in all.
+    noise: (B, N, C) the state at ``timesteps[0]``; returns (B, N, C) in noise.dtype.
+    Denoiser calls: ``len(timesteps) * resample``.
+    """
+
+    run = SamplerRun(model, schedule, noise, cond, prediction_type, list(timesteps), None, rng, known, None)
+    x = run.start(noise)
+    S = len(run.timesteps)
+    for a in range(0, S, jump):
+        b = min(a + jump, S)
+        for rep in range(resample):
+            for i in range(a, b):  # ancestral steps, as sample_ddpm
+                ab_t, ab_s = run.ab[i], run.ab_prev[i]
+                _, x0 = run.model_eps_x0(x, i)
+                beta = 1.0 - ab_t / ab_s
+                x = (ab_s**0.5 * beta / (1.0 - ab_t)) * x0 + ((1.0 - beta) ** 0.5 * (1.0 - ab_s) / (1.0 - ab_t)) * x
+                if ab_s < 1.0:
+                    x = x + (beta * (1.0 - ab_s) / (1.0 - ab_t)) ** 0.5 * run.randn_like(x)
+                x = run.impose_known(x, ab_s)
+            if rep < resample - 1:  # jump back up from the segment's end b to its start a
+                ratio = run.ab[a] / run.ab_prev[b - 1]
+                x = ratio**0.5 * x + (1.0 - ratio) ** 0.5 * run.randn_like(x)
+                x = run.impose_known(x, run.ab[a])
+    return x.to(run.dtype)
 
 
 def to_metres(normalisation: Normalisation, x: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:

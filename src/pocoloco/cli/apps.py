@@ -18,7 +18,14 @@ from pocoloco.apps.animation import (
     load_motion,
 )
 from pocoloco.apps.common import read_cloud, save_npy, subset, write_folder
-from pocoloco.apps.completion import DEFAULT_RADIUS_M, DEFAULT_SAMPLE_T, INITS, complete
+from pocoloco.apps.completion import (
+    DEFAULT_CANDIDATES,
+    DEFAULT_MAX_COS,
+    DEFAULT_RADIUS_M,
+    DEFAULT_SAMPLE_T,
+    INITS,
+    complete,
+)
 from pocoloco.apps.editing import DEFAULT_THRESHOLD_M, MODES, edit
 from pocoloco.apps.fitting import fit_outfit
 from pocoloco.apps.meshing import mesh_ply, refine_body_ply
@@ -53,13 +60,25 @@ def add_complete_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num", type=int, default=1, help="K completions to draw (default 1)")
     parser.add_argument("--coverage", type=float, help="share of the N points taken from the scan (default: estimated)")
     parser.add_argument("--coverage-radius", type=float, default=DEFAULT_RADIUS_M,
-                        help=f"sample points within this distance (m) of the scan count as covered "
-                             f"(default {DEFAULT_RADIUS_M})")  # fmt: skip
+                        help=f"sample points closer than this (m) to the scan are on the scanned surface, not in a "
+                             f"hole (default {DEFAULT_RADIUS_M})")  # fmt: skip
+    parser.add_argument("--max-normal-cos", type=float, default=DEFAULT_MAX_COS,
+                        help=f"a sample point beyond the radius is a hole point only if its offset from the nearest "
+                             f"scan point makes |cos| below this with that point's normal (off-surface points lie "
+                             f"along it); 1 = distance only (default {DEFAULT_MAX_COS}; the scan's normals, or "
+                             f"estimated from its points)")  # fmt: skip
+    parser.add_argument("--candidates", type=int, default=DEFAULT_CANDIDATES,
+                        help=f"init sample: draw K full samples and keep the one closest to the visible scan "
+                             f"(K x steps network calls; default {DEFAULT_CANDIDATES})")  # fmt: skip
     parser.add_argument("--init", default="sample", choices=INITS,
-                        help="generated points start from a full sample's points in the hole, renoised to --t "
+                        help="generated points start from the chosen sample's hole points, renoised to --t "
                              "(sample, default) or from pure noise (noise: plain RePaint)")  # fmt: skip
-    parser.add_argument("--t", type=int, help=f"init sample: start step of the harmonising chain in [1, T] "
-                                              f"(default {DEFAULT_SAMPLE_T})")  # fmt: skip
+    parser.add_argument("--t", type=int, help=f"init sample: start step of the harmonising chain in [0, T], 0 = "
+                                              f"none (default {DEFAULT_SAMPLE_T})")  # fmt: skip
+    parser.add_argument("--resample", type=int, default=1,
+                        help="RePaint resampling: run each --jump steps of the chain this many times (ancestral "
+                             "DDPM steps; network calls x this; default 1 = off)")  # fmt: skip
+    parser.add_argument("--jump", type=int, default=10, help="RePaint jump length in chain steps (default 10)")
     add_app_arguments(parser, "output folder (completed_000.ply ..., known.npy, completion.png, completion.json)")
 
 
@@ -74,6 +93,11 @@ def cmd_complete(args: argparse.Namespace) -> None:
         raise ValueError(f"--coverage must be in [0, 1], got {args.coverage}")
     if not args.coverage_radius > 0:
         raise ValueError(f"--coverage-radius must be > 0, got {args.coverage_radius}")
+    if not 0.0 < args.max_normal_cos <= 1.0:
+        raise ValueError(f"--max-normal-cos must be in (0, 1], got {args.max_normal_cos}")
+    for name in ("candidates", "resample", "jump"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
     partial, normals = read_cloud(args.partial)
     method = load_method_from_args(args, expect="pocoloco")
     outfit = pick_outfit(method, args.outfit, args.joints)
@@ -81,22 +105,30 @@ def cmd_complete(args: argparse.Namespace) -> None:
     normalisation, config, ckpt, step = method.normalisation, method.config, method.path, method.step
     joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, config.num_timesteps)
+    if args.t is not None and not 0 <= args.t <= config.num_timesteps:
+        raise ValueError(f"--t must be in [0, {config.num_timesteps}] (0: no harmonising chain), got {args.t}")
     seeds = [args.seed + k for k in range(args.num)]
     t0 = time.perf_counter()
     comp = complete(model, normalisation, config, partial, joints, args.points, partial_normals=normals,
                     num=args.num, sampler=args.sampler, steps=args.steps, seeds=seeds, coverage=args.coverage,
-                    radius=args.coverage_radius, init=args.init, t=args.t,
+                    radius=args.coverage_radius, max_cos=args.max_normal_cos, candidates=args.candidates,
+                    init=args.init, t=args.t, resample=args.resample, jump=args.jump,
                     name=os.fspath(args.partial))  # fmt: skip
     seconds = time.perf_counter() - t0
     settings = {
         "checkpoint": str(ckpt), "step": step, "partial": os.fspath(args.partial), "partial_points": len(partial),
         "joints": os.fspath(args.joints), "points": args.points, "num": args.num, "sampler": args.sampler,
         "steps": args.steps, "seeds": seeds, "coverage": comp.coverage, "coverage_estimated": comp.coverage_estimated,
-        "coverage_radius_m": args.coverage_radius, "num_known": comp.num_known,
-        "num_generated": args.points - comp.num_known, "init": comp.init, "t": comp.t,
-        "method": ("sample-initialised inpainting (hole points of a full sample renoised to t, RePaint without "
-                   "resampling)" if comp.init == "sample" else "RePaint inpainting without resampling"),
-        "known_flags": "known.npy: (K, N) bool, True = copied from the scan (the first num_known points)",
+        "coverage_radius_m": args.coverage_radius, "max_normal_cos": args.max_normal_cos,
+        "normals_estimated": comp.normals_estimated, "num_known": comp.num_known,
+        "num_generated": args.points - comp.num_known, "num_known_per_output": comp.known.sum(1).tolist(),
+        "init": comp.init, "t": comp.t,
+        "resample": args.resample, "jump": args.jump, "candidates": args.candidates,
+        "chosen_candidate": comp.chosen.tolist(), "visible_distance_cm": comp.visible_cm.tolist(),
+        "method": ("best-of-K sample-initialised inpainting (the hole points of the full sample closest to the "
+                   "visible scan, renoised to t and inpainted with the scan kept)" if comp.init == "sample"
+                   else "RePaint inpainting from noise"),
+        "known_flags": "known.npy: (K, N) bool, True = copied from the scan (the first num_known_per_output[k])",
         "seconds_total": seconds,
     }  # fmt: skip
 
