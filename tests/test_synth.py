@@ -264,3 +264,30 @@ def test_medium_preset_covers_garments_bodies_and_motions():
     assert config_of_card(old) == dataclasses.replace(synth_preset("small"), **FIELDS_ADDED_LATER)
     with pytest.raises(ValueError, match="generation_config"):
         config_of_card({"no_such_setting": 1})
+
+
+def test_frames_do_not_depend_on_the_callers_torch_threads(tmp_path):
+    """Bodies are posed under one torch thread (utils.seeding.torch_threads), so a generating
+    process's own thread count cannot change a frame's bytes (it did: float reductions split by
+    thread count); the caller's setting is restored."""
+    import torch
+
+    from pocoloco.data.synth import run_sequence, write_subject
+
+    tight = next(s for s in synth_preset("tiny").subjects if s.garment == "tight")
+    config = dataclasses.replace(synth_preset("tiny"), subjects=(tight,))
+    job = list_jobs(config)[0]
+    before = torch.get_num_threads()
+    digests = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            out = tmp_path / f"t{threads}"
+            prepare_output(config, out)
+            write_subject(config, out, tight)
+            run_sequence(config, out, job)
+            assert torch.get_num_threads() == threads
+            digests.append(sorted(_digest(p) for p in out.rglob("*.npz")))
+    finally:
+        torch.set_num_threads(before)
+    assert digests[0] == digests[1]

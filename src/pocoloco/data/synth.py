@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..utils.atomic import output_folder, save_npz_atomic
+from ..utils.seeding import torch_threads
 from .capture import LABEL_GARMENT, LABEL_NAMES
 from .cloth_stats import merge_cloth_stats, summarise_cloth_stats
 from .config import SubjectSpec, SynthConfig, config_of_card
@@ -294,7 +295,8 @@ def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
     path = DatasetLayout(out).subject_path(subject.name)
     if path.exists():
         return
-    body, garment = _subject_assets(subject, config)
+    with torch_threads(1):  # as run_sequence: the same template bytes from any process
+        body, garment = _subject_assets(subject, config)
     path.parent.mkdir(parents=True, exist_ok=True)
     format_write_subject(
         path,
@@ -312,7 +314,13 @@ def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
 
 
 def run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Callable[[int], None] | None = None) -> dict:
-    """Generate (or finish) one sequence; returns its ``sequence.json`` record."""
+    """Generate (or finish) one sequence; returns its ``sequence.json`` record (bodies posed with
+    one torch thread whatever the caller's setting: the same bytes from any process)."""
+    with torch_threads(1):
+        return _run_sequence(config, out, job, progress)
+
+
+def _run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Callable[[int], None] | None) -> dict:
     from .capture import LABEL_BODY, CaptureMesh, CaptureSettings, capture_frame
     from .motion import generate_motion, rest_to_motion
 
