@@ -182,13 +182,13 @@ SYNTH_PRESETS: dict[str, SynthConfig] = {
     ),
     # minutes: the default demo dataset and the one shipped models train on
     "small": SynthConfig(),
-    # <= 2 h on 2 cores: 14 subjects, all motion kinds, 960 train + 240 test + 80 held-out frames
+    # <= 2 h on 2 cores: 14 subjects, all motion kinds, 960 train + 320 test + 80 held-out frames
     # each in 40-frame sequences (many short motions cover the pose space); long skirts and dresses
     # lose up to 15 % of their frames to rejection in crouches and sit-like poses, >= 800 + 200 stay
     "medium": SynthConfig(
         subjects=MEDIUM_SUBJECTS,
         train_sequences=24,
-        test_sequences=6,
+        test_sequences=8,
         heldout_sequences=2,
         frames_per_sequence=40,
         motion_kinds=ALL_MOTION_KINDS,
