@@ -173,13 +173,7 @@ def repaint_resampling(model: torch.nn.Module, schedule: NoiseSchedule, noise: t
         b = min(a + jump, S)
         for rep in range(resample):
             for i in range(a, b):  # ancestral steps, as sample_ddpm
-                ab_t, ab_s = run.ab[i], run.ab_prev[i]
-                _, x0 = run.model_eps_x0(x, i)
-                beta = 1.0 - ab_t / ab_s
-                x = (ab_s**0.5 * beta / (1.0 - ab_t)) * x0 + ((1.0 - beta) ** 0.5 * (1.0 - ab_s) / (1.0 - ab_t)) * x
-                if ab_s < 1.0:
-                    x = x + (beta * (1.0 - ab_s) / (1.0 - ab_t)) ** 0.5 * run.randn_like(x)
-                x = run.impose_known(x, ab_s)
+                x, _ = run.ancestral_step(x, i)
             if rep < resample - 1:  # jump back up from the segment's end b to its start a
                 ratio = run.ab[a] / run.ab_prev[b - 1]
                 x = ratio**0.5 * x + (1.0 - ratio) ** 0.5 * run.randn_like(x)

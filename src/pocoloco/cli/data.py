@@ -116,7 +116,8 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
             return synthesize_shard(config, out, *shard, workers=workers, progress=progress)
         return synthesize(config, out, workers=workers, progress=progress)
 
-    result = _with_progress(con, run, "shards done" if launch else "frames")
+    with progress_bar("shards done" if launch else "frames", transient=False) as update:
+        result = run(update)
     if shard:
         left = len(missing_jobs(config, out))
         frames = sum(r["num_stored"] for r in result)
@@ -129,30 +130,14 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
     print_card(result, out)
 
 
-def _with_progress(con, run, what: str = "frames"):
-    """run(progress) under a rich progress bar counting ``what``; its result."""
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), TimeRemainingColumn(), console=con) as bar:  # fmt: skip
-        task = bar.add_task(what, total=None)
-        return run(lambda done, total: bar.update(task, completed=done, total=total))
-
-
 def cmd_data_heldout(args: argparse.Namespace) -> None:
     # lazy: the synth extra (newton, warp, open3d) is only needed to generate data
     from pocoloco.data.synth import add_heldout
 
     con = console()
     con.print(f"[bold]pocoloco data heldout[/] {args.path}: {args.sequences} sequence(s) per subject")
-    card = _with_progress(con, lambda progress: add_heldout(args.path, args.sequences, args.workers, progress))
+    with progress_bar("frames", transient=False) as update:
+        card = add_heldout(args.path, args.sequences, args.workers, update)
     print_card(card, Path(args.path))
 
 

@@ -302,6 +302,18 @@ class SamplerRun:
             noisy = ab**0.5 * self.x0_known + (1.0 - ab) ** 0.5 * eps
         return torch.where(self.mask, noisy, x)
 
+    def ancestral_step(self, x: torch.Tensor, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """One ancestral DDPM step from timesteps[i] to the next (Ho et al. 2020, eq. 6-7: the
+        posterior mean from x0_hat, plus its variance's noise unless the next step is x0), known
+        points re-imposed; returns (x_s, x0_hat)."""
+        ab_t, ab_s = self.ab[i], self.ab_prev[i]
+        _, x0 = self.model_eps_x0(x, i)
+        b = 1.0 - ab_t / ab_s
+        x = (ab_s**0.5 * b / (1.0 - ab_t)) * x0 + ((1.0 - b) ** 0.5 * (1.0 - ab_s) / (1.0 - ab_t)) * x
+        if ab_s < 1.0:
+            x = x + (b * (1.0 - ab_s) / (1.0 - ab_t)) ** 0.5 * self.randn_like(x)
+        return self.impose_known(x, ab_s), x0
+
     def keep_known(self, x: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
         """x with the known points taken from ``ref`` (a state they were already imposed on)."""
         return x if self.mask is None else torch.where(self.mask, ref, x)

@@ -127,13 +127,7 @@ def sample_ddpm(
                resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
     x = run.start(noise)
     for i in range(len(run.timesteps)):
-        ab_t, ab_s = run.ab[i], run.ab_prev[i]
-        _, x0 = run.model_eps_x0(x, i)
-        b = 1.0 - ab_t / ab_s
-        x = (ab_s**0.5 * b / (1.0 - ab_t)) * x0 + ((1.0 - b) ** 0.5 * (1.0 - ab_s) / (1.0 - ab_t)) * x
-        if ab_s < 1.0:
-            x = x + (b * (1.0 - ab_s) / (1.0 - ab_t)) ** 0.5 * run.randn_like(x)
-        x = run.impose_known(x, ab_s)
+        x, x0 = run.ancestral_step(x, i)
         run.report(i, x, x0)
     return x.to(run.dtype)
 

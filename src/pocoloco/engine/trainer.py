@@ -61,6 +61,7 @@ from pocoloco.utils.atomic import write_json_atomic
 from pocoloco.viz.render import plot_curves
 
 __all__ = [
+    "frozen",
     "EMA",
     "Logger",
     "ProgressBar",
@@ -73,6 +74,23 @@ __all__ = [
     "lr_at",
     "train",
 ]
+
+
+@contextlib.contextmanager
+def frozen(model: nn.Module):
+    """``model`` in eval mode with every parameter's ``requires_grad`` off for the block (fitting a
+    new outfit code or geometric features against a frozen network); both restored after."""
+    was_training = model.training
+    flags = {n: p.requires_grad for n, p in model.named_parameters()}
+    model.eval()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    try:
+        yield model
+    finally:
+        model.train(was_training)
+        for n, p in model.named_parameters():
+            p.requires_grad_(flags[n])
 
 
 # ---------------------------------------------------------------------------- pure schedules

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from pocoloco.engine.trainer import frozen
 from pocoloco.data.dataset import Normalisation
 from pocoloco.diffusion import NoiseSchedule, diffusion_loss
 from pocoloco.models.conditioning import PoseCondition
@@ -60,13 +61,8 @@ def fit_outfit_code(model: nn.Module, normalisation: Normalisation, config, scan
     code = nn.Parameter(weight.detach().mean(0).clone())  # (D,)
     opt = torch.optim.Adam([code], lr=lr)
     shape_t = None if shape is None else torch.as_tensor(np.asarray(shape, np.float32), dtype=dtype, device=device)
-    was_training = model.training
-    flags = {n: p.requires_grad for n, p in model.named_parameters()}
     fit = CodeFit(code.data)
-    try:
-        model.eval()
-        for p in model.parameters():
-            p.requires_grad_(False)
+    with frozen(model):
         for step in range(steps):
             xs, js = [], []
             for b in range(batch_size):
@@ -85,9 +81,5 @@ def fit_outfit_code(model: nn.Module, normalisation: Normalisation, config, scan
             fit.losses.append(float(loss.detach()))
             if progress is not None:
                 progress(len(fit.losses), steps, fit.losses[-1])
-    finally:
-        model.train(was_training)
-        for n, p in model.named_parameters():
-            p.requires_grad_(flags[n])
     fit.features = code.detach().clone()
     return fit

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from pocoloco.engine.trainer import frozen
 from pocoloco.methods.pop.losses import pop_losses
 from pocoloco.models.pop import POP, POPBatch
 
@@ -46,18 +47,13 @@ def fit_unseen_outfit(model: POP, scan_points, scan_normals, pose_vertices, body
     ny = None if scan_normals is None else as_t(scan_normals)
     batch = POPBatch(as_t(pose_vertices)[None], as_t(body_vertices)[None], as_t(vtransf)[None],
                      torch.zeros(1, dtype=torch.long), y[None], None if ny is None else ny[None])  # fmt: skip
-    was_training = model.training
-    flags = {n: p.requires_grad for n, p in model.named_parameters()}
     start = model.geom.detach().mean(0, keepdim=True) if init is None else init.detach().to(model.geom)
     if tuple(start.shape) != (1, *model.geom.shape[1:]):
         raise ValueError(f"init must have shape {(1, *model.geom.shape[1:])}, got {tuple(start.shape)}")
     G = nn.Parameter(start.clone())
     opt = torch.optim.Adam([G], lr=model.config.lr_features if lr is None else lr)
     fit = POPFit(G.data)
-    try:
-        model.eval()
-        for p in model.parameters():
-            p.requires_grad_(False)
+    with frozen(model):
         for _ in range(steps):
             opt.zero_grad(set_to_none=True)
             out = model(batch, geom=G)
@@ -67,9 +63,5 @@ def fit_unseen_outfit(model: POP, scan_points, scan_normals, pose_vertices, body
             fit.losses.append(float(loss.total.detach()))
             if progress is not None:
                 progress(len(fit.losses), steps, fit.losses[-1])
-    finally:
-        model.train(was_training)
-        for n, p in model.named_parameters():
-            p.requires_grad_(flags[n])
     fit.features = G.detach().clone()
     return fit
