@@ -296,14 +296,25 @@ def visibility(
     cos = dot / np.sqrt(np.maximum(dist2, 1e-24))
     score = np.where(np.asarray(sides)[:, None] == 0, np.abs(cos), cos)
     score[score <= min_cos] = -np.inf  # cameras that cannot see the point
-    order = np.argsort(-score, axis=1)  # best-facing first: most visible points cost one ray
     facing = np.isfinite(score).sum(1)
     active = np.flatnonzero(facing > 0)  # points not yet seen that may still be seen
+    # best-facing first: most visible points cost one ray, so the first try takes each row's
+    # best camera (argmax) and only the rows still unseen after it are sorted (rank k of
+    # ``order`` belongs to row ``rows[k]``); the same cameras in the same order as a full sort
+    first = np.argmax(score, axis=1)
+    order = rows = None
     for k in range(cam.shape[0] if max_tries is None else min(max_tries, cam.shape[0])):
         active = active[facing[active] > k]
         if active.size == 0:
             break
-        cam_k = order[active, k]
+        if k == 0:
+            cam_k = first[active]
+        else:
+            if order is None:  # the still-unseen rows' cameras, best-facing first
+                rows = np.full(n, -1, dtype=np.int64)
+                rows[active] = np.arange(active.size)
+                order = np.argsort(-score[active], axis=1)
+            cam_k = order[rows[active], k]
         origin = cam[cam_k]  # (M, 3)
         d = p[active] - origin
         length = np.sqrt(np.einsum("ij,ij->i", d, d))

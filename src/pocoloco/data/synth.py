@@ -461,7 +461,7 @@ def _simulate_cached(body, garment, posed, seq_dir: Path, start: int, settings=N
     settled = _SETTLED.get(key)
     if settled is not None and not np.array_equal(settled.first_frame, posed.vertices[0]):
         settled = None
-    seq = simulate_garment(body, garment, posed, settings, settled=settled)
+    seq = simulate_garment(body, garment, posed, settings, settled=settled, judge_from=start)
     if subject_key is not None:
         _SETTLED[key] = seq.settled
     stats = [dataclasses.asdict(s) for s in seq.stats[start:]]
@@ -540,8 +540,6 @@ def synthesize_shard(
     check_shard(shard, num_shards)
     out = Path(out)
     prepare_output(config, out)
-    for subject in config.subjects:
-        write_subject(config, out, subject)
     indices = shard_assignment(config, num_shards)[shard - 1]
     jobs = list_jobs(config)
     total = len(indices) * config.frames_per_sequence
@@ -553,10 +551,10 @@ def synthesize_shard(
         if progress:
             progress(done, total)
 
-    records = []
     if workers <= 1:
-        for i in indices:
-            records.append(run_sequence(config, out, jobs[i], progress=tick))
+        for subject in config.subjects:
+            write_subject(config, out, subject)
+        records = [run_sequence(config, out, jobs[i], progress=tick) for i in indices]
     else:
         import multiprocessing as mp
 
@@ -566,6 +564,8 @@ def synthesize_shard(
             max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(), queue)
         ) as pool:
             futures = [pool.submit(_worker, config.to_dict(), str(out), i) for i in indices]
+            for subject in config.subjects:  # while the workers start (they do not read these files)
+                write_subject(config, out, subject)
             pending = set(futures)
             while pending:
                 while not queue.empty():
