@@ -259,9 +259,8 @@ _SETTLED: dict = {}
 
 
 def _subject_key(subject: SubjectSpec, config: SynthConfig) -> tuple:
-    return (subject.name, json.dumps(subject.phenotype, sort_keys=True), subject.garment,
-            json.dumps(subject.garment_params, sort_keys=True), config.garment_resolution,
-            config.garment_tessellation)  # fmt: skip
+    return (subject.name, json.dumps(subject.phenotype, sort_keys=True), subject.garment, json.dumps(
+        subject.garment_params, sort_keys=True), config.garment_resolution, config.garment_tessellation)  # fmt: skip
 
 
 def _subject_assets(subject: SubjectSpec, config: SynthConfig):
@@ -335,6 +334,7 @@ def _run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Ca
         return record
     seq_dir.mkdir(parents=True, exist_ok=True)
     body, garment = _subject_assets(job.subject, config)
+    write_subject(config, out, job.subject)  # (if not there yet)
     seed = job_seed(config, job)
     timings = {"motion": 0.0, "simulation": 0.0, "capture": 0.0, "write": 0.0}
 
@@ -485,13 +485,19 @@ _PROGRESS_QUEUE = None  # set in each worker process by _init_worker
 
 
 def _init_worker(parent_pid: int, queue) -> None:
-    """Worker initializer: keep the progress queue, and end this worker as soon
-    as the main process is gone (killed with SIGKILL, say) instead of
-    simulating on as an orphan that would race a resumed run for its files."""
+    """Worker initializer: keep the progress queue, end this worker as soon as the main
+    process is gone (killed with SIGKILL, say) instead of simulating on as an orphan that
+    would race a resumed run for its files, and skip the interpreter's teardown when the
+    pool retires it (multiprocessing has flushed its queues by then): the module finalisers
+    of newton, torch and anny take ~2.5 s, which the pool's shutdown would wait for."""
+    import atexit
+    import sys
     import threading
 
     global _PROGRESS_QUEUE
     _PROGRESS_QUEUE = queue
+    # registered first, so it runs after every other exit handler
+    atexit.register(lambda: (sys.stdout.flush(), sys.stderr.flush(), os._exit(0)))
 
     def watch() -> None:
         while os.getppid() == parent_pid:
@@ -552,8 +558,6 @@ def synthesize_shard(
             progress(done, total)
 
     if workers <= 1:
-        for subject in config.subjects:
-            write_subject(config, out, subject)
         records = [run_sequence(config, out, jobs[i], progress=tick) for i in indices]
     else:
         import multiprocessing as mp
@@ -564,8 +568,6 @@ def synthesize_shard(
             max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(), queue)
         ) as pool:
             futures = [pool.submit(_worker, config.to_dict(), str(out), i) for i in indices]
-            for subject in config.subjects:  # while the workers start (they do not read these files)
-                write_subject(config, out, subject)
             pending = set(futures)
             while pending:
                 while not queue.empty():
@@ -578,6 +580,8 @@ def synthesize_shard(
             records = [f.result() for f in futures]  # in job order, whichever finished first
         while not queue.empty():
             tick(queue.get())
+    for subject in config.subjects:  # each sequence writes its own subject's file; the others here
+        write_subject(config, out, subject)
     return records
 
 
@@ -619,20 +623,13 @@ def finalize_card(config: SynthConfig, out: Path, records: list[dict], wall_seco
     for subject in config.subjects:
         mine = [r for r in records if r["subject"] == subject.name]
         stored = [r for r in mine if r["num_stored"]]
-        share = (
-            float(np.average([r["loose_share_percent"] for r in stored], weights=[r["num_stored"] for r in stored]))
-            if stored
-            else 0.0
-        )
+        share = float(np.average([r["loose_share_percent"] for r in stored],
+                                 weights=[r["num_stored"] for r in stored])) if stored else 0.0  # fmt: skip
         card["loose_share"][subject.name] = share / 100.0
         pens = [r["penetration"] for r in mine if r["penetration"]]
         card["subjects"][subject.name].update(
             loose_share_percent=share,
-            penetration=(
-                merge_cloth_stats(pens)
-                if pens
-                else None
-            ),
+            penetration=merge_cloth_stats(pens) if pens else None,
             rejected_reasons=sorted({f["reason"] for r in mine for f in r["rejected_frames"]}),
         )
     seconds = {k: sum(r["seconds"][k] for r in records) for k in ("motion", "simulation", "capture", "write")}
