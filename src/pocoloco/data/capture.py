@@ -301,6 +301,7 @@ def visibility(
     # best-facing first: most visible points cost one ray, so the first try takes each row's
     # best camera (argmax) and only the rows still unseen after it are sorted (rank k of
     # ``order`` belongs to row ``rows[k]``); the same cameras in the same order as a full sort
+    # (but for a tie of two best cosines, where argmax takes the lower camera index)
     first = np.argmax(score, axis=1)
     order = rows = None
     for k in range(cam.shape[0] if max_tries is None else min(max_tries, cam.shape[0])):

@@ -467,7 +467,7 @@ def simulate_garment(
         """Linear interpolation of per-frame data between frames t and t+1."""
         return x[t] if alpha == 0.0 or t + 1 >= T else (1 - alpha) * x[t] + alpha * x[t + 1]
 
-    graphs: dict = {}  # (solver, state parity) -> recorded warp graph, or None where recording failed
+    graphs: dict = {}  # state parity -> recorded warp graph (None: cannot record); cleared with a new solver
 
     def collide_and_step(a, b) -> None:
         """The substep's kernels: contacts of state a, then one solver step a -> b."""
@@ -492,7 +492,7 @@ def simulate_garment(
             body_mesh.mesh.velocities.assign(vel.astype(np.float32))
             body_mesh.mesh.refit()
             state0.body_q.assign(np.array([[*root, 0.0, 0.0, 0.0, 1.0]], dtype=np.float32))
-        key = (id(solvers[0]), id(state0))  # a graph per solver and state parity
+        key = id(state0)  # a graph per state parity (state0 and state1 live as long as this call)
         if s.replay_graphs and key not in graphs:
             graphs[key] = _record_substep(wp, device, lambda: collide_and_step(state0, state1))
         if graphs.get(key) is not None:
@@ -544,6 +544,7 @@ def simulate_garment(
                 self_contact_off_from = t
                 solvers[0] = newton.solvers.SolverVBD(model, iterations=s.iterations,
                                                       integrate_with_external_rigid_solver=True)  # fmt: skip
+                graphs.clear()  # they replay the old solver's kernels
         elif st.valid:
             last_good = x
         if progress is not None:
