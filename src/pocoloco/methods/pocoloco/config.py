@@ -173,10 +173,11 @@ TRAIN_PRESETS: dict[str, PocoLocoTrainConfig] = {
         batch_size=16, num_points=2048, lr=2e-4, weight_decay=0.0, warmup_steps=0, grad_clip=None,
         ema_decay=0.9999, ckpt_every=5000, sample_every=5000, log_every=50, sample_steps=50,
     ),
-    # the latent network sized for this CPU
+    # the latent network sized for this CPU, trained at 512 points (it samples any N: at equal
+    # wall-clock 512 beat 1,024 training points at 2K and 10K sampled points, BENCHMARKS.md)
     "latent_small": PocoLocoTrainConfig(
         preset="latent_small", architecture="latent", denoiser=LATENT_PRESETS["small"], steps=20_000,
-        batch_size=16, num_points=1024, lr=5e-4, weight_decay=0.01, warmup_steps=200, lr_schedule="constant",
+        batch_size=16, num_points=512, lr=5e-4, weight_decay=0.01, warmup_steps=200, lr_schedule="constant",
         grad_clip=1.0, ema_decay=0.999, ckpt_every=250, sample_every=1000, log_every=10, sample_steps=25,
     ),
     "latent_tiny": PocoLocoTrainConfig(
