@@ -225,7 +225,7 @@ def test_config_round_trip_and_presets():
 
 def test_preset_parameter_counts():
     counts = {name: LatentDenoiser(cfg).num_parameters() for name, cfg in LATENT_PRESETS.items()}
-    assert counts == {"paper": 29_655_043, "small": 4_701_443, "tiny": 43_747}
+    assert counts == {"paper": 29_655_043, "small": 3_806_723, "tiny": 43_747}
 
 
 @pytest.mark.parametrize(
