@@ -225,14 +225,17 @@ def test_export_for_sampling_keeps_the_ema_weights_and_cannot_resume(run, frame,
 
 def test_default_checkpoint_samples_a_demo_pose(tmp_path, capsys):
     """The shipped model (if this copy has it) samples the README's demo pose."""
-    from pocoloco.engine.shipped import DEFAULT_MODEL_DIR
+    from pocoloco.engine.shipped import DEFAULT_MODEL_DIR, resolve_ckpt_arg
 
     if not (DEFAULT_MODEL_DIR / "meta.json").is_file():
         r = cli_main(["sample", "--joints", "demo:skirt", "--out", str(tmp_path / "o")])
         assert r == 2 and "default model is not installed" in capsys.readouterr().err
         return
     model, norm, cfg = load_denoiser(DEFAULT_MODEL_DIR)
-    assert cfg.preset == "small"
+    assert cfg.preset == "latent_small" and cfg.architecture == "latent"
+    # the previous default, the paper's all-points transformer, ships as default:transformer
+    old = load_denoiser(resolve_ckpt_arg("default:transformer"))
+    assert old.config.preset == "small" and old.config.architecture == "transformer"
     out = tmp_path / "o"
     assert cli_main(["sample", "--joints", "demo:shirt", "--num", "2", "--points", "256", "--steps", "4", "--out", str(out)]) == 0
     assert (out / "hypotheses.png").is_file() and len(list(out.glob("sample_*.ply"))) == 2

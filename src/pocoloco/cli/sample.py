@@ -82,8 +82,8 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco sample`` options."""
     parser.add_argument("--ckpt", default="default",
                         help="checkpoint folder, checkpoints folder or run folder of any model; 'default' (the "
-                             "default) = the PocoLoco model shipped with pocoloco, default:pop / default:closet "
-                             "its shipped peers")  # fmt: skip
+                             "default) = the PocoLoco model shipped with pocoloco (latent denoiser), default:transformer "
+                             "the previous one (the paper's transformer), default:pop / default:closet its shipped peers")  # fmt: skip
     parser.add_argument("--joints", default="demo:skirt",
                         help="pose: .npy/.npz (24, 3) joints, a LOOSE-style joints .txt, a dataset frame .npz, "
                              "DATASET:subject/split/sequence/index, or demo:skirt|shirt|tight (a shipped pose; "

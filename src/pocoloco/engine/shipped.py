@@ -2,7 +2,9 @@
 ``default:closet``): where each lives under ``assets/`` and how to name it in reports.
 
 ``assets/pocoloco_small/`` holds a sampling-only checkpoint (``meta.json`` + the EMA weights as
-``model.safetensors``) of PocoLoco's ``small`` preset trained on the ``small`` synthetic dataset;
+``model.safetensors``) of PocoLoco's ``latent_small`` preset (the linear-in-N latent denoiser)
+trained on the ``small`` synthetic dataset; ``assets/pocoloco_transformer/`` the previous default,
+the ``small`` preset (the paper's all-points transformer), as ``default:transformer``;
 ``assets/pop_small/`` and ``assets/closet_small/`` the same for the two peers (``small`` presets,
 their raw weights: they keep no EMA). How each was trained and its evaluation are in README.md
 ("The default model", "POP and CloSET"). Written by
@@ -18,13 +20,15 @@ __all__ = ["ASSETS_DIR", "SHIPPED_MODELS", "default_checkpoint", "describe_check
 
 ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
 DEFAULT_MODEL_DIR = ASSETS_DIR / "pocoloco_small"
-#: ``--ckpt default:KIND`` -> folder under assets/ (``default`` alone is PocoLoco's)
-SHIPPED_MODELS = {"pocoloco": "pocoloco_small", "pop": "pop_small", "closet": "closet_small"}
+#: ``--ckpt default:NAME`` -> folder under assets/ (``default`` alone is PocoLoco's; ``transformer``:
+#: PocoLoco with the paper's all-points transformer, the default before the latent denoiser)
+SHIPPED_MODELS = {"pocoloco": "pocoloco_small", "transformer": "pocoloco_transformer", "pop": "pop_small",
+                  "closet": "closet_small"}
 
 
 def default_checkpoint(kind: str = "pocoloco") -> Path:
-    """Folder of the shipped checkpoint of model ``kind``; a one-line error if unknown or if
-    this installation lacks it."""
+    """Folder of the shipped checkpoint ``kind`` (a key of :data:`SHIPPED_MODELS`); a one-line
+    error if unknown or if this installation lacks it."""
     if kind not in SHIPPED_MODELS:
         raise ValueError(f"default:{kind}: no shipped model of that name; choose one of: "
                          + ", ".join(f"default:{k}" for k in SHIPPED_MODELS))  # fmt: skip
@@ -48,8 +52,8 @@ def describe_checkpoint(path: str | os.PathLike) -> str:
 
 
 def resolve_ckpt_arg(ckpt: str | None) -> str | Path | None:
-    """``"default"`` -> the shipped PocoLoco checkpoint, ``"default:pop"`` / ``"default:closet"``
-    (/ ``"default:pocoloco"``) -> the shipped peer; anything else unchanged."""
+    """``"default"`` -> the shipped PocoLoco checkpoint, ``"default:pop"`` / ``"default:closet"`` /
+    ``"default:transformer"`` (/ ``"default:pocoloco"``) -> that shipped model; anything else unchanged."""
     if ckpt == "default":
         return default_checkpoint()
     if isinstance(ckpt, str) and ckpt.startswith("default:"):
