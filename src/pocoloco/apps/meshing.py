@@ -13,6 +13,11 @@ sec. 3.3; open3d ``orient_normals_consistent_tangent_plane``). Propagation
 fixes the orientation only up to one global sign, which is chosen so that the
 most extreme points along +-x, +-y, +-z point outwards (a closed surface's
 outward normal at its extreme point along an axis points along that axis).
+Propagation fails on thin parts seen from both sides (hands, feet, arms held
+close to the body): a flipped patch becomes a Poisson "balloon". When the cloud's
+pose is known (``joints``), each PCA normal is instead turned away from the
+nearest bone segment of the skeleton (a human surface faces away from its
+bones), which needs no propagation (:func:`skeleton_outward`).
 
 Body refinement (``--refine-body``, the PocoLoco paper's appendix A.2): generated clouds are
 weakest on the head and hands. The anny body is fitted to the cloud
@@ -44,10 +49,12 @@ import numpy as np
 
 from pocoloco.apps.common import check_scan
 from pocoloco.body.anny_body import fit_body_to_cloud
+from pocoloco.body.skeleton import JOINT_PARENTS
 from pocoloco.data.published import read_ply, write_ply
 from pocoloco.viz.render import render_mesh, render_meshes
 
-__all__ = ["PoissonMesh", "MeshReport", "RefineReport", "estimate_normals", "mesh_from_points", "mesh_report",
+__all__ = ["PoissonMesh", "MeshReport", "RefineReport", "estimate_normals", "skeleton_outward", "mesh_from_points",
+           "mesh_report",
            "is_watertight", "mesh_ply", "replace_parts", "refine_body_ply"]  # fmt: skip
 
 #: Fewer points than this cannot describe a surface worth reconstructing.
@@ -102,11 +109,37 @@ def _extreme_vote(points: np.ndarray, normals: np.ndarray, k: int = 10) -> float
     return votes
 
 
-def estimate_normals(points: np.ndarray, knn: int = 30) -> np.ndarray:
-    """Unit normals for a cloud that has none, consistently oriented outwards.
+def skeleton_outward(points: np.ndarray, joints: np.ndarray) -> np.ndarray:
+    """Direction from the nearest bone segment of the skeleton to each point.
 
-    PCA normals over ``knn`` neighbours, orientation propagated over the k-NN
-    graph (Hoppe et al. 1992), global sign by :func:`_extreme_vote`.
+    points: (N, 3); joints: (J, 3) in the same frame, bones = (joint, parent) pairs of
+    ``JOINT_PARENTS``. Returns (N, 3) float64 vectors p - c(p), c(p) the closest point on the
+    nearest segment (not normalised; zero for a point on a bone).
+    """
+    pts = np.asarray(points, np.float64)
+    J = np.asarray(joints, np.float64)
+    if J.shape != (len(JOINT_PARENTS), 3):
+        raise ValueError(f"joints must have shape ({len(JOINT_PARENTS)}, 3), got {J.shape}")
+    best = np.full(len(pts), np.inf)
+    out = np.zeros_like(pts)
+    for child, parent in enumerate(JOINT_PARENTS):
+        if parent < 0:
+            continue
+        a, ab = J[parent], J[child] - J[parent]
+        t = np.clip((pts - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        d = pts - (a + t[:, None] * ab)  # (N, 3)
+        dist = np.einsum("ij,ij->i", d, d)
+        closer = dist < best
+        best[closer], out[closer] = dist[closer], d[closer]
+    return out
+
+
+def estimate_normals(points: np.ndarray, knn: int = 30, joints: np.ndarray | None = None) -> np.ndarray:
+    """Unit normals for a cloud that has none, oriented outwards.
+
+    PCA normals over ``knn`` neighbours. Without ``joints``: orientation propagated over the
+    k-NN graph (Hoppe et al. 1992), global sign by :func:`_extreme_vote`. With ``joints`` ((24, 3),
+    the cloud's pose): each normal turned away from its nearest bone (:func:`skeleton_outward`).
     points: (N, 3) -> (N, 3) float32.
     """
     o3d = _open3d()
@@ -116,6 +149,11 @@ def estimate_normals(points: np.ndarray, knn: int = 30) -> np.ndarray:
     k = min(knn, len(pts) - 1)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
+    if joints is not None:
+        n = np.asarray(pc.normals).copy()
+        flip = np.einsum("ij,ij->i", n, skeleton_outward(pts, joints)) < 0
+        n[flip] *= -1
+        return n.astype(np.float32)
     pc.orient_normals_consistent_tangent_plane(k)
     n = np.asarray(pc.normals).copy()
     if _extreme_vote(pts, n) < 0:
@@ -132,6 +170,7 @@ def mesh_from_points(
     scale: float = 1.5,
     knn: int = 30,
     min_component_share: float = 0.01,
+    joints: np.ndarray | None = None,
 ) -> PoissonMesh:
     """Screened Poisson reconstruction (Kazhdan & Hoppe 2013) of an oriented cloud.
 
@@ -149,6 +188,8 @@ def mesh_from_points(
         knn: neighbours for normal estimation (only when ``normals`` is None).
         min_component_share: connected components with fewer faces than this fraction of the
             largest one are removed (stray bubbles); 0 keeps all.
+        joints: (24, 3) the cloud's pose, to orient estimated normals away from the bones
+            (only when ``normals`` is None; see :func:`estimate_normals`).
     Returns:
         :class:`PoissonMesh` (vertices (V, 3) float32, faces (F, 3) int64).
     Raises:
@@ -173,7 +214,7 @@ def mesh_from_points(
     if np.sort(extent)[1] <= 1e-9 * max(float(extent.max()), 1e-30):
         raise ValueError("point cloud is degenerate (all points on a line or a single point)")
     if normals is None:
-        nrm = estimate_normals(pts, knn=knn).astype(np.float64)
+        nrm = estimate_normals(pts, knn=knn, joints=joints).astype(np.float64)
     else:
         nrm = _check_points(normals, "normals")
         if nrm.shape != pts.shape:

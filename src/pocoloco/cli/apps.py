@@ -395,7 +395,8 @@ def add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--refine-body", action="store_true",
                         help="fit the anny body to the cloud and replace its head and hands by the body's "
                              "before meshing (PocoLoco appendix A.2); needs --joints")  # fmt: skip
-    parser.add_argument("--joints", help="--refine-body: the cloud's pose, as for `pocoloco sample --joints`")
+    parser.add_argument("--joints", help="the cloud's pose, as for `pocoloco sample --joints`: estimated normals face away "
+                        "from its bones (no Poisson balloons on hands and feet); needed by --refine-body")  # fmt: skip
     parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
     parser.add_argument("--body-out", help="--refine-body: fitted body mesh .ply (default: OUT_body.ply)")
     parser.add_argument("--fit-steps", type=int, default=150, help="--refine-body: Adam steps per stage (default 150)")
@@ -409,13 +410,12 @@ def cmd_mesh(args: argparse.Namespace) -> None:
         raise ValueError(f"--out {out}: would overwrite the input")
     if out.is_dir():
         raise ValueError(f"--out {out}: is a folder")
-    if args.joints is not None and not args.refine_body:
-        raise ValueError("--joints is only used with --refine-body")
     if args.refine_body:
         _cmd_refine(args, src, out)
         return
+    joints = None if args.joints is None else load_joints(args.joints, args.frame_id)
     r = mesh_ply(src, out, depth=args.depth, density_quantile=args.density_quantile, render=args.render,
-                 knn=args.knn)  # fmt: skip
+                 knn=args.knn, joints=joints)  # fmt: skip
     closed = "watertight" if r.watertight else (
         "NOT watertight (trimmed where the cloud has holes; --density-quantile 0 keeps it closed)")
     print(f"wrote {out}: {r.num_vertices} vertices, {r.num_faces} faces, {closed}, {r.seconds:.1f} s"
