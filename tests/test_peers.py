@@ -292,11 +292,25 @@ def test_bench_quality_end_to_end(runs, tiny_run, tiny_dataset, tmp_path, capsys
     md = (out / "quality.md").read_text()
     assert "CloSET (no decomposition)" in md and "## skirt" in md and "claims" in md
     assert {c["subject"] for c in doc["claims"]} == {"skirt"} and len(doc["claims"]) == 2
+    # PocoLoco's targets: against both peers overall and on the loose skirt, against the posed body
+    # on the tight subject, far outliers everywhere; checked against the tables they come from
+    targets = {(t["subject"], t["target"]): t for t in doc["targets"]}
+    assert ("all", "Chamfer <= POP") in targets and ("skirt", "Chamfer <= CloSET") in targets
+    tight = targets[("tight", "Chamfer <= posed body + 0.3 cm")]
+    assert tight["bound"] == pytest.approx(doc["per_subject"]["tight"]["posed_body"]["chamfer_cm"] + 0.3)
+    assert tight["value"] == pytest.approx(doc["per_subject"]["tight"]["pocoloco"]["chamfer_cm"])
+    assert not any(k == ("tight", "Chamfer <= POP") for k in targets)
+    for t in doc["targets"]:
+        assert t["holds"] == (t["value"] <= t["bound"] + 1e-9)
+    assert "PocoLoco's targets:" in md
     # a checkpoint of the wrong kind for its option: one line, before any work
     capsys.readouterr()
     err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-pop",
                                         str(runs["closet"]), "--out", str(tmp_path / "q2")]))  # fmt: skip
     assert "checkpoint is of model 'closet', expected 'pop'" in err and not (tmp_path / "q2").exists()
+    err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-pop", str(runs["pop"]),
+                                        "--split", "nope", "--out", str(tmp_path / "q2")]))  # fmt: skip
+    assert "unknown split 'nope'" in err and not (tmp_path / "q2").exists()
     err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-closet-nodecomp",
                                         str(runs["closet"]), "--out", str(tmp_path / "q2")]))  # fmt: skip
     assert "pass it to --ckpt-closet" in err
@@ -307,6 +321,40 @@ def test_bench_quality_end_to_end(runs, tiny_run, tiny_dataset, tmp_path, capsys
     err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-closet",
                                         "default:pop", "--out", str(tmp_path / "q2")]))  # fmt: skip
     assert "expected 'closet'" in err and not (tmp_path / "q2").exists()
+
+
+def test_check_targets_against_hand_made_tables():
+    """Each target holds exactly when PocoLoco's number is within its bound; tight subjects are
+    compared with the posed body only, loose ones with the peers and the GT loose share."""
+    from pocoloco.evaluation.quality import check_targets
+
+    def row(chamfer, loose=None, gt=None, far=None):
+        r = {"chamfer_cm": chamfer}
+        if loose is not None:
+            r["loose_pred_pct"] = loose
+        if gt is not None:
+            r["loose_gt_pct"] = gt
+        if far is not None:
+            r["outlier_10cm_pct_max"] = far
+        return r
+
+    per_subject = {
+        "skirt": {"pocoloco": row(4.0, 50.0, 54.0, 0.5), "pop": row(4.2, 20.0, 54.0), "closet": row(3.9, 30.0, 54.0),
+                  "posed_body": row(6.0, 30.0, 54.0)},
+        "tight": {"pocoloco": row(2.7, 0.0, 0.0, 2.0), "pop": row(2.4, 0.0, 0.0), "posed_body": row(2.45, 0.0, 0.0)},
+    }  # fmt: skip
+    means = {"pocoloco": row(3.5, far=2.0), "pop": row(3.6), "closet": row(3.4)}
+    got = {(t["subject"], t["target"]): t["holds"] for t in check_targets(means, per_subject)}
+    assert got == {
+        ("all", "Chamfer <= POP"): True, ("all", "Chamfer <= CloSET"): False,
+        ("all", "every cloud <= 1 % of points > 10 cm off"): False,
+        ("skirt", "Chamfer <= POP"): True, ("skirt", "Chamfer <= CloSET"): False,
+        ("skirt", "loose share within 3 points of GT"): False,  # |50 - 54| = 4
+        ("skirt", "every cloud <= 1 % of points > 10 cm off"): True,
+        ("tight", "Chamfer <= posed body + 0.3 cm"): True,  # 2.7 <= 2.75
+        ("tight", "every cloud <= 1 % of points > 10 cm off"): False,
+    }  # fmt: skip
+    assert check_targets({"pop": row(1.0)}, {}) == []
 
 
 def test_train_on_a_subset_of_subjects(tiny_dataset, tmp_path, capsys):

@@ -44,8 +44,8 @@ from pocoloco.utils.atomic import (
 )
 from pocoloco.viz.render import render_grid
 
-__all__ = ["BASELINE_ROWS", "COLUMNS", "QUALITY_ROWS", "bench_quality", "check_claims", "quality_markdown",
-           "table_markdown"]
+__all__ = ["BASELINE_ROWS", "COLUMNS", "QUALITY_ROWS", "TARGETS", "bench_quality", "check_claims", "check_targets",
+           "quality_markdown", "table_markdown"]
 
 #: model rows: key -> (title, model kind, decomposition)
 QUALITY_ROWS: dict[str, tuple[str, str, bool | None]] = {
@@ -179,6 +179,7 @@ def bench_quality(
         "means": table,
         "per_subject": per_subject,
         "claims": check_claims(per_subject),
+        "targets": check_targets(table, per_subject),
         "frames": {k: res.frames for k, (res, _) in results.items()} | {"baselines": base.frames},
     }  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
@@ -186,6 +187,57 @@ def bench_quality(
     write_text_atomic(out / "quality.md", quality_markdown(report))
     render_comparison(base_examples, examples, out / "quality.png")
     return report
+
+#: what PocoLoco should reach on this table (``check_targets``): a subject is *loose* when its GT loose
+#: share is above ``loose_subject_pct``, *tight* otherwise
+TARGETS = {
+    "loose_subject_pct": 5.0,  # GT loose share (%) above which a subject counts as wearing a loose garment
+    "tight_margin_cm": 0.3,  # tight subjects: PocoLoco's Chamfer at most this much above the posed body's
+    "max_far_pct": 1.0,  # no invented garments: every cloud <= this share (%) of points > 10 cm off
+    "loose_share_points": 3.0,  # loose subjects: |loose % - GT loose %| <= this (percentage points)
+}
+
+
+def check_targets(means: dict[str, dict[str, float]],
+                  per_subject: dict[str, dict[str, dict[str, float]]]) -> list[dict[str, Any]]:  # fmt: skip
+    """PocoLoco against the peers and the posed body, per target of ``TARGETS``:
+
+    - Chamfer <= POP's and <= CloSET's overall and on every loose subject;
+    - on every tight subject, Chamfer <= the posed body's + ``tight_margin_cm``;
+    - on every frame and seed, at most ``max_far_pct`` % of the points > 10 cm from the scan;
+    - on every loose subject, the loose share within ``loose_share_points`` of the GT's.
+
+    Returns ``[{"target", "subject", "value", "bound", "holds"}]``; empty without a PocoLoco row.
+    """
+    if "pocoloco" not in means:
+        return []
+    out: list[dict[str, Any]] = []
+
+    def add(target: str, subject: str, value: float, bound: float) -> None:
+        out.append({"target": target, "subject": subject, "value": float(value), "bound": float(bound),
+                    "holds": bool(value <= bound + 1e-9)})  # fmt: skip
+
+    scopes = [("all", means)] + [(s, rows) for s, rows in per_subject.items()]
+    for subject, rows in scopes:
+        if "pocoloco" not in rows:
+            continue
+        poco = rows["pocoloco"]
+        gt_loose = next((r["loose_gt_pct"] for r in rows.values() if "loose_gt_pct" in r), None)
+        loose = subject == "all" or (gt_loose is not None and gt_loose > TARGETS["loose_subject_pct"])
+        if loose:
+            for peer in ("pop", "closet"):
+                if peer in rows:
+                    add(f"Chamfer <= {_title(peer)}", subject, poco["chamfer_cm"], rows[peer]["chamfer_cm"])
+            if subject != "all" and "loose_pred_pct" in poco:
+                add(f"loose share within {TARGETS['loose_share_points']:g} points of GT", subject,
+                    abs(poco["loose_pred_pct"] - gt_loose), TARGETS["loose_share_points"])  # fmt: skip
+        elif "posed_body" in rows:
+            add(f"Chamfer <= posed body + {TARGETS['tight_margin_cm']:g} cm", subject, poco["chamfer_cm"],
+                rows["posed_body"]["chamfer_cm"] + TARGETS["tight_margin_cm"])  # fmt: skip
+        if "outlier_10cm_pct_max" in poco:
+            add(f"every cloud <= {TARGETS['max_far_pct']:g} % of points > 10 cm off", subject,
+                poco["outlier_10cm_pct_max"], TARGETS["max_far_pct"])  # fmt: skip
+    return out
 
 
 def _title(key: str) -> str:
@@ -245,6 +297,13 @@ def quality_markdown(report: dict[str, Any]) -> str:
         for c in report["claims"]:
             nums = ", ".join(f"{k} {v:.2f}" for k, v in c.items() if isinstance(v, float))
             lines.append(f"- {c['claim']}: **{'holds' if c['holds'] else 'does not hold'}** ({nums})")
+    if report.get("targets"):
+        met = sum(t["holds"] for t in report["targets"])
+        lines += ["", f"## PocoLoco's targets: {met} of {len(report['targets'])} met", "",
+                  "| subject | target | PocoLoco | bound | |", "|---|---|---|---|---|"]  # fmt: skip
+        for t in report["targets"]:
+            lines.append(f"| {t['subject']} | {t['target']} | {t['value']:.2f} | {t['bound']:.2f} | "
+                         f"{'met' if t['holds'] else '**not met**'} |")  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
