@@ -323,6 +323,54 @@ def test_bench_quality_end_to_end(runs, tiny_run, tiny_dataset, tmp_path, capsys
     assert "expected 'closet'" in err and not (tmp_path / "q2").exists()
 
 
+def test_per_subject_models_in_eval_and_bench_quality(tiny_dataset, tiny_run, tmp_path, capsys):
+    """The paper's one-model-per-subject training as a comparison row: every frame is sampled by its
+    subject's model, on the frames a single model sees; missing or mismatched models are one-line
+    errors before any work."""
+    from pocoloco.evaluation.evaluate import EvalSettings, evaluate
+    from pocoloco.methods.pocoloco import train_preset
+
+    per = {}
+    for subject in ("skirt", "tight"):
+        cfg = train_preset("tiny", steps=1, batch_size=2, num_points=64, ckpt_every=0, sample_every=0, log_every=1,
+                           subjects=[subject])  # fmt: skip
+        train(cfg, tiny_dataset, tmp_path / subject, progress=False)
+        per[subject] = tmp_path / subject
+    settings = EvalSettings(num_frames=2, num_points=64, seeds=(0,), sampler="ddim", steps=2, baselines=())
+    single, _ = evaluate(tiny_run, tiny_dataset, settings)
+    res, _ = evaluate(per, tiny_dataset, settings)
+    assert [r["key"] for r in res.frames] == [r["key"] for r in single.frames]
+    assert sorted({r["subject"] for r in res.frames}) == ["skirt", "tight"]
+    assert res.settings["per_subject_models"] and set(res.settings["checkpoint"]) == {"skirt", "tight"}
+    assert res.settings["num_parameters"] == 2 * load_method(per["skirt"]).num_parameters
+    # skirt frames came from the skirt model: the same frames scored by that model alone match
+    only_skirt = EvalSettings(**{**settings.__dict__, "subjects": ("skirt",)})
+    mapped, _ = evaluate(per, tiny_dataset, only_skirt)
+    alone, _ = evaluate(per["skirt"], tiny_dataset, only_skirt)
+    assert [r["model"]["chamfer_cm"] for r in mapped.frames] == [r["model"]["chamfer_cm"] for r in alone.frames]
+    with pytest.raises(ValueError, match=r"no per-subject model for subjects \['tight'\]"):
+        evaluate({"skirt": per["skirt"]}, tiny_dataset, settings)
+    with pytest.raises(ValueError, match="the model for 'tight' was trained on \\['skirt'\\] only"):
+        evaluate({"skirt": per["skirt"], "tight": per["skirt"]}, tiny_dataset, settings)
+
+    out = tmp_path / "q"
+    argv = ["bench", "quality", "--data", str(tiny_dataset), "--ckpt-pocoloco", str(tiny_run),
+            "--ckpt-pocoloco-per-subject", str(per["skirt"]), str(per["tight"]), "--frames", "2", "--points", "64",
+            "--seeds", "0", "--sampler", "ddim", "--steps", "2", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    doc = json.loads((out / "quality.json").read_text())
+    assert {"pocoloco", "pocoloco_per_subject"} <= set(doc["means"])
+    assert set(doc["checkpoints"]["pocoloco_per_subject"]["path"]) == {"skirt", "tight"}
+    assert "a model per subject (paper)" in (out / "quality.md").read_text()
+    capsys.readouterr()
+    err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-pocoloco-per-subject",
+                                        str(tiny_run), "--out", str(tmp_path / "q2")]))  # fmt: skip
+    assert "takes models trained with --subjects" in err and not (tmp_path / "q2").exists()
+    err = _one_line_error(capsys, main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-pocoloco-per-subject",
+                                        str(per["skirt"]), str(per["skirt"]), "--out", str(tmp_path / "q2")]))  # fmt: skip
+    assert "two models for subject 'skirt'" in err
+
+
 def test_check_targets_against_hand_made_tables():
     """Each target holds exactly when PocoLoco's number is within its bound; tight subjects are
     compared with the posed body only, loose ones with the peers and the GT loose share."""

@@ -24,7 +24,7 @@ from pocoloco.evaluation.evaluate import (
     method_titles,
     write_outputs,
 )
-from pocoloco.evaluation.quality import QUALITY_ROWS, bench_quality, table_markdown
+from pocoloco.evaluation.quality import PER_SUBJECT_ROWS, QUALITY_ROWS, bench_quality, table_markdown
 from pocoloco.utils.atomic import output_folder
 
 __all__ = ["register"]
@@ -116,6 +116,10 @@ def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", default="test", help="split to evaluate (default test; heldout: motions drawn anew)")
     parser.add_argument("--subjects", nargs="+", help="only these subjects (default: all)")
     for key, (title, _, _) in QUALITY_ROWS.items():
+        if key in PER_SUBJECT_ROWS:
+            parser.add_argument(f"--ckpt-{key.replace('_', '-')}", dest=f"ckpt_{key}", nargs="+", metavar="CKPT",
+                                help=f"{title}: checkpoints / run folders trained with --subjects, one per subject")  # fmt: skip
+            continue
         parser.add_argument(f"--ckpt-{key.replace('_', '-')}", dest=f"ckpt_{key}",
                             help=f"{title} checkpoint / run folder, or 'default[:pop|:closet]' (shipped)")  # fmt: skip
     parser.add_argument("--train-steps", type=int, help="train missing models for K steps into --work")

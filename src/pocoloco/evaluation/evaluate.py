@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -155,7 +155,7 @@ class EvalResult:
 
 
 def evaluate(
-    ckpt: str | os.PathLike | None,
+    ckpt: str | os.PathLike | Mapping[str, str | os.PathLike] | None,
     data: str | os.PathLike,
     settings: EvalSettings = EvalSettings(),
     *,
@@ -164,7 +164,9 @@ def evaluate(
     keep_examples: int = 3,
 ) -> tuple[EvalResult, list[dict[str, Any]]]:
     """Score the checkpoint ``ckpt`` (any method; None: baselines only) on ``settings.split`` of the
-    dataset at ``data``.
+    dataset at ``data``. ``ckpt`` may also map subject -> checkpoint (one model per subject, as the
+    PocoLoco paper trains them): each frame is then sampled by its subject's model, on the same frames
+    a single model would see; every evaluated subject needs a model.
 
     Returns the :class:`EvalResult` and, for up to ``keep_examples`` frames, the clouds (GT,
     baselines, model samples) to render.
@@ -183,17 +185,10 @@ def evaluate(
     chosen = [all_frames[i] for i in select_frames(all_frames, settings.num_frames)]
 
     info: dict[str, Any] = {"data": os.fspath(data), **_settings_dict(settings)}
-    method = None
     options = SamplerOptions(sampler=settings.sampler, steps=settings.steps, clip=settings.clip, bf16=settings.bf16,
                              batch_size=settings.batch_size)  # fmt: skip
-    if ckpt is not None:
-        method = load_method(ckpt, device=device, use_ema=settings.use_ema)
-        method.check_options(options)
-        info.update(method.info())
-        if method.outfit_names():  # one-line error before any work if a subject was never trained
-            for subject in sorted({s for s, _, _ in chosen}):
-                method.outfit_id(subject)
-        _check_normalisation(method.normalisation, card, method.path, data)
+    methods = _load_methods(ckpt, data, card, sorted({s for s, _, _ in chosen}), settings, options, device, info)
+    method = next(iter(methods.values()), None)  # the one model (or the first of the per-subject ones)
     seeds = list(settings.seeds[:1]) if method is not None and method.deterministic else list(settings.seeds)
     nearest_frame = (NearestFrameBaseline(data, subjects, align=settings.nearest_align)
                      if "nearest_frame" in settings.baselines else None)  # fmt: skip
@@ -217,6 +212,7 @@ def evaluate(
             return evaluate_frame(points, normals, gt, gt_n, gt_lab)
 
         if method is not None:
+            method = methods.get(subject, methods.get(None))
             pose = method.pose_from_frame(path, subject, frame=fr, cache=mean_cache)
             outfit = method.outfit_id(subject) if method.outfit_names() else None
             t0 = time.perf_counter()
@@ -270,6 +266,44 @@ def evaluate(
         rows = [r for r in result.frames if r["subject"] == subject]
         result.per_subject[subject] = {m: _mean(rows, m) for m in methods}
     return result, examples
+
+
+def _load_methods(ckpt, data, card: dict[str, Any], subjects: list[str], settings: EvalSettings,
+                  options: SamplerOptions, device: str, info: dict[str, Any]) -> dict[str | None, Any]:  # fmt: skip
+    """{None: the method} for one checkpoint, {subject: its method} for per-subject checkpoints, {}
+    for none; every check (sampler options, trained outfits / subjects, normalisation) before any
+    work, and the checkpoint facts added to ``info``."""
+    if ckpt is None:
+        return {}
+    per_subject = isinstance(ckpt, Mapping)
+    given = dict(ckpt) if per_subject else {None: ckpt}
+    if per_subject:
+        missing = [s for s in subjects if s not in given]
+        if missing:
+            raise ValueError(f"no per-subject model for subjects {missing}: give one for each, or evaluate only "
+                             f"{sorted(given)} (--subjects)")  # fmt: skip
+    methods: dict[str | None, Any] = {}
+    for subject, path in given.items():
+        if per_subject and subject not in subjects:
+            continue
+        method = load_method(path, device=device, use_ema=settings.use_ema)
+        method.check_options(options)
+        trained = getattr(method.config, "subjects", None)
+        if per_subject and trained and subject not in trained:
+            raise ValueError(f"{method.path}: the model for {subject!r} was trained on {list(trained)} only")
+        if method.outfit_names():  # one-line error before any work if a subject was never trained
+            for s in subjects if not per_subject else [subject]:
+                method.outfit_id(s)
+        _check_normalisation(method.normalisation, card, method.path, data)
+        methods[subject] = method
+    first = next(iter(methods.values()))
+    info.update(first.info())
+    if per_subject:
+        info["checkpoint"] = {s: str(m.path) for s, m in methods.items()}
+        info["step"] = {s: m.step for s, m in methods.items()}
+        info["num_parameters"] = sum(m.num_parameters for m in methods.values())
+        info["per_subject_models"] = True
+    return methods
 
 
 def _mean(rows: list[dict[str, Any]], method: str) -> dict[str, float]:

@@ -44,18 +44,21 @@ from pocoloco.utils.atomic import (
 )
 from pocoloco.viz.render import render_grid
 
-__all__ = ["BASELINE_ROWS", "COLUMNS", "QUALITY_ROWS", "TARGETS", "bench_quality", "check_claims", "check_targets",
+__all__ = ["BASELINE_ROWS", "COLUMNS", "PER_SUBJECT_ROWS", "QUALITY_ROWS", "TARGETS", "bench_quality", "check_claims", "check_targets",
            "quality_markdown", "table_markdown"]
 
 #: model rows: key -> (title, model kind, decomposition)
 QUALITY_ROWS: dict[str, tuple[str, str, bool | None]] = {
     "pocoloco": ("PocoLoco", "pocoloco", None),
+    "pocoloco_per_subject": ("PocoLoco, a model per subject (paper)", "pocoloco", None),
     "pop": ("POP", "pop", None),
     "closet": ("CloSET", "closet", True),
     "closet_nodecomp": ("CloSET (no decomposition)", "closet", False),
 }
 BASELINE_ROWS = {"nearest_frame": "nearest training frame", "posed_body": "posed body (no clothes)",
                  "gt_resample": "GT resample (noise floor)"}  # fmt: skip
+#: rows given as several checkpoints, one per subject (each trained with ``--subjects``)
+PER_SUBJECT_ROWS = ("pocoloco_per_subject",)
 #: columns of quality.md: evaluate's (same keys, headers, formats) minus F-score and the split
 #: diversity, plus time (finer: the peers take fractions of a second) and parameter count
 COLUMNS = (
@@ -81,6 +84,25 @@ def _check_kind(key: str, ckpt) -> Path:
             raise ValueError(f"{path}: CloSET checkpoint {'with' if has else 'without'} decomposition given to "
                              f"--ckpt-{key.replace('_', '-')}; pass it to {other}")  # fmt: skip
     return path
+
+
+def _check_per_subject(key: str, ckpts) -> dict[str, Path]:
+    """subject -> checkpoint folder for a per-subject row: each checkpoint must be of the row's model
+    and trained on named subjects (``pocoloco train --subjects``); a subject claimed twice is an error."""
+    if isinstance(ckpts, (str, Path)):
+        ckpts = [ckpts]
+    out: dict[str, Path] = {}
+    for ckpt in ckpts:
+        path = _check_kind(key, ckpt)
+        subjects = read_meta(path)["config"].get("subjects")
+        if not subjects:
+            raise ValueError(f"{path}: trained on every subject of its dataset; --ckpt-{key.replace('_', '-')} takes "
+                             "models trained with --subjects (one per subject, as the paper)")  # fmt: skip
+        for s in subjects:
+            if s in out:
+                raise ValueError(f"two models for subject {s!r} ({out[s]}, {path}) in --ckpt-{key.replace('_', '-')}")
+            out[s] = path
+    return out
 
 
 def _train_missing(key: str, data, work: Path, steps: int, preset: str, progress: bool) -> Path:
@@ -126,13 +148,13 @@ def bench_quality(
     if train_steps is not None and (train_steps < 1 or work is None):
         raise ValueError("--train-steps needs a positive K and --work DIR")
     out = output_folder(out)
-    paths: dict[str, Path] = {}
+    paths: dict[str, Any] = {}
     for key in QUALITY_ROWS:  # validate every given checkpoint before any long work
         if ckpts.get(key) is not None:
-            paths[key] = _check_kind(key, ckpts[key])
+            paths[key] = _check_per_subject(key, ckpts[key]) if key in PER_SUBJECT_ROWS else _check_kind(key, ckpts[key])
     trained = []
     for key in QUALITY_ROWS:
-        if key not in paths and train_steps is not None:
+        if key not in paths and train_steps is not None and key not in PER_SUBJECT_ROWS:
             if progress:
                 progress(f"training {QUALITY_ROWS[key][0]} for {train_steps} steps in {Path(work) / key}")
             paths[key] = _train_missing(key, data, Path(work), train_steps, preset, train_progress)
@@ -173,7 +195,8 @@ def bench_quality(
     report = {
         "settings": {**base.settings, "rows": {k: QUALITY_ROWS[k][0] for k in results}, "trained_here": trained,
                      "train_steps": train_steps, "train_preset": preset if trained else None},
-        "checkpoints": {k: {"path": describe_checkpoint(p), "step": results[k][0].settings["step"],
+        "checkpoints": {k: {"path": ({s: describe_checkpoint(q) for s, q in p.items()} if isinstance(p, dict)
+                                     else describe_checkpoint(p)), "step": results[k][0].settings["step"],
                             "preset": results[k][0].settings["preset"], "eval_seconds": results[k][1]}
                         for k, p in paths.items()},
         "means": table,
@@ -288,7 +311,11 @@ def quality_markdown(report: dict[str, Any]) -> str:
              "every GT point (mean; max = the worst cloud); loose % = share of points whose nearest GT point is garment; "
              "s/sample on this machine; params = all parameters incl. outfit codes.", "", "## Checkpoints", ""]  # fmt: skip
     for k, c in report["checkpoints"].items():
-        lines.append(f"- {_title(k)}: `{c['path']}` (step {c['step']}, preset `{c['preset']}`)")
+        if isinstance(c["path"], dict):
+            models = ", ".join(f"{s}: `{p}` (step {c['step'][s]})" for s, p in c["path"].items())
+            lines.append(f"- {_title(k)}: {models}, preset `{c['preset']}`")
+        else:
+            lines.append(f"- {_title(k)}: `{c['path']}` (step {c['step']}, preset `{c['preset']}`)")
     lines += ["", "## All frames", "", table_markdown(report["means"])]
     for subject, rows in report["per_subject"].items():
         lines += ["", f"## {subject}", "", table_markdown(rows)]
