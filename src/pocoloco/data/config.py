@@ -149,6 +149,12 @@ MEDIUM_SUBJECTS: tuple[SubjectSpec, ...] = (
     SubjectSpec("tight_b", "tight", _phenotype(0.0, 0.6, 0.7, 0.6)),
 )
 
+#: ``unseen``: garments and bodies no ``medium`` subject has, for fitting new outfits
+UNSEEN_SUBJECTS: tuple[SubjectSpec, ...] = (
+    SubjectSpec("dress_c", "dress", _phenotype(0.95, 0.45, 0.4, 0.5), {"hem": 0.6, "flare": 0.5}),
+    SubjectSpec("shirt_c", "long_shirt", _phenotype(0.3, 0.55, 0.6, 0.5), {"hem": 0.9, "flare": 0.25}),
+)
+
 #: settings added to SynthConfig after datasets were generated, with the value those runs used: a
 #: card's ``generation_config`` without the key was generated that way (a new field goes here)
 FIELDS_ADDED_LATER: dict = {
@@ -192,6 +198,17 @@ SYNTH_PRESETS: dict[str, SynthConfig] = {
         heldout_sequences=2,
         frames_per_sequence=40,
         motion_kinds=ALL_MOTION_KINDS,
+    ),
+    # minutes: outfits and bodies ``medium`` does not have (a midi dress with a wide flare, a
+    # knee-length tunic), for fitting an unseen outfit (``pocoloco fit``) to a few of its train
+    # scans and scoring the fit in its test poses
+    "unseen": SynthConfig(
+        subjects=UNSEEN_SUBJECTS,
+        train_sequences=1,
+        test_sequences=2,
+        frames_per_sequence=40,
+        motion_kinds=ALL_MOTION_KINDS,
+        seed=1,
     ),
     # LOOSE's scale (~30K train / ~10K test frames per subject): many cores
     "loose": SynthConfig(
