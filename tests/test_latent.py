@@ -16,6 +16,7 @@ from pocoloco.models import (
     positional_encoding,
     timestep_embedding,
 )
+from pocoloco.models.conditioning import PoseCondition
 from pocoloco.models.pocoloco import joint_offset_features
 
 # tiny models run fastest on one thread, and bit-exact comparisons need a fixed thread count
@@ -74,8 +75,9 @@ def ref_attention(x, context, attn):
     return ref_linear(torch.cat(heads, dim=-1), attn.proj)
 
 
-def reference_forward(model: LatentDenoiser, x, t, joints):
-    """The network of ``latent.py``'s module docstring written out with explicit operations."""
+def reference_forward(model: LatentDenoiser, x, t, joints, body=None):
+    """The network of ``latent.py``'s module docstring written out with explicit operations
+    (``body``: (B, K, 3) posed-body vertices, tokens after the joints')."""
     cfg = model.config
     enc = lambda a: positional_encoding(a, cfg.posenc, cfg.num_freqs, cfg.posenc_include_input)
     B = x.shape[0]
@@ -88,7 +90,10 @@ def reference_forward(model: LatentDenoiser, x, t, joints):
     te = model.time_embed.mlp
     tau = ref_linear(ref_gelu(ref_linear(timestep_embedding(t, cfg.width).to(x.dtype), te[0])), te[2])
     jt = ref_linear(enc(joints), model.joint_in) + model.joint_embed
-    z = torch.cat([model.latents.expand(B, -1, -1), tau[:, None], jt], dim=1)
+    tokens = [model.latents.expand(B, -1, -1), tau[:, None], jt]
+    if body is not None:
+        tokens.append(ref_linear(enc(body), model.body_in) + model.body_embed)
+    z = torch.cat(tokens, dim=1)
     z = ref_layer_norm(z, model.ln_latents)
     for blk in model.blocks:
         z = z + ref_attention(ref_layer_norm(z, blk.ln_read_z), ref_layer_norm(p, blk.ln_read_p), blk.read)
@@ -107,8 +112,9 @@ def reference_forward(model: LatentDenoiser, x, t, joints):
         {"compute_layers": 2},
         {"joint_offsets": False, "point_channels": 6, "posenc": "nerf", "posenc_include_input": True,
          "point_width": None, "rw_heads": 4},
+        {"body_points": 5},
     ],
-    ids=["offsets-2compute", "normals-nerf-equal-widths"],
+    ids=["offsets-2compute", "normals-nerf-equal-widths", "posed-body-tokens"],
 )  # fmt: skip
 def test_forward_matches_slow_reference_float64(overrides):
     model = tiny_model(**overrides).double()
@@ -117,9 +123,11 @@ def test_forward_matches_slow_reference_float64(overrides):
         for prm in model.parameters():
             prm.add_(0.1 * torch.randn(prm.shape, generator=g, dtype=prm.dtype))
     x, t, joints = inputs(N=37, C=model.config.point_channels, dtype=torch.float64)
-    got = model(x, t, joints)
+    K = model.config.body_points
+    body = torch.randn(x.shape[0], K, 3, generator=torch.Generator().manual_seed(9), dtype=torch.float64) if K else None
+    got = model(x, t, PoseCondition(joints, body=body) if K else joints)
     with torch.no_grad():
-        want = reference_forward(model, x, t, joints)
+        want = reference_forward(model, x, t, joints, body)
     assert got.dtype == torch.float64 and want.abs().mean() > 0.1
     torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-10)
 

@@ -29,7 +29,7 @@ FIELD_OPTIONS = {
     "ema_decay": "ema_decay", "grad_clip": "grad_clip", "schedule": "schedule", "prediction_type": "prediction_type",
     "min_snr": "min_snr_gamma", "workers": "num_workers", "normal_start": "normal_start",
     "query_points": "query_points", "subjects": "subjects", "outfit_codes": "outfit_codes",
-    "body_shape": "body_shape",
+    "body_shape": "body_shape", "body_points": "body_points",
 }  # fmt: skip
 
 
@@ -147,6 +147,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                    help="condition on a learned code per subject's outfit (default off: joints only, as the paper)")  # fmt: skip
     g.add_argument("--body-shape", action="store_true", default=None,
                    help="condition on each subject's body shape, its anny phenotype (default off)")  # fmt: skip
+    g.add_argument("--body-points", type=int, metavar="K",
+                   help="latent presets: also condition on K vertices of the posed body, as POP and CloSET are "
+                        "(sampling then needs a dataset frame or anny pose parameters, not bare joints; default 0: "
+                        "the paper's skeleton only)")  # fmt: skip
     parser.add_argument("--subjects", nargs="+",
                         help="train on these subjects only: one model per subject as the PocoLoco paper, or hold one "
                              "out for `pocoloco fit` (default: all)")  # fmt: skip

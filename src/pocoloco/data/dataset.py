@@ -93,6 +93,8 @@ class PointCloudDataset(Dataset):
         root:      (3,) float32, the root joint in metres (to invert the normalisation)
         normals:   (N, 3) float32 (only if with_normals)
         labels:    (N,) int64 point classes (``format.LABEL_UNKNOWN`` for imported data)
+        body:      (K, 3) float32 posed-body vertices ``body_vertices[body_point_ids]``, same
+                   transform (only if ``body_point_ids``)
         subject:   int, index into ``dataset.subject_names``
         frame_key: str, "<subject>/<split>/<sequence>/<frame index>"
 
@@ -118,8 +120,10 @@ class PointCloudDataset(Dataset):
         with_normals: bool = False,
         seed: int = 0,
         random_subsample: bool = True,
+        body_point_ids: Sequence[int] | None = None,
     ):
         self.root = os.fspath(root)
+        self.body_point_ids = None if body_point_ids is None else np.asarray(body_point_ids, np.int64)
         self.card = fmt.read_card(self.root)
         if split not in fmt.SPLITS:
             raise ValueError(f"unknown split {split!r}; expected one of {fmt.SPLITS}")
@@ -171,6 +175,8 @@ class PointCloudDataset(Dataset):
             raise IndexError(f"index {index} out of range for {len(self)} frames")
         subject, _, path = self.frames[index]
         keys = ["points", "joints", "labels"] + (["normals"] if self.with_normals else [])
+        if self.body_point_ids is not None:
+            keys.append("body_vertices")
         fr = fmt.read_frame(path, keys, allow_missing=True)
         sel = self._choose(index, fr.points.shape[0], path)
         points, joints = self.normalisation.normalise(fr.points[sel], fr.joints)
@@ -185,4 +191,11 @@ class PointCloudDataset(Dataset):
         }
         if self.with_normals:
             item["normals"] = torch.from_numpy(np.ascontiguousarray(fr.normals[sel], np.float32))
+        if self.body_point_ids is not None:
+            if fr.body_vertices is None:
+                raise ValueError(f"{path}: frame has no posed body (body_vertices), which --body-points needs")
+            if int(self.body_point_ids.max()) >= len(fr.body_vertices):
+                raise ValueError(f"{path}: body has {len(fr.body_vertices)} vertices, fewer than the body point ids need")
+            body = self.normalisation.normalise(fr.body_vertices[self.body_point_ids], fr.joints)[0]
+            item["body"] = torch.from_numpy(np.ascontiguousarray(body, np.float32))
         return item

@@ -282,7 +282,8 @@ def pose_from_frame(frame_path: str | os.PathLike, subject: str | None, need_mea
     fr = frame if frame is not None else read_frame(path, ["joints", "frame_index", "body_vertices", "vtransf"],
                                                     allow_missing=True)  # fmt: skip
     if fr.body_vertices is None or fr.vtransf is None:
-        raise ValueError(f"{path}: frame has no posed body (body_vertices / vtransf); POP and CloSET need it")
+        raise ValueError(f"{path}: frame has no posed body (body_vertices / vtransf); POP, CloSET and PocoLoco "
+                         "with --body-points need it")  # fmt: skip
     mean = None
     if need_mean_shape:
         mean = (cache or MeanShapeCache()).get(motion_path_of(path), int(fr.frame_index), whole_sequence=cache is not None)
@@ -336,5 +337,5 @@ def pose_spec_kind(spec: str) -> str:
     if path.suffix == ".npz" and path.is_file() and path.parent.name == "frames" and \
             (path.parent.parent / "motion.npz").is_file():  # fmt: skip
         return "frame"
-    raise ValueError(f"{spec}: POP and CloSET need the posed body, not only joints: pass a dataset frame "
+    raise ValueError(f"{spec}: POP, CloSET and PocoLoco with --body-points need the posed body, not only joints: pass a dataset frame "
                      "DATASET:subject/split/sequence/index or an .npz with anny pose parameters 'joint_rotvecs' (24, 3)")

@@ -21,7 +21,7 @@ class StepBatches(torch.utils.data.Dataset):
 
     Items: ``points`` (B, N, C) normalised (C = 3, or 6 with unit normals), ``joints`` (B, J, 3)
     normalised, ``root`` (B, 3) metres, ``index`` (B,) frame indices, ``subject`` (B,) the frames'
-    subject ids (``dataset.subject_names`` order).
+    subject ids (``dataset.subject_names`` order), and ``body`` (B, K, 3) when the dataset gives it.
     """
 
     def __init__(self, dataset: PointCloudDataset, batch_size: int, num_points: int, seed: int, steps: int,
@@ -51,7 +51,7 @@ class StepBatches(torch.utils.data.Dataset):
 
     def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
         g, idx = self.frame_indices(int(step))
-        pts, jts, roots, subjects = [], [], [], []
+        pts, jts, roots, subjects, bodies = [], [], [], [], []
         for gk, i in zip(g, idx, strict=True):
             item = self.dataset[int(i)]
             n = item["points"].shape[0]
@@ -66,5 +66,10 @@ class StepBatches(torch.utils.data.Dataset):
             jts.append(item["joints"])
             roots.append(item["root"])
             subjects.append(item["subject"])
-        return {"points": torch.stack(pts), "joints": torch.stack(jts), "root": torch.stack(roots),
-                "index": torch.from_numpy(idx), "subject": torch.tensor(subjects, dtype=torch.long)}  # fmt: skip
+            if "body" in item:
+                bodies.append(item["body"])
+        batch = {"points": torch.stack(pts), "joints": torch.stack(jts), "root": torch.stack(roots),
+                 "index": torch.from_numpy(idx), "subject": torch.tensor(subjects, dtype=torch.long)}  # fmt: skip
+        if bodies:
+            batch["body"] = torch.stack(bodies)
+        return batch

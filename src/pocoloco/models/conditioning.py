@@ -9,7 +9,10 @@ denoisers accept a :class:`PoseCondition`: the joints (B, J, 3) and, when their 
   (auto-decoded like POP's geometric features and CloSET's garment codes: a new outfit is fitted
   by optimising only its embedding, :meth:`WhoWearsWhat.add_outfit`);
 * ``shape`` (B, S) float: the body shape, here anny's phenotype parameters in [0, 1]
-  (``pocoloco.body.anny_body.PHENOTYPE_KEYS`` order); an MLP gives one token.
+  (``pocoloco.body.anny_body.PHENOTYPE_KEYS`` order); an MLP gives one token;
+* ``body`` (B, K, 3) float: K fixed vertices of the *posed* body surface, normalised like the
+  points (latent denoiser with ``body_points = K``; one token each). Not in the paper, which is
+  template-free and sees the skeleton only: the posed body is what POP and CloSET are given.
 
 The tokens join the joint tokens: keys of the cross-attention (transformer) or members of the
 latent stream (latent). A plain (B, J, 3) joints tensor is still accepted where the config has
@@ -23,7 +26,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-__all__ = ["SHAPE_KEYS", "OutfitBound", "PoseCondition", "WhoWearsWhat", "phenotype_vector", "split_condition"]
+__all__ = ["SHAPE_KEYS", "OutfitBound", "PoseCondition", "WhoWearsWhat", "body_of", "phenotype_vector",
+           "split_condition"]
 
 #: anny's phenotype parameters, in the order of a body-shape vector (``body.anny_body.PHENOTYPE_KEYS``;
 #: repeated here so the networks do not import the body model)
@@ -42,12 +46,14 @@ def phenotype_vector(phenotype: dict[str, float] | None) -> list[float]:
 @dataclass
 class PoseCondition:
     """joints (B, J, 3) normalised; outfit (B,) int64 or None; shape (B, S) or None; code (B, D) or
-    None: an outfit embedding given directly instead of an id (fitting a new outfit)."""
+    None: an outfit embedding given directly instead of an id (fitting a new outfit); body (B, K, 3)
+    normalised posed-body vertices or None."""
 
     joints: torch.Tensor
     outfit: torch.Tensor | None = None
     shape: torch.Tensor | None = None
     code: torch.Tensor | None = None
+    body: torch.Tensor | None = None
 
 
 def split_condition(cond) -> tuple[torch.Tensor, torch.Tensor | torch.Tensor | None, torch.Tensor | None]:
@@ -56,6 +62,11 @@ def split_condition(cond) -> tuple[torch.Tensor, torch.Tensor | torch.Tensor | N
     if isinstance(cond, PoseCondition):
         return cond.joints, (cond.code if cond.code is not None else cond.outfit), cond.shape
     return cond, None, None
+
+
+def body_of(cond) -> torch.Tensor | None:
+    """The (B, K, 3) posed-body vertices of a condition, or None."""
+    return cond.body if isinstance(cond, PoseCondition) else None
 
 
 class WhoWearsWhat(nn.Module):

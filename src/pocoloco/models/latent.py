@@ -77,7 +77,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from pocoloco.models.conditioning import PoseCondition, WhoWearsWhat, split_condition
+from pocoloco.models.conditioning import PoseCondition, WhoWearsWhat, body_of, split_condition
 from pocoloco.models.layers import (
     ATTENTION_IMPLS,
     MLP,
@@ -104,7 +104,8 @@ class LatentDenoiserConfig:
     posenc, num_freqs, posenc_include_input, point_channels, num_joints, prediction_type, dropout,
     attention, joint_offsets, num_outfits, shape_dim: as in
     :class:`~pocoloco.models.pocoloco.PocoLocoDenoiserConfig` (outfit and body-shape tokens join the
-    latent stream)
+    latent stream). body_points: K posed-body vertices given with the condition, one token each in
+    the latent stream (0: none, the paper's template-free input)
     (``attention="dense"`` is the materialised-softmax reference, same weights and maths).
     """
 
@@ -129,6 +130,7 @@ class LatentDenoiserConfig:
     joint_offsets: bool = True
     num_outfits: int = 0
     shape_dim: int = 0
+    body_points: int = 0
 
     def __post_init__(self):
         if self.posenc not in POSENC_KINDS:
@@ -142,7 +144,7 @@ class LatentDenoiserConfig:
         for name in ("width", "depth", "compute_layers", "num_latents", "heads", "rw_heads", "num_freqs", "num_joints"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("num_outfits", "shape_dim"):
+        for name in ("num_outfits", "shape_dim", "body_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.point_width is not None and self.point_width < 1:
@@ -171,8 +173,9 @@ class LatentDenoiserConfig:
 
     @property
     def num_tokens(self) -> int:
-        """L = M latents + 1 time token + J joint tokens in the latent stream."""
-        return self.num_latents + 1 + self.num_joints + int(self.num_outfits > 0) + int(self.shape_dim > 0)
+        """L = M latents + 1 time token + J joint tokens (+ outfit, shape, K body tokens) in the latent stream."""
+        return (self.num_latents + 1 + self.num_joints + int(self.num_outfits > 0) + int(self.shape_dim > 0)
+                + self.body_points)  # fmt: skip
 
     def replace(self, **changes: Any) -> LatentDenoiserConfig:
         """A copy with some fields changed (validated); an unknown field is a one-line ValueError."""
@@ -279,6 +282,9 @@ class LatentDenoiser(nn.Module):
         self.joint_in = nn.Linear(enc_dim, D)
         self.joint_embed = nn.Parameter(torch.randn(cfg.num_joints, D) * 0.02)  # (J, D)
         self.who = WhoWearsWhat(D, cfg.num_outfits, cfg.shape_dim) if cfg.num_outfits or cfg.shape_dim else None
+        # posed-body tokens: Linear(posenc(b_k)) + E_k, like the joints (K fixed vertex ids)
+        self.body_in = nn.Linear(enc_dim, D) if cfg.body_points else None
+        self.body_embed = nn.Parameter(torch.randn(cfg.body_points, D) * 0.02) if cfg.body_points else None
         self.ln_latents = nn.LayerNorm(D)
         self.blocks = nn.ModuleList(LatentBlock(cfg) for _ in range(cfg.depth))
         self.ln_out = nn.LayerNorm(P)
@@ -338,10 +344,12 @@ class LatentDenoiser(nn.Module):
         x: (B, N, C) noisy points (C = config.point_channels), any N >= 1.
         t: (B,) diffusion timesteps (integer or float), or a scalar for the whole batch.
         cond: (B, J, 3) skeleton joints in the same normalised frame as x, or a
-        :class:`~pocoloco.models.conditioning.PoseCondition` (joints + outfit + body shape).
+        :class:`~pocoloco.models.conditioning.PoseCondition` (joints + outfit + body shape [+ posed
+        body (B, K, 3) when ``config.body_points = K``]).
         Returns (B, N, C) in x's dtype (also under autocast).
         """
         joints, outfit, shape = split_condition(cond)
+        body = body_of(cond)
         t = self._validate(x, t, joints)
         B = x.shape[0]
         feats = self._encode(x[..., :3])
@@ -359,6 +367,17 @@ class LatentDenoiser(nn.Module):
             stream.append(self.who(outfit, shape, B, joint_tokens.dtype))  # (B, K, D)
         elif outfit is not None or shape is not None:
             raise ValueError("this model takes no outfit or body shape (trained on joints only)")
+        if self.body_in is not None:
+            K = self.config.body_points
+            if body is None:
+                raise ValueError(f"this model needs the posed body ({K} vertices) besides the joints")
+            if body.shape != (B, K, 3):
+                raise ValueError(f"body must have shape ({B}, {K}, 3), got {tuple(body.shape)}")
+            if not torch.isfinite(body).all():
+                raise ValueError("body contains NaN or infinite values")
+            stream.append(self.body_in(self._encode(body.to(x.dtype))) + self.body_embed)  # (B, K, D)
+        elif body is not None:
+            raise ValueError("this model takes no posed body (trained without --body-points)")
         z = self.ln_latents(torch.cat(stream, dim=1))  # (B, L, D)
         for block in self.blocks:
             z, p = block(z, p)

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from pocoloco.models.conditioning import PoseCondition, WhoWearsWhat, split_condition
+from pocoloco.models.conditioning import PoseCondition, WhoWearsWhat, body_of, split_condition
 from pocoloco.models.layers import (
     ATTENTION_IMPLS,
     POSENC_KINDS,
@@ -224,6 +224,8 @@ class PocoLocoDenoiser(nn.Module):
         Returns (B, N, C) in x's dtype (also under autocast).
         """
         joints, outfit, shape = split_condition(cond)
+        if body_of(cond) is not None:
+            raise ValueError("this model takes no posed body (only the latent denoiser has --body-points)")
         t = self._validate(x, t, joints)
         B, N, _ = x.shape
         feats = self._encode(x[..., :3])

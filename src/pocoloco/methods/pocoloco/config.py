@@ -46,7 +46,10 @@ class PocoLocoTrainConfig:
     outfit_codes / body_shape: condition on who wears what (:mod:`pocoloco.models.conditioning`):
     one learned code per subject of the dataset (its outfit) and / or the subject's anny
     phenotype; False / False is the paper's joints-only model. subjects: train on these subjects
-    only (None: all), e.g. one model per subject as in the paper.
+    only (None: all), e.g. one model per subject as in the paper. body_points: K vertices of the
+    posed body (fixed ids, farthest-point sampled on the first subject's template) given to the
+    latent denoiser besides the joints (0: none, the paper's template-free input; the model then
+    needs a posed body to sample, like POP and CloSET).
     """
 
     preset: str = "small"
@@ -80,6 +83,7 @@ class PocoLocoTrainConfig:
     outfit_codes: bool = False
     body_shape: bool = False
     subjects: tuple[str, ...] | None = None
+    body_points: int = 0
 
     def __post_init__(self):
         if self.model != "pocoloco":
@@ -95,7 +99,9 @@ class PocoLocoTrainConfig:
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("warmup_steps", "ckpt_every", "sample_every", "num_workers"):
+        if self.body_points and self.architecture != "latent":
+            raise ValueError("body_points (--body-points) needs the latent denoiser (e.g. --preset latent_small)")
+        for name in ("warmup_steps", "ckpt_every", "sample_every", "num_workers", "body_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not (self.lr > 0 and math.isfinite(self.lr)):

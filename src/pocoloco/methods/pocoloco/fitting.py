@@ -34,7 +34,8 @@ class CodeFit:
 def fit_outfit_code(model: nn.Module, normalisation: Normalisation, config, scans: Sequence[tuple[np.ndarray, np.ndarray]],
                     shape: Sequence[float] | None = None, steps: int = 400, lr: float = 1e-2, batch_size: int = 8,
                     num_points: int | None = None, seed: int = 0, progress=None) -> CodeFit:  # fmt: skip
-    """Optimise a new outfit code against ``scans``: [(points (P, 3) metres, joints (24, 3) metres)].
+    """Optimise a new outfit code against ``scans``: [(points (P, 3) metres, joints (24, 3) metres)],
+    or [(points, joints, body (K, 3) metres)] for a model that reads the posed body (``body_points``).
 
     Each step draws ``batch_size`` clouds (a scan each, round robin, ``num_points`` of its points,
     default the model's training N), normalises them with their pose, and takes one Adam step on the
@@ -53,9 +54,13 @@ def fit_outfit_code(model: nn.Module, normalisation: Normalisation, config, scan
     N = int(num_points or config.num_points)
     rng = np.random.default_rng([seed, 8])
     clouds = []
-    for points, joints in scans:
+    for points, joints, *body in scans:
         p, j = normalisation.normalise(np.asarray(points, np.float32), np.asarray(joints, np.float32))
-        clouds.append((torch.as_tensor(p, dtype=dtype), torch.as_tensor(j, dtype=dtype)))
+        b = None
+        if body and body[0] is not None:
+            b = torch.as_tensor(normalisation.normalise(np.asarray(body[0], np.float32), np.asarray(joints, np.float32))[0],
+                                dtype=dtype)  # fmt: skip
+        clouds.append((torch.as_tensor(p, dtype=dtype), torch.as_tensor(j, dtype=dtype), b))
     schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
     gen = torch.Generator(device).manual_seed(int(seed))
     code = nn.Parameter(weight.detach().mean(0).clone())  # (D,)
@@ -64,16 +69,18 @@ def fit_outfit_code(model: nn.Module, normalisation: Normalisation, config, scan
     fit = CodeFit(code.data)
     with frozen(model):
         for step in range(steps):
-            xs, js = [], []
+            xs, js, bs = [], [], []
             for b in range(batch_size):
-                p, j = clouds[(step * batch_size + b) % len(clouds)]
+                p, j, body = clouds[(step * batch_size + b) % len(clouds)]
                 sel = torch.from_numpy(rng.choice(len(p), N, replace=len(p) < N))
                 xs.append(p[sel])
                 js.append(j)
+                bs.append(body)
             x0, joints = torch.stack(xs).to(device), torch.stack(js).to(device)  # (B, N, 3), (B, J, 3)
             B = x0.shape[0]
+            body = None if bs[0] is None else torch.stack(bs).to(device)  # (B, K, 3)
             cond = PoseCondition(joints, None, None if shape_t is None else shape_t.expand(B, -1),
-                                 code[None].expand(B, -1))  # fmt: skip
+                                 code[None].expand(B, -1), body)  # fmt: skip
             loss, _ = diffusion_loss(model, x0, cond, schedule, config.prediction_type, generator=gen)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -11,7 +11,16 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from pocoloco.data.poses import Pose, load_joints, subject_of_spec
+from pocoloco.data.poses import (
+    MeanShapeCache,
+    Pose,
+    dataset_frame_path,
+    load_joints,
+    pose_from_anny_file,
+    pose_from_frame,
+    pose_spec_kind,
+    subject_of_spec,
+)
 from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
@@ -33,13 +42,28 @@ class PocoLocoMethod(Method):
 
     kind = "pocoloco"
     deterministic = False
-    needs_body = False
     train_config = PocoLocoTrainConfig
 
     def __init__(self, *args, weights: str = "ema", **kwargs):
         super().__init__(*args, **kwargs)
         self.weights = weights
         self.outfits = list(self.meta.get("outfits", []))
+
+    @property
+    def needs_body(self) -> bool:  # type: ignore[override]
+        """Trained with ``--body-points``: sampling needs the posed body, not only the joints."""
+        return bool(self.config.body_points)
+
+    def body_points_of(self, pose: Pose) -> np.ndarray | None:
+        """The (K, 3) posed-body vertices this model reads from ``pose`` (None: a model without them)."""
+        if not self.needs_body:
+            return None
+        if pose.body_vertices is None:
+            raise ValueError(f"{pose.source}: this PocoLoco model (--body-points) needs the posed body, not only joints")
+        ids = self.meta.get("body_point_ids")
+        if not ids or len(ids) != self.config.body_points:
+            raise ValueError(f"{self.path / META_FILE}: body_point_ids missing or not {self.config.body_points} long")
+        return np.asarray(pose.body_vertices, np.float32)[np.asarray(ids)]
 
     # ------------------------------------------------------------------------------ outfits
     @property
@@ -65,7 +89,7 @@ class PocoLocoMethod(Method):
         """Fit a new outfit code to ``scans`` [(points (P, 3), normals or None, pose)], the network
         frozen (:func:`~pocoloco.methods.pocoloco.fitting.fit_outfit_code`)."""
         return fit_outfit_code(self.model, self.normalisation, self.config,
-                               [(points, pose.joints) for points, _, pose in scans],
+                               [(points, pose.joints, self.body_points_of(pose)) for points, _, pose in scans],
                                shape=shape if self.config.body_shape else None, steps=steps,
                                lr=1e-2 if lr is None else lr, seed=seed, progress=progress)  # fmt: skip
 
@@ -85,6 +109,9 @@ class PocoLocoMethod(Method):
     def denoiser_for(self, outfit: int | None, code: torch.Tensor | None = None):
         """The network with ``outfit`` (its code and body shape) bound in, called like a joints-only
         denoiser (what the apps run); the network itself for a joints-only model."""
+        if self.needs_body:
+            raise ValueError("this PocoLoco model also needs the posed body (--body-points): completion, editing and "
+                             "animation take models conditioned on joints (and outfit) only; use pocoloco sample / eval")  # fmt: skip
         if not self.knows_who_wears_what:
             self.outfit_id(outfit)  # any outfit is a one-line error
             return self.model
@@ -134,8 +161,25 @@ class PocoLocoMethod(Method):
 
     def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
                   any_pose: bool = False) -> Pose:  # fmt: skip
+        if self.needs_body:  # the posed body, as POP and CloSET take it
+            if frame_id is not None:
+                raise ValueError(f"{spec}: --frame-id does not apply to a model that needs the posed body")
+            spec = str(spec)
+            kind = pose_spec_kind(spec)
+            if kind == "dataset":
+                return pose_from_frame(dataset_frame_path(spec), subject_of_spec(spec), False)
+            if kind == "anny":
+                pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
+                return pose_from_anny_file(spec, pheno, False)
+            path = Path(spec)
+            return pose_from_frame(path, path.parent.parent.parent.parent.name, False)
         joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
         return Pose(joints, subject=subject_of_spec(str(spec)), source=str(spec))
+
+    def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
+        if self.needs_body:
+            return pose_from_frame(path, subject, False, frame=frame)
+        return super().pose_from_frame(path, subject, frame=frame, cache=cache)
 
     def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
                 options: SamplerOptions = SamplerOptions(), code: torch.Tensor | None = None) -> SampledClouds:  # fmt: skip
@@ -145,12 +189,15 @@ class PocoLocoMethod(Method):
             outfit = self.default_outfit(pose) if outfit is None else self.outfit_id(outfit)
         else:
             self.outfit_id(outfit)  # a joints-only model: any outfit is a one-line error
-        model = self.model if code is None else self.denoiser_for(outfit, code=code)
-        kw = {} if code is not None else self.condition(outfit)
-        return sample_clouds(model, self.normalisation, self.config, np.asarray(pose.joints), len(seeds),
+        kw = self.condition(outfit)
+        if code is not None:
+            if not self.fits_outfits:
+                raise ValueError("this PocoLoco model has no outfit codes (train it with --outfit-codes)")
+            kw = {**kw, "outfit": None, "code": torch.as_tensor(code).reshape(-1)}
+        return sample_clouds(self.model, self.normalisation, self.config, np.asarray(pose.joints), len(seeds),
                              num_points, sampler=options.sampler, steps=options.steps, seeds=list(seeds),
                              batch_size=options.batch_size, progress=options.progress, clip=options.clip,
-                             bf16=options.bf16, **kw)  # fmt: skip
+                             bf16=options.bf16, body=self.body_points_of(pose), **kw)  # fmt: skip
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         steps = options.steps if options.steps is not None else SAMPLER_STEPS[options.sampler]

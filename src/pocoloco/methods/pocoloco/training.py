@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from pocoloco.data.dataset import Normalisation, PointCloudDataset
+from pocoloco.data.format import DatasetLayout, read_subject
 from pocoloco.data.step_batches import StepBatches
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, diffusion_loss, sample_ddim
 from pocoloco.engine.checkpoint import Checkpoint
@@ -28,6 +29,7 @@ from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.pocoloco.config import RESUMABLE_CHANGES, PocoLocoTrainConfig
 from pocoloco.models.conditioning import SHAPE_KEYS, PoseCondition, phenotype_vector
 from pocoloco.models.denoisers import build_denoiser
+from pocoloco.ops.sampling import farthest_point_sampling
 from pocoloco.utils.seeding import seed_of
 from pocoloco.viz.render import render_grid
 
@@ -42,8 +44,10 @@ class PocoLocoTask(TrainingTask):
 
     def __init__(self, config: PocoLocoTrainConfig, data: str | Path):
         self.data = data
+        self.body_point_ids = body_point_ids(data, config) if config.body_points else None
         self.dataset = PointCloudDataset(data, "train", num_points=None, with_normals=config.denoiser.point_channels == 6,
-                                         random_subsample=False, subjects=config.subjects)  # fmt: skip
+                                         random_subsample=False, subjects=config.subjects,
+                                         body_point_ids=self.body_point_ids)  # fmt: skip
         self.normalisation = self.dataset.normalisation
         # who wears what: one outfit per subject (ids in the dataset's sorted subject order) and its
         # anny phenotype; the denoiser's config is resolved here so the checkpoint records it
@@ -56,7 +60,8 @@ class PocoLocoTask(TrainingTask):
         self.shapes = torch.tensor([phenotype_vector(o["phenotype"]) for o in self.outfits], dtype=torch.float32)
         self.config = config.replace(denoiser=config.denoiser.replace(
             num_outfits=len(names) if config.outfit_codes else 0,
-            shape_dim=len(SHAPE_KEYS) if config.body_shape else 0))  # fmt: skip
+            shape_dim=len(SHAPE_KEYS) if config.body_shape else 0, **({"body_points": config.body_points}
+                                                                   if config.body_points else {})))  # fmt: skip
         self.schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
         self.generator: torch.Generator | None = None
         self._preview_frames: list[dict[str, Any]] | None = None
@@ -77,20 +82,22 @@ class PocoLocoTask(TrainingTask):
         c = self.config
         return StepBatches(self.dataset, c.batch_size, c.num_points, c.seed, c.steps, rank, world)
 
-    def condition(self, joints: torch.Tensor, subject: torch.Tensor) -> torch.Tensor | PoseCondition:
+    def condition(self, joints: torch.Tensor, subject: torch.Tensor,
+                  body: torch.Tensor | None = None) -> torch.Tensor | PoseCondition:  # fmt: skip
         """The denoiser's conditioning for frames of these subject ids (B,): the joints alone, or
-        with the outfit ids and body shapes the config asks for."""
+        with the outfit ids, body shapes and posed bodies (B, K, 3) the config asks for."""
         c = self.config
-        if not (c.outfit_codes or c.body_shape):
+        if not (c.outfit_codes or c.body_shape or c.body_points):
             return joints
         outfit = self.outfit_of_subject[subject.cpu()].to(joints.device)
         return PoseCondition(joints, outfit if c.outfit_codes else None,
-                             self.shapes.to(joints.device)[outfit] if c.body_shape else None)  # fmt: skip
+                             self.shapes.to(joints.device)[outfit] if c.body_shape else None,
+                             body=body if c.body_points else None)  # fmt: skip
 
     def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
         c = self.config
         x0 = batch["points"]  # (B, N, C)
-        cond = self.condition(batch["joints"], batch["subject"])
+        cond = self.condition(batch["joints"], batch["subject"], batch.get("body"))
         if self.generator is None or self.generator.device != x0.device:
             self.generator = torch.Generator(x0.device)
         self.generator.manual_seed(seed_of(c.seed, 2, step, rank))
@@ -102,13 +109,15 @@ class PocoLocoTask(TrainingTask):
     def check_resume(self, ck: Checkpoint) -> None:
         if ck.normalisation != self.normalisation:
             raise ValueError(f"{self.data}: dataset normalisation differs from the checkpoint's ({ck.path})")
+        if ck.meta.get("body_point_ids") != self.body_point_ids:
+            raise ValueError(f"{self.data}: the body point ids differ from the checkpoint's ({ck.path})")
         stored = [o["name"] for o in ck.meta.get("outfits", [])]
         if stored and stored != [o["name"] for o in self.outfits]:
             raise ValueError(f"{self.data}: subjects {[o['name'] for o in self.outfits]} differ from the checkpoint's "
                              f"outfits {stored} ({ck.path})")  # fmt: skip
 
     def checkpoint_extra(self, model: nn.Module) -> dict[str, Any]:
-        return {"outfits": self.outfits}
+        return {"outfits": self.outfits, **({"body_point_ids": self.body_point_ids} if self.body_point_ids else {})}
 
     def preview(self, model: nn.Module, step: int, out: Path, device: torch.device) -> Path:
         if self._preview_frames is None:
@@ -117,11 +126,25 @@ class PocoLocoTask(TrainingTask):
                                device, self.condition)  # fmt: skip
 
 
+def body_point_ids(data, config: PocoLocoTrainConfig) -> list[int]:
+    """``config.body_points`` vertex ids spread over the body: farthest-point sampled (torch backend,
+    deterministic, first vertex 0) on the rest-pose template of the first trained subject (anny
+    bodies share one topology, so the ids mean the same place on every subject)."""
+    layout = DatasetLayout(data)
+    subjects = sorted(config.subjects) if config.subjects else layout.subjects()
+    template = read_subject(layout.subject_path(subjects[0])).template  # (V, 3)
+    if config.body_points > len(template):
+        raise ValueError(f"--body-points {config.body_points}: the body has only {len(template)} vertices")
+    idx = farthest_point_sampling(torch.from_numpy(np.asarray(template, np.float32))[None], config.body_points,
+                                  backend="torch")  # fmt: skip
+    return [int(i) for i in idx[0]]
+
+
 def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDataset) -> list[dict[str, Any]]:
     """Two frames (test split if it has any, else train) with fixed point subsets, for the periodic samples."""
     try:
         ds = PointCloudDataset(data, "test", num_points=None, random_subsample=False,
-                               subjects=train_set.subject_names)  # fmt: skip
+                               subjects=train_set.subject_names, body_point_ids=train_set.body_point_ids)  # fmt: skip
     except ValueError:
         ds = train_set
     picks = sorted({0, len(ds) // 2})
@@ -131,7 +154,7 @@ def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDatas
         n = item["points"].shape[0]
         sel = np.random.default_rng([config.seed, 3, i]).choice(n, min(n, config.num_points), replace=False)
         frames.append({"points": item["points"][sel], "joints": item["joints"], "root": item["root"],
-                       "key": item["frame_key"], "subject": item["subject"]})  # fmt: skip
+                       "key": item["frame_key"], "subject": item["subject"], "body": item.get("body")})  # fmt: skip
     return frames
 
 
@@ -143,7 +166,8 @@ def _render_samples(model: nn.Module, schedule: NoiseSchedule, config: PocoLocoT
     grid. ``condition(joints, subject ids)``: the conditioning (default: the joints alone)."""
     C = config.denoiser.point_channels
     joints = torch.stack([f["joints"] for f in frames]).to(device)  # (B, J, 3)
-    cond = joints if condition is None else condition(joints, torch.tensor([f["subject"] for f in frames]))
+    body = torch.stack([f["body"] for f in frames]).to(device) if frames[0].get("body") is not None else None
+    cond = joints if condition is None else condition(joints, torch.tensor([f["subject"] for f in frames]), body)
     rng = PerSampleRNG([config.seed * 1000 + k for k in range(len(frames))], device=device)
     noise = rng.randn((config.num_points, C), device=device)  # (B, N, C)
     was_training = model.training
