@@ -103,7 +103,19 @@ def evaluate_arm(name: str, info: dict, split: str, args) -> dict:
         return {k: m[k] for k in keys if k in m}
 
     return {"overall": pick(ev["means"]["model"]),
-            "per_subject": {s: pick(v["model"]) for s, v in ev["per_subject"].items()}}  # fmt: skip
+            "per_subject": {s: pick(v["model"]) for s, v in ev["per_subject"].items()},
+            "per_frame": {f["key"]: f["model"]["chamfer_cm"] for f in ev["frames"]}}  # fmt: skip
+
+
+def paired(base: dict[str, float], other: dict[str, float]) -> dict[str, float]:
+    """Per-frame Chamfer differences other - base on the frames both scored: mean, standard error,
+    share of frames where ``other`` is at least as good."""
+    keys = sorted(set(base) & set(other))
+    d = [other[k] - base[k] for k in keys]
+    n = len(d)
+    mean = sum(d) / n
+    se = (sum((x - mean) ** 2 for x in d) / (n - 1) / n) ** 0.5 if n > 1 else float("nan")
+    return {"frames": n, "mean_cm": mean, "se_cm": se, "not_worse_pct": 100.0 * sum(x <= 0 for x in d) / n}
 
 
 def main() -> None:
@@ -138,6 +150,13 @@ def main() -> None:
             m = r["eval"][split]["overall"]
             print(f"{name:<16} {r['step']:>6}  {m['chamfer_cm']:>8.2f} {m['m2s_cm']:>6.2f} {m['outlier_10cm_pct']:>6.2f} "
                   f"{m.get('outlier_10cm_pct_max', float('nan')):>6.1f} {m['loose_pred_pct']:>5.1f}/{m['loose_gt_pct']:<5.1f}")  # fmt: skip
+        names = list(results)
+        base = names[0]
+        for name in names[1:]:
+            pr = paired(results[base]["eval"][split]["per_frame"], results[name]["eval"][split]["per_frame"])
+            results[name]["eval"][split][f"paired_vs_{base}"] = pr
+            print(f"paired, {name} - {base}: {pr['mean_cm']:+.2f} +- {pr['se_cm']:.2f} cm over {pr['frames']} frames "
+                  f"({pr['not_worse_pct']:.0f} % of frames not worse)")  # fmt: skip
         print("per subject, Chamfer cm: " + " ".join(f"{s}" for s in subjects))
         for name, r in results.items():
             per = r["eval"][split]["per_subject"]
