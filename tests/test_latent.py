@@ -86,6 +86,11 @@ def reference_forward(model: LatentDenoiser, x, t, joints, body=None):
     if cfg.joint_offsets:
         off = model.offset_in
         p = p + ref_linear(ref_gelu(ref_linear(joint_offset_features(x[..., :3], joints), off[0])), off[2])
+        if body is not None:  # offsets to the body vertices, written out per point and vertex
+            d = torch.stack([x[:, :, :3] - body[:, k : k + 1] for k in range(body.shape[1])], dim=2)  # (B, N, K, 3)
+            feats_b = torch.cat([d.flatten(2), torch.sqrt((d**2).sum(-1))], dim=-1)
+            off = model.body_offset_in
+            p = p + ref_linear(ref_gelu(ref_linear(feats_b, off[0])), off[2])
     p = ref_layer_norm(p, model.ln_points)
     te = model.time_embed.mlp
     tau = ref_linear(ref_gelu(ref_linear(timestep_embedding(t, cfg.width).to(x.dtype), te[0])), te[2])

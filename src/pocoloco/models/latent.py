@@ -105,7 +105,8 @@ class LatentDenoiserConfig:
     attention, joint_offsets, num_outfits, shape_dim: as in
     :class:`~pocoloco.models.pocoloco.PocoLocoDenoiserConfig` (outfit and body-shape tokens join the
     latent stream). body_points: K posed-body vertices given with the condition, one token each in
-    the latent stream (0: none, the paper's template-free input)
+    the latent stream (0: none, the paper's template-free input); with ``joint_offsets`` every point
+    also gets its offsets to them, as to the joints
     (``attention="dense"`` is the materialised-softmax reference, same weights and maths).
     """
 
@@ -285,6 +286,8 @@ class LatentDenoiser(nn.Module):
         # posed-body tokens: Linear(posenc(b_k)) + E_k, like the joints (K fixed vertex ids)
         self.body_in = nn.Linear(enc_dim, D) if cfg.body_points else None
         self.body_embed = nn.Parameter(torch.randn(cfg.body_points, D) * 0.02) if cfg.body_points else None
+        self.body_offset_in = (nn.Sequential(nn.Linear(4 * cfg.body_points, P), nn.GELU(), nn.Linear(P, P))
+                               if cfg.body_points and cfg.joint_offsets else None)  # fmt: skip
         self.ln_latents = nn.LayerNorm(D)
         self.blocks = nn.ModuleList(LatentBlock(cfg) for _ in range(cfg.depth))
         self.ln_out = nn.LayerNorm(P)
@@ -338,6 +341,21 @@ class LatentDenoiser(nn.Module):
             raise ValueError("t contains NaN or infinite values")
         return t
 
+    def _check_body(self, body: torch.Tensor | None, B: int) -> torch.Tensor | None:
+        """The (B, K, 3) posed body the config asks for (one-line errors otherwise)."""
+        K = self.config.body_points
+        if not K:
+            if body is not None:
+                raise ValueError("this model takes no posed body (trained without --body-points)")
+            return None
+        if body is None:
+            raise ValueError(f"this model needs the posed body ({K} vertices) besides the joints")
+        if body.shape != (B, K, 3):
+            raise ValueError(f"body must have shape ({B}, {K}, 3), got {tuple(body.shape)}")
+        if not torch.isfinite(body).all():
+            raise ValueError("body contains NaN or infinite values")
+        return body
+
     def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | PoseCondition) -> torch.Tensor:
         """Predict the noise (or whatever ``config.prediction_type`` says) for every point.
 
@@ -358,6 +376,9 @@ class LatentDenoiser(nn.Module):
         p = self.point_in(feats)  # (B, N, P)
         if self.offset_in is not None:
             p = p + self.offset_in(joint_offset_features(x[..., :3], joints))
+        body = self._check_body(body, B)
+        if self.body_offset_in is not None:
+            p = p + self.body_offset_in(joint_offset_features(x[..., :3], body))  # (B, N, 4K) -> (B, N, P)
         p = self.ln_points(p)
         time = self.time_embed(t)[:, None].to(p.dtype)  # (B, 1, D)
         joint_tokens = self.joint_in(self._encode(joints.to(x.dtype))) + self.joint_embed  # (B, J, D)
@@ -368,16 +389,7 @@ class LatentDenoiser(nn.Module):
         elif outfit is not None or shape is not None:
             raise ValueError("this model takes no outfit or body shape (trained on joints only)")
         if self.body_in is not None:
-            K = self.config.body_points
-            if body is None:
-                raise ValueError(f"this model needs the posed body ({K} vertices) besides the joints")
-            if body.shape != (B, K, 3):
-                raise ValueError(f"body must have shape ({B}, {K}, 3), got {tuple(body.shape)}")
-            if not torch.isfinite(body).all():
-                raise ValueError("body contains NaN or infinite values")
             stream.append(self.body_in(self._encode(body.to(x.dtype))) + self.body_embed)  # (B, K, D)
-        elif body is not None:
-            raise ValueError("this model takes no posed body (trained without --body-points)")
         z = self.ln_latents(torch.cat(stream, dim=1))  # (B, L, D)
         for block in self.blocks:
             z, p = block(z, p)
