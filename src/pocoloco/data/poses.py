@@ -45,6 +45,7 @@ __all__ = [
     "demo_pose_names",
     "demo_pose_path",
     "is_anny_pose_file",
+    "load_body_pose",
     "load_joints",
     "motion_path_of",
     "pose_from_anny_file",
@@ -339,3 +340,17 @@ def pose_spec_kind(spec: str) -> str:
         return "frame"
     raise ValueError(f"{spec}: POP, CloSET and PocoLoco with --body-points need the posed body, not only joints: pass a dataset frame "
                      "DATASET:subject/split/sequence/index or an .npz with anny pose parameters 'joint_rotvecs' (24, 3)")
+
+
+def load_body_pose(spec: str, phenotype: dict[str, float] | None, need_mean_shape: bool) -> Pose:
+    """A pose with its posed body (what POP, CloSET and PocoLoco with ``--body-points`` take): a
+    dataset frame ``DATASET:subject/split/sequence/index``, a frame ``.npz`` inside a dataset, or an
+    ``.npz`` of anny pose parameters posed with ``phenotype``; bare joints are a one-line error."""
+    spec = str(spec)
+    kind = pose_spec_kind(spec)
+    if kind == "dataset":
+        return pose_from_frame(dataset_frame_path(spec), subject_of_spec(spec), need_mean_shape)
+    if kind == "anny":
+        return pose_from_anny_file(spec, phenotype or {}, need_mean_shape)
+    path = Path(spec)
+    return pose_from_frame(path, path.parent.parent.parent.parent.name, need_mean_shape)

@@ -46,15 +46,7 @@ from pocoloco.data.format import (
     read_frame,
     read_subject,
 )
-from pocoloco.data.poses import (
-    MeanShapeCache,
-    Pose,
-    dataset_frame_path,
-    pose_from_anny_file,
-    pose_from_frame,
-    pose_spec_kind,
-    subject_of_spec,
-)
+from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, pose_from_frame
 from pocoloco.data.step_batches import StepBatches
 from pocoloco.engine.checkpoint import Checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
@@ -400,15 +392,8 @@ class SkinnedMethod(Method):
         phenotype of ``outfit``'s subject); bare joints are a one-line error (they need the body)."""
         if frame_id is not None:
             raise ValueError(f"{spec}: --frame-id only applies to PocoLoco checkpoints")
-        spec = str(spec)
-        kind = pose_spec_kind(spec)
-        if kind == "dataset":
-            return pose_from_frame(dataset_frame_path(spec), subject_of_spec(spec), self.needs_mean_shape)
-        if kind == "anny":
-            pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
-            return pose_from_anny_file(spec, pheno, self.needs_mean_shape)
-        path = Path(spec)
-        return pose_from_frame(path, path.parent.parent.parent.parent.name, self.needs_mean_shape)
+        pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
+        return load_body_pose(spec, pheno, self.needs_mean_shape)
 
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
         return pose_from_frame(path, subject, self.needs_mean_shape, cache=cache, frame=frame)

@@ -11,16 +11,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from pocoloco.data.poses import (
-    MeanShapeCache,
-    Pose,
-    dataset_frame_path,
-    load_joints,
-    pose_from_anny_file,
-    pose_from_frame,
-    pose_spec_kind,
-    subject_of_spec,
-)
+from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, load_joints, pose_from_frame, subject_of_spec
 from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
@@ -164,15 +155,8 @@ class PocoLocoMethod(Method):
         if self.needs_body:  # the posed body, as POP and CloSET take it
             if frame_id is not None:
                 raise ValueError(f"{spec}: --frame-id does not apply to a model that needs the posed body")
-            spec = str(spec)
-            kind = pose_spec_kind(spec)
-            if kind == "dataset":
-                return pose_from_frame(dataset_frame_path(spec), subject_of_spec(spec), False)
-            if kind == "anny":
-                pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
-                return pose_from_anny_file(spec, pheno, False)
-            path = Path(spec)
-            return pose_from_frame(path, path.parent.parent.parent.parent.name, False)
+            pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
+            return load_body_pose(spec, pheno, False)
         joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
         return Pose(joints, subject=subject_of_spec(str(spec)), source=str(spec))
 
