@@ -29,7 +29,8 @@ import sys
 import time
 from pathlib import Path
 
-from pocoloco.engine.checkpoint import META_FILE, latest_checkpoint
+from pocoloco.engine.checkpoint import latest_checkpoint, read_meta
+from pocoloco.utils.atomic import write_json_atomic
 
 
 def cli(*args: str) -> list[str]:
@@ -79,10 +80,9 @@ def train_arms(arms: dict[str, list[str]], args) -> dict[str, dict]:
                 ckpt = latest_checkpoint(args.out / name / "checkpoints")
                 if ckpt is None:
                     raise SystemExit(f"error: arm {name} wrote no checkpoint in {args.minutes} min")
-                meta = json.loads((ckpt / META_FILE).read_text())
-                info = {"step": int(meta["step"]), "seconds": round(elapsed, 1), "checkpoint": str(ckpt.resolve()),
-                        "train_args": arms[name]}  # fmt: skip
-                (args.out / name / "pilot_arm.json").write_text(json.dumps(info, indent=1))
+                info = {"step": int(read_meta(ckpt)["step"]), "seconds": round(elapsed, 1),
+                        "checkpoint": str(ckpt.resolve()), "train_args": arms[name]}  # fmt: skip
+                write_json_atomic(args.out / name / "pilot_arm.json", info, indent=1)  # the arm's "finished" mark
                 print(f"[{name}] stopped after {elapsed / 60:.1f} min at step {info['step']}", flush=True)
                 del procs[name]
     return {name: json.loads((args.out / name / "pilot_arm.json").read_text()) for name in arms}

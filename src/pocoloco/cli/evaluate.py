@@ -55,8 +55,6 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             nearest_align=args.nearest_align)  # fmt: skip
     if settings.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {settings.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
-    if settings.split not in fmt.SPLITS:
-        raise ValueError(f"unknown split {settings.split!r}; expected one of {fmt.SPLITS}")
     fmt.read_card(args.data)
     out = output_folder(args.out)
     with progress_bar("eval") as update:
@@ -94,8 +92,6 @@ def cmd_bench_quality(args: argparse.Namespace) -> None:
     settings = EvalSettings(split=args.split, num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
                             sampler=args.sampler, steps=args.steps, clip=5.0, nearest_align=args.nearest_align,
                             subjects=tuple(args.subjects) if args.subjects else None)  # fmt: skip
-    if settings.split not in fmt.SPLITS:
-        raise ValueError(f"unknown split {settings.split!r}; expected one of {fmt.SPLITS}")
     con = console(stderr=True)
     ckpts = {key: getattr(args, f"ckpt_{key}") for key in QUALITY_ROWS}
     report = bench_quality(args.data, ckpts, args.out, settings, train_steps=args.train_steps, work=args.work,

@@ -118,6 +118,8 @@ class EvalSettings:
     nearest_align: str = "root"
 
     def __post_init__(self):
+        if self.split not in fmt.SPLITS:
+            raise ValueError(f"unknown split {self.split!r}; expected one of {fmt.SPLITS}")
         if self.num_frames < 0:
             raise ValueError(f"num_frames must be >= 0, got {self.num_frames}")
         if self.num_points < 1:
