@@ -449,6 +449,18 @@ def test_pocoloco_fits_an_unseen_outfit_code(tiny_dataset, tmp_path, capsys):
     assert not torch.equal(new.model.who.outfit_embed.weight[1], old.model.who.outfit_embed.weight[0])
     assert cli_main(["sample", "--ckpt", str(tmp_path / "fitted"), "--outfit", "skirt_new", "--joints", specs[0],
                      "--num", "1", "--steps", "2", "--points", "32", "--no-render", "--out", str(tmp_path / "s")]) == 0  # fmt: skip
+    # eval scores the unseen subject in a named outfit (before: the trained one; after: the fitted one)
+    base = ["eval", "--data", str(tiny_dataset), "--subjects", "skirt", "--frames", "1", "--points", "64", "--seeds",
+            "0", "--steps", "2", "--no-baselines", "--threads", "1"]  # fmt: skip
+    assert cli_main([*base, "--ckpt", str(run), "--out", str(tmp_path / "e0")]) == 2
+    assert "never trained" in capsys.readouterr().err
+    assert cli_main([*base, "--ckpt", str(run), "--outfit", "tight", "--out", str(tmp_path / "e1")]) == 0
+    assert cli_main([*base, "--ckpt", str(tmp_path / "fitted"), "--outfit", "skirt_new", "--out", str(tmp_path / "e2")]) == 0
+    before, after = (json.loads((tmp_path / e / "eval.json").read_text()) for e in ("e1", "e2"))
+    assert before["settings"]["outfit"] == "tight" and after["settings"]["outfit"] == "skirt_new"
+    assert before["means"]["model"]["chamfer_cm"] != after["means"]["model"]["chamfer_cm"]
+    assert cli_main([*base, "--ckpt", str(run), "--outfit", "nobody", "--out", str(tmp_path / "e3")]) == 2
+    assert "never trained" in capsys.readouterr().err
     plain = tmp_path / "plain"
     train(tiny(steps=1), tiny_dataset, plain, progress=False)
     assert cli_main(["fit", "--ckpt", str(plain), "--scan", str(tmp_path / "scan0.ply"), "--frame", specs[0],

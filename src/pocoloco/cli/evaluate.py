@@ -52,7 +52,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             baselines=() if args.no_baselines else EvalSettings.baselines,
                             subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
                             use_ema=not args.raw_weights, clip=args.clip or None, bf16=resolve_bf16(args.bf16, args.device),
-                            nearest_align=args.nearest_align)  # fmt: skip
+                            nearest_align=args.nearest_align, outfit=args.outfit)  # fmt: skip
     if settings.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {settings.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
     fmt.read_card(args.data)
@@ -75,6 +75,9 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sampler", default="dpm++sde", help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde, {SAMPLER_STEPS['dpm++sde']} steps)")
     parser.add_argument("--steps", type=int, help=f"sampler steps (default: {steps_defaults()})")
     parser.add_argument("--subjects", nargs="+", help="only these subjects (default: all)")
+    parser.add_argument("--outfit", help="models with outfits: draw every frame in this trained outfit (e.g. a fitted one, "
+                                         "or the nearest trained one for a subject the model never saw; default: each "
+                                         "frame's subject)")  # fmt: skip
     parser.add_argument("--no-baselines", action="store_true", help="skip the nearest-frame / posed-body / GT rows")
     parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
     add_nearest_align_argument(parser)

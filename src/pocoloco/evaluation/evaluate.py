@@ -100,7 +100,9 @@ class EvalSettings:
     subjects: restrict to these subjects (None: all). batch_size: clouds sampled together.
     use_ema: EMA (default) or raw weights. clip: x0 clamp of the sampler (``sample_clouds``).
     bf16: the denoiser under bf16 autocast (``sample_clouds``). nearest_align: ``root`` or ``yaw``
-    (``NearestFrameBaseline``).
+    (``NearestFrameBaseline``). outfit: draw every frame in this trained outfit (models with outfit
+    codes, e.g. a fitted outfit or the nearest trained one for an unseen subject; None: each
+    frame's subject).
     """
 
     split: str = "test"
@@ -116,6 +118,7 @@ class EvalSettings:
     clip: float | None = None
     bf16: bool = False
     nearest_align: str = "root"
+    outfit: str | None = None
 
     def __post_init__(self):
         if self.split not in fmt.SPLITS:
@@ -216,7 +219,7 @@ def evaluate(
         if method is not None:
             method = methods.get(subject, methods.get(None))
             pose = method.pose_from_frame(path, subject, frame=fr, cache=mean_cache)
-            outfit = method.outfit_id(subject) if method.outfit_names() else None
+            outfit = method.outfit_id(settings.outfit or subject) if method.outfit_names() else None
             t0 = time.perf_counter()
             pred = method.predict(pose, settings.num_points, seeds, outfit, options)
             per_sample = (time.perf_counter() - t0) / len(seeds)
@@ -294,8 +297,10 @@ def _load_methods(ckpt, data, card: dict[str, Any], subjects: list[str], setting
         if per_subject and trained and subject not in trained:
             raise ValueError(f"{method.path}: the model for {subject!r} was trained on {list(trained)} only")
         if method.outfit_names():  # one-line error before any work if a subject was never trained
-            for s in subjects if not per_subject else [subject]:
+            for s in [settings.outfit] if settings.outfit else subjects if not per_subject else [subject]:
                 method.outfit_id(s)
+        elif settings.outfit:
+            raise ValueError(f"--outfit {settings.outfit}: {method.path} has no outfits (a joints-only model)")
         _check_normalisation(method.normalisation, card, method.path, data)
         methods[subject] = method
     first = next(iter(methods.values()))
@@ -317,7 +322,7 @@ def _settings_dict(s: EvalSettings) -> dict[str, Any]:
     return {"split": s.split, "num_frames": s.num_frames, "num_points": s.num_points, "seeds": list(s.seeds),
             "sampler": s.sampler, "steps": s.steps, "baselines": list(s.baselines),
             "subjects": None if s.subjects is None else list(s.subjects), "weights": "ema" if s.use_ema else "raw",
-            "clip": s.clip}  # fmt: skip
+            "clip": s.clip, "outfit": s.outfit}  # fmt: skip
 
 
 def _check_normalisation(normalisation, card: dict[str, Any], ckpt: Path, data) -> None:
