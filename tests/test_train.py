@@ -443,6 +443,9 @@ def test_pocoloco_fits_an_unseen_outfit_code(tiny_dataset, tmp_path, capsys):
     assert np.isfinite(rep["after"]["chamfer_cm"]) and np.isfinite(rep["before_mean_outfit"]["chamfer_cm"])
     old, new = load_method(run), load_method(tmp_path / "fitted")
     assert new.outfit_names() == ["tight", "skirt_new"] and new.model.config.num_outfits == 2
+    # the body shape is the scans' body (skirt's phenotype from the dataset card), not a trained subject's
+    assert new.outfits[1]["phenotype"] == fmt.read_card(tiny_dataset)["subjects"]["skirt"]["phenotype"]
+    assert new.outfits[1]["phenotype"] != new.outfits[0]["phenotype"]
     for k, v in old.model.state_dict().items():  # only the outfit table grew
         w = new.model.state_dict()[k]
         assert torch.equal(w[: v.shape[0]] if "outfit_embed" in k else w, v), k

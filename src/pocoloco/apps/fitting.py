@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pocoloco.data.format import read_frame
+from pocoloco.data.format import read_card, read_frame
 from pocoloco.data.poses import dataset_frame_path
 from pocoloco.data.published import read_ply
 from pocoloco.engine.checkpoint import META_FILE, latest_checkpoint
@@ -111,10 +111,11 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
         poses.append(pose)
     trained_names = loaded.outfit_names()
     subject = poses[0].subject
-    phenotype = loaded.outfits[0].get("phenotype", {})
-    if subject in trained_names:  # the body the scans were taken on
+    # the body the scans were taken on: a trained subject's, else the one its dataset card records
+    card_subject = read_card(scans[0][1].rpartition(":")[0]).get("subjects", {}).get(subject) or {}
+    phenotype = dict(card_subject.get("phenotype") or loaded.outfits[0].get("phenotype", {}))
+    if subject in trained_names:
         phenotype = loaded.outfits[loaded.outfit_id(subject)].get("phenotype", {})
-    body_outfit = trained_names.index(subject) if subject in trained_names else 0  # whose body shape to use
     t0 = time.perf_counter()
     fit = loaded.fit_outfit(fit_scans, steps=steps, lr=lr, progress=progress, shape=phenotype_vector(phenotype),
                             seed=seed)  # fmt: skip
@@ -129,13 +130,13 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
         c = loaded.predict(poses[0], n_eval, (seed,), outfit=outfit, code=code)
         return _score(c.points[0], None if c.normals is None else c.normals[0], gt, gt_n)
 
-    before_mean = score(code=loaded.mean_outfit_code(), outfit=body_outfit)
     per_outfit = [score(outfit=i) for i in range(len(trained_names))]
     best = int(np.argmin([m["chamfer_cm"] for m in per_outfit]))
-    after = score(code=fit.features, outfit=body_outfit)
-
+    mean_code = loaded.mean_outfit_code()
     sources = "; ".join(f"{os.fspath(p)} (body of {f})" for p, f in scans)
     new_id = loaded.add_outfit(fit.features, {"name": name, "phenotype": phenotype, "source": f"fitted to {sources}"})
+    before_mean = score(code=mean_code, outfit=new_id)  # the scans' body, the mean code (where fitting starts)
+    after = score(outfit=new_id)  # exactly what the saved checkpoint samples
     from_path = str(loaded.path)
     path = loaded.save(out / "checkpoints", extra={"fitted_from": from_path})
     report = FitReport(path, name, new_id, before_mean, per_outfit[best], trained_names[best], after,
