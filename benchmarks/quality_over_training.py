@@ -30,7 +30,7 @@ from pocoloco.viz.render import plot_curves
 
 
 def _settings(args, baselines=()) -> EvalSettings:
-    return EvalSettings(split="test", num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
+    return EvalSettings(split=args.split, num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
                         sampler=args.sampler, steps=args.steps, baselines=tuple(baselines),
                         clip=args.clip or None)  # fmt: skip
 
@@ -43,7 +43,7 @@ def _plot(doc: dict, run: Path, path: Path) -> None:
     curves = {f"{w} weights": (steps, [r[w]["chamfer_cm"] for r in rows]) for w in ("ema", "raw") if w in rows[0]}
     for name, m in doc.get("baselines", {}).items():
         curves[name.replace("_", " ")] = ([0, max(steps)], [m["chamfer_cm"]] * 2)
-    plot_curves(curves, path, xlabel="training step", ylabel="Chamfer cm (test)", logy=True,
+    plot_curves(curves, path, xlabel="training step", ylabel=f"Chamfer cm ({doc['settings'].get('split', 'test')})", logy=True,
                 title=f"sample quality over training ({run.name})")  # fmt: skip
 
 
@@ -52,6 +52,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("run", type=Path, help="training run folder")
     p.add_argument("--data", default="data/small")
     p.add_argument("--every", type=int, default=500, help="evaluate checkpoints whose step is a multiple of this")
+    p.add_argument("--split", default="test", help="split scored (test, or heldout: motions drawn with other seeds)")
     p.add_argument("--frames", type=int, default=6)
     p.add_argument("--points", type=int, default=2048)
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
