@@ -106,7 +106,7 @@ def draw(model, norm, config, joints: np.ndarray, seeds: list[int], num_points: 
         kwargs["clip"] = None
     model.eval()
     x = sample(kind, counted, schedule, noise, cond, rng=rng, **kwargs)  # (B, N, C)
-    pts = norm.denormalise(x.float().numpy()[..., :3], root.astype(np.float32)).astype(np.float32)
+    pts = norm.denormalise(x.float().numpy()[..., :3], root.astype(np.float32), norm.angle(joints)).astype(np.float32)
     return pts, counted.calls
 
 

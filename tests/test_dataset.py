@@ -10,7 +10,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from pocoloco.data import format as fmt
-from pocoloco.data.dataset import Normalisation, PointCloudDataset
+from pocoloco.data.dataset import Normalisation, PointCloudDataset, rotate_z
 
 SUBJECTS = ("anna", "bob")
 
@@ -86,6 +86,72 @@ def test_denormalise_inverts_exactly(dataset_root):
     np.testing.assert_allclose(norm.denormalise(pn, j[:, 0]), p, rtol=0, atol=1e-13)
     np.testing.assert_allclose(norm.denormalise(jn, j[:, 0]), j, rtol=0, atol=1e-13)
     np.testing.assert_allclose(jn[:, 0], np.broadcast_to((-np.array(norm.mean)) / norm.std, (2, 3)), atol=1e-13)
+
+
+def _rz(angle: float) -> np.ndarray:
+    """Slow reference: the 3x3 rotation matrix about +Z."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_rotate_z_matches_the_rotation_matrix_in_numpy_and_torch():
+    rng = np.random.default_rng(0)
+    x, a = rng.normal(size=(4, 7, 3)), rng.uniform(-np.pi, np.pi, size=4)
+    ref = np.stack([x[k] @ _rz(a[k]).T for k in range(4)])
+    np.testing.assert_allclose(rotate_z(x, a), ref, rtol=0, atol=1e-12)
+    got = rotate_z(torch.from_numpy(x), torch.from_numpy(a))
+    assert isinstance(got, torch.Tensor) and got.dtype == torch.float64
+    np.testing.assert_allclose(got.numpy(), ref, rtol=0, atol=1e-12)
+    assert rotate_z(x.astype(np.float32), a).dtype == np.float32
+    np.testing.assert_array_equal(rotate_z(x, np.zeros(4)), x)  # angle 0 is exact (region editing relies on it)
+
+
+def test_heading_normalisation_is_invariant_to_turning_the_body_and_inverts():
+    """Turning a frame about the vertical axis through its root leaves its heading-normalised cloud
+    unchanged (the angle grows by the turn), and denormalise with the angle gives the frame back."""
+    rng = np.random.default_rng(3)
+    norm = Normalisation(mean=(0.01, -0.05, -0.14), std=0.26, heading=True)
+    joints = rng.normal(scale=0.3, size=(24, 3)) + np.array([1.0, 2.0, 0.9])
+    points = joints[0] + rng.normal(scale=0.3, size=(100, 3))
+    pn, jn = norm.normalise(points, joints)
+    for turn in (0.3, 2.5, -3.0):
+        R = _rz(turn)
+        root = joints[0]
+        p2, j2 = (points - root) @ R.T + root + [0.5, -1, 0], (joints - root) @ R.T + root + [0.5, -1, 0]
+        pn2, jn2 = norm.normalise(p2, j2)
+        np.testing.assert_allclose(pn2, pn, atol=1e-10)
+        np.testing.assert_allclose(jn2, jn, atol=1e-10)
+        d = (norm.angle(j2) - norm.angle(joints) - turn + np.pi) % (2 * np.pi) - np.pi
+        assert abs(d) < 1e-10
+        np.testing.assert_allclose(norm.denormalise(pn2, j2[0], norm.angle(j2)), p2, atol=1e-10)
+    # the canonical frame: hips and shoulders run along +X
+    across = jn[1] - jn[2] + jn[16] - jn[17]
+    assert abs(across[1]) < 1e-10 and across[0] > 0
+    # torch batches give the same as numpy
+    tj = torch.from_numpy(np.stack([joints, joints + 1]))
+    tp = torch.from_numpy(np.stack([points, points + 1]))
+    np.testing.assert_allclose(norm.normalise(tp, tj)[0][0].numpy(), pn, atol=1e-10)
+    with pytest.raises(ValueError, match="needs the frame's angle"):
+        norm.denormalise(pn, joints[0])
+    with pytest.raises(ValueError, match="24-joint"):
+        norm.angle(joints[:10])
+    assert Normalisation(mean=(0, 0, 0), std=1.0).angle(joints) == 0.0
+
+
+def test_dataset_with_heading_turns_points_and_normals_alike(dataset_root):
+    plain = PointCloudDataset(dataset_root, "train", num_points=None, with_normals=True, random_subsample=False)
+    turned = PointCloudDataset(dataset_root, "train", num_points=None, with_normals=True, random_subsample=False,
+                               heading=True)  # fmt: skip
+    assert turned.normalisation.heading and not plain.normalisation.heading
+    a, b = plain[2], turned[2]
+    assert float(a["angle"]) == 0.0 and float(b["angle"]) != 0.0
+    back = turned.normalisation.denormalise(b["points"].double(), b["root"].double(), b["angle"].double())
+    np.testing.assert_allclose(back.numpy(), fmt.read_frame(turned.frames[2][2]).points, atol=1e-5)
+    # normals turn like the points: the same rotation maps plain -> turned for both
+    R = _rz(-float(b["angle"]))
+    np.testing.assert_allclose(b["normals"].numpy(), a["normals"].numpy() @ R.T, atol=1e-5)
+    mean, std = np.array(turned.normalisation.mean), turned.normalisation.std
+    np.testing.assert_allclose(b["points"].numpy(), ((a["points"].numpy() * std + mean) @ R.T - mean) / std, atol=1e-4)
 
 
 def test_normalisation_from_card_and_identity(dataset_root):

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pocoloco.data.dataset import Normalisation
+from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.format import read_frame
 from pocoloco.data.published import read_ply
 from pocoloco.diffusion.sampler_base import SamplerRun
@@ -104,7 +104,7 @@ def denoise_from(
             ``resample`` passes in all (1: off, the default). With resample > 1 every step is an
             ancestral DDPM step whatever ``sampler`` is; denoiser calls = steps x resample.
     Returns:
-        (B, N, C) float32 normalised clouds (``normalisation.denormalise(out[..., :3], root)``).
+        (B, N, C) float32 normalised clouds (:func:`to_metres` maps them back).
     """
 
     den = config.denoiser
@@ -183,11 +183,12 @@ def repaint_resampling(model: torch.nn.Module, schedule: NoiseSchedule, noise: t
 
 def to_metres(normalisation: Normalisation, x: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """(B, N, C) normalised -> points (B, N, 3) metres in ``joints``' frame, unit normals or None."""
-    root = normalisation.root(np.asarray(joints, np.float32)).astype(np.float32)
-    points = normalisation.denormalise(x[..., :3], root).astype(np.float32)
+    joints = np.asarray(joints, np.float32)
+    root, angle = normalisation.root(joints).astype(np.float32), normalisation.angle(joints)
+    points = normalisation.denormalise(x[..., :3], root, angle).astype(np.float32)
     normals = None
     if x.shape[-1] == 6:
-        n = x[..., 3:6]
+        n = rotate_z(x[..., 3:6], angle)
         normals = (n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)).astype(np.float32)
     return points, normals
 
@@ -200,7 +201,8 @@ def to_normalised(normalisation: Normalisation, points: np.ndarray, normals: np.
         return p.astype(np.float32)
     if normals is None:
         raise ValueError("the model predicts normals (point_channels 6) but the input cloud has none")
-    return np.concatenate([p, np.asarray(normals, np.float32)], axis=-1).astype(np.float32)
+    n = rotate_z(np.asarray(normals, np.float32), -normalisation.angle(np.asarray(joints, np.float32)))
+    return np.concatenate([p, n], axis=-1).astype(np.float32)
 
 
 def subset(n: int, k: int, seed: int | Sequence[int]) -> np.ndarray:

@@ -38,7 +38,7 @@ from pocoloco.apps.common import (
     to_normalised,
 )
 from pocoloco.body.skeleton import JOINT_PARENTS
-from pocoloco.data.dataset import Normalisation
+from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.poses import check_joints
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.evaluation.metrics import chamfer_cm
@@ -181,9 +181,10 @@ def edit(
         x = denoise_from(model, normalisation, config, target_joints, x0 if t < T else None, t, sampler, steps,
                          seeds, known=(~regen, x0))  # fmt: skip
     points, normals = to_metres(normalisation, x, target_joints)
-    if mode == "region":  # kept points exactly: the source moved with the root
-        shift = (normalisation.root(target_joints).astype(np.float64) - normalisation.root(src_pose))
-        kept = (src.astype(np.float64) + shift).astype(np.float32)
+    if mode == "region":  # kept points exactly: the source moved with the root (and turned with it, with heading)
+        j_s, j_t = np.asarray(src_pose, np.float64), np.asarray(target_joints, np.float64)
+        turn, root_s, root_t = normalisation.angle(j_t) - normalisation.angle(j_s), normalisation.root(j_s), normalisation.root(j_t)
+        kept = (rotate_z(src.astype(np.float64) - root_s, turn) + root_t).astype(np.float32)
         points = np.where(regen[..., None], points, kept)
         if normals is not None:
             normals = np.where(regen[..., None], normals, to_metres(normalisation, x0, target_joints)[1])

@@ -29,7 +29,7 @@ FIELD_OPTIONS = {
     "ema_decay": "ema_decay", "grad_clip": "grad_clip", "schedule": "schedule", "prediction_type": "prediction_type",
     "min_snr": "min_snr_gamma", "workers": "num_workers", "normal_start": "normal_start",
     "query_points": "query_points", "subjects": "subjects", "outfit_codes": "outfit_codes",
-    "body_shape": "body_shape", "body_points": "body_points",
+    "body_shape": "body_shape", "body_points": "body_points", "canonical_heading": "canonical_heading",
 }  # fmt: skip
 
 
@@ -151,6 +151,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                    help="latent presets: also condition on K vertices of the posed body, as POP and CloSET are "
                         "(sampling then needs a dataset frame or anny pose parameters, not bare joints; default 0: "
                         "the paper's skeleton only)")  # fmt: skip
+    g.add_argument("--canonical-heading", action="store_true", default=None,
+                   help="turn every frame about the vertical axis to face one way before normalising, and samples "
+                        "back (not in the paper; default off)")  # fmt: skip
     parser.add_argument("--subjects", nargs="+",
                         help="train on these subjects only: one model per subject as the PocoLoco paper, or hold one "
                              "out for `pocoloco fit` (default: all)")  # fmt: skip

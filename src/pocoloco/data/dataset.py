@@ -11,10 +11,22 @@ std; both statistics are computed on the training split and stored in
 
 Samplers return points in the normalised frame; ``denormalise`` with the
 frame's root maps them back to metres in the input (world) frame.
+
+``heading=True`` (not in the paper; ``pocoloco train --canonical-heading``) also turns every frame
+about the vertical (Z) axis through its root so that the body faces one way (the hips' and
+shoulders' left-to-right direction along +X), before the mean and std::
+
+    x_norm = (Rz(-a) (x - root) - mean) / std    a = Normalisation.angle(joints)
+    x      = Rz(a) (x_norm * std + mean) + root
+
+A body turned about the vertical then gives the same normalised cloud, so the model need not
+learn each garment in every facing direction (POP and CloSET get this from their body-local
+frames).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -26,20 +38,38 @@ from torch.utils.data import Dataset
 
 from . import format as fmt
 
-__all__ = ["Normalisation", "PointCloudDataset"]
+__all__ = ["Normalisation", "PointCloudDataset", "rotate_z"]
+
+#: the 24-joint skeleton's (left, right) hips and shoulders, whose left-to-right directions give the heading
+HEADING_PAIRS = ((1, 2), (16, 17))
+
+
+def rotate_z(x, angle):
+    """Vectors x (..., N, 3) turned by ``angle`` (...,) radians about +Z (numpy or torch, like x)."""
+    if isinstance(x, torch.Tensor):
+        a = torch.as_tensor(angle, dtype=x.dtype, device=x.device)[..., None]
+        c, s = torch.cos(a), torch.sin(a)
+        return torch.stack([c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1], x[..., 2]], dim=-1)
+    a = np.asarray(angle, dtype=np.float64)[..., None]
+    c, s = np.cos(a), np.sin(a)
+    out = np.stack([c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1], x[..., 2]], axis=-1)
+    return out.astype(np.result_type(x.dtype, np.float32), copy=False)
 
 
 @dataclass(frozen=True)
 class Normalisation:
-    """Root-centring plus one per-axis mean and one scalar std.
+    """Root-centring (and, with ``heading``, turning the body to face one way; module docstring)
+    plus one per-axis mean and one scalar std.
 
     mean: (3,) float, metres. std: float > 0, metres. root_joint: index of the root joint.
+    heading: canonicalise the facing direction about +Z (24-joint skeletons only).
     Works on numpy arrays and torch tensors of shape (..., N, 3) / (..., J, 3).
     """
 
     mean: tuple[float, float, float]
     std: float
     root_joint: int = 0
+    heading: bool = False
 
     def __post_init__(self) -> None:
         if len(self.mean) != 3:
@@ -72,15 +102,40 @@ class Normalisation:
         """(..., J, 3) -> (..., 3) the root joint."""
         return joints[..., self.root_joint, :]
 
+    def angle(self, joints):
+        """(..., J, 3) joints -> (...,) the heading angle (radians) that ``normalise`` turns away:
+        the angle about +Z of the summed left-to-right hip and shoulder directions; zeros without
+        ``heading`` (numpy float64, or torch like ``joints``)."""
+        torch_in = isinstance(joints, torch.Tensor)
+        if not self.heading:
+            return torch.zeros(joints.shape[:-2], dtype=joints.dtype, device=joints.device) if torch_in else \
+                np.zeros(joints.shape[:-2])  # fmt: skip
+        if joints.shape[-2] <= max(max(p) for p in HEADING_PAIRS):
+            raise ValueError(f"heading canonicalisation needs the 24-joint skeleton, got {joints.shape[-2]} joints")
+        across = sum(joints[..., left, :] - joints[..., right, :] for left, right in HEADING_PAIRS)
+        if torch_in:
+            return torch.atan2(across[..., 1], across[..., 0])
+        return np.arctan2(np.asarray(across[..., 1], np.float64), np.asarray(across[..., 0], np.float64))
+
     def normalise(self, points, joints):
         """points (..., N, 3), joints (..., J, 3) in metres -> both normalised (same types)."""
         root = self.root(joints)[..., None, :]
         mean = self._mean_like(points)
-        return (points - root - mean) / self.std, (joints - root - mean) / self.std
+        p, j = points - root, joints - root
+        if self.heading:
+            a = -self.angle(joints)
+            p, j = rotate_z(p, a), rotate_z(j, a)
+        return (p - mean) / self.std, (j - mean) / self.std
 
-    def denormalise(self, points, root):
-        """points (..., N, 3) normalised, root (..., 3) in metres -> points (..., N, 3) in metres."""
-        return points * self.std + self._mean_like(points) + root[..., None, :]
+    def denormalise(self, points, root, angle=None):
+        """points (..., N, 3) normalised, root (..., 3) in metres -> points (..., N, 3) in metres.
+        angle (...,): the frame's :meth:`angle`, required with ``heading``."""
+        p = points * self.std + self._mean_like(points)
+        if self.heading:
+            if angle is None:
+                raise ValueError("this normalisation turns bodies to face one way: denormalise needs the frame's angle")
+            p = rotate_z(p, angle)
+        return p + root[..., None, :]
 
 
 class PointCloudDataset(Dataset):
@@ -91,7 +146,8 @@ class PointCloudDataset(Dataset):
         points:    (N, 3) float32, normalised (or root-centred only if normalise=False)
         joints:    (24, 3) float32, same transform
         root:      (3,) float32, the root joint in metres (to invert the normalisation)
-        normals:   (N, 3) float32 (only if with_normals)
+        angle:     () float32, the heading turned away (``heading=True``; else 0)
+        normals:   (N, 3) float32 (only if with_normals), turned like the points
         labels:    (N,) int64 point classes (``format.LABEL_UNKNOWN`` for imported data)
         body:      (K, 3) float32 posed-body vertices ``body_vertices[body_point_ids]``, same
                    transform (only if ``body_point_ids``)
@@ -103,7 +159,7 @@ class PointCloudDataset(Dataset):
     every access from torch's global RNG (seeded by ``torch.manual_seed`` and
     per worker by ``DataLoader``), so epochs and workers differ;
     ``random_subsample=False`` draws a fixed subset per index from
-    ``seed``. A frame with fewer than ``num_points`` points raises.
+    ``seed``. ``heading``: turn every frame to face one way (:class:`Normalisation`). A frame with fewer than ``num_points`` points raises.
 
     A dataset whose frame files (of any split of these subjects) disagree with its card or
     ``sequence.json`` files (a missing, extra, truncated or unreadable frame;
@@ -121,6 +177,7 @@ class PointCloudDataset(Dataset):
         seed: int = 0,
         random_subsample: bool = True,
         body_point_ids: Sequence[int] | None = None,
+        heading: bool = False,
     ):
         self.root = os.fspath(root)
         self.body_point_ids = None if body_point_ids is None else np.asarray(body_point_ids, np.int64)
@@ -142,6 +199,8 @@ class PointCloudDataset(Dataset):
         self.seed = seed
         self.random_subsample = random_subsample
         self.normalisation = Normalisation.from_card(self.card) if normalise else Normalisation.identity()
+        if heading:
+            self.normalisation = dataclasses.replace(self.normalisation, heading=True)
         self.layout = fmt.DatasetLayout(self.root)
         chosen = self.subject_names if subjects is None else sorted(subjects)
         fmt.check_frames(self.root, subjects=chosen, card=self.card)  # every split: one line on a bad frame
@@ -185,12 +244,16 @@ class PointCloudDataset(Dataset):
             "points": torch.from_numpy(np.ascontiguousarray(points, np.float32)),
             "joints": torch.from_numpy(np.ascontiguousarray(joints, np.float32)),
             "root": torch.from_numpy(self.normalisation.root(fr.joints).astype(np.float32)),
+            "angle": torch.tensor(float(self.normalisation.angle(fr.joints)), dtype=torch.float32),
             "labels": torch.from_numpy(labels.astype(np.int64)),
             "subject": self._subject_id[subject],
             "frame_key": self.frame_key(index),
         }
         if self.with_normals:
-            item["normals"] = torch.from_numpy(np.ascontiguousarray(fr.normals[sel], np.float32))
+            normals = fr.normals[sel]
+            if self.normalisation.heading:  # directions turn with the body
+                normals = rotate_z(normals, -self.normalisation.angle(fr.joints))
+            item["normals"] = torch.from_numpy(np.ascontiguousarray(normals, np.float32))
         if self.body_point_ids is not None:
             if fr.body_vertices is None:
                 raise ValueError(f"{path}: frame has no posed body (body_vertices), which --body-points needs")

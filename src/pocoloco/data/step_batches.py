@@ -51,7 +51,7 @@ class StepBatches(torch.utils.data.Dataset):
 
     def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
         g, idx = self.frame_indices(int(step))
-        pts, jts, roots, subjects, bodies = [], [], [], [], []
+        pts, jts, roots, angles, subjects, bodies = [], [], [], [], [], []
         for gk, i in zip(g, idx, strict=True):
             item = self.dataset[int(i)]
             n = item["points"].shape[0]
@@ -65,11 +65,12 @@ class StepBatches(torch.utils.data.Dataset):
             pts.append(p)
             jts.append(item["joints"])
             roots.append(item["root"])
+            angles.append(item["angle"])
             subjects.append(item["subject"])
             if "body" in item:
                 bodies.append(item["body"])
         batch = {"points": torch.stack(pts), "joints": torch.stack(jts), "root": torch.stack(roots),
-                 "index": torch.from_numpy(idx), "subject": torch.tensor(subjects, dtype=torch.long)}  # fmt: skip
+                 "angle": torch.stack(angles), "index": torch.from_numpy(idx), "subject": torch.tensor(subjects, dtype=torch.long)}  # fmt: skip
         if bodies:
             batch["body"] = torch.stack(bodies)
         return batch

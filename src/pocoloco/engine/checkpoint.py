@@ -187,7 +187,7 @@ def save_checkpoint(
             "step": int(step),
             "config": config,
             "normalisation": {"mean": list(normalisation.mean), "std": normalisation.std,
-                              "root_joint": normalisation.root_joint},  # fmt: skip
+                              "root_joint": normalisation.root_joint, "heading": normalisation.heading},  # fmt: skip
             "has_ema": ema_state is not None,
             "has_training_state": optimizer_state is not None,
             "torch_version": torch.__version__,
@@ -402,7 +402,8 @@ def _load_one(ckpt: Path, expect_model: str | None, expect_preset: str | None, m
     try:
         norm = meta["normalisation"]
         normalisation = Normalisation(mean=tuple(float(x) for x in norm["mean"]), std=float(norm["std"]),
-                                      root_joint=int(norm.get("root_joint", 0)))  # fmt: skip
+                                      root_joint=int(norm.get("root_joint", 0)),
+                                      heading=bool(norm.get("heading", False)))  # fmt: skip
     except (KeyError, TypeError, ValueError) as e:
         raise CorruptCheckpointError(f"{ckpt / META_FILE}: corrupt normalisation stats ({e})") from None
     model_state = _load_safetensors(ckpt / MODEL_FILE, map_location)

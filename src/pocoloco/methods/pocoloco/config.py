@@ -49,7 +49,10 @@ class PocoLocoTrainConfig:
     only (None: all), e.g. one model per subject as in the paper. body_points: K vertices of the
     posed body (fixed ids, farthest-point sampled on the first subject's template) given to the
     latent denoiser besides the joints (0: none, the paper's template-free input; the model then
-    needs a posed body to sample, like POP and CloSET).
+    needs a posed body to sample, like POP and CloSET). canonical_heading: turn every frame about
+    the vertical axis to face one way before normalising (:class:`pocoloco.data.dataset.Normalisation`;
+    not in the paper), so the model need not learn each facing direction; sampling turns the result
+    back.
     """
 
     preset: str = "small"
@@ -84,6 +87,7 @@ class PocoLocoTrainConfig:
     body_shape: bool = False
     subjects: tuple[str, ...] | None = None
     body_points: int = 0
+    canonical_heading: bool = False
 
     def __post_init__(self):
         if self.model != "pocoloco":

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pocoloco.data.dataset import Normalisation
+from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.poses import check_joints
 from pocoloco.diffusion.samplers import (
     SAMPLER_STEPS,
@@ -154,9 +154,10 @@ def sample_clouds(
     finally:
         model.train(was_training)
 
-    points = normalisation.denormalise(out[..., :3], root.astype(np.float32)).astype(np.float32)  # (K, N, 3)
+    angle = normalisation.angle(joints)  # the heading turned away (0 without canonical_heading)
+    points = normalisation.denormalise(out[..., :3], root.astype(np.float32), angle).astype(np.float32)  # (K, N, 3)
     normals = None
     if C == 6:
-        n = out[..., 3:6]
+        n = rotate_z(out[..., 3:6], angle)  # directions turn back with the body
         normals = (n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)).astype(np.float32)
     return SampledClouds(points, normals)

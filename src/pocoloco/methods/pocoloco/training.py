@@ -47,7 +47,8 @@ class PocoLocoTask(TrainingTask):
         self.body_point_ids = body_point_ids(data, config) if config.body_points else None
         self.dataset = PointCloudDataset(data, "train", num_points=None, with_normals=config.denoiser.point_channels == 6,
                                          random_subsample=False, subjects=config.subjects,
-                                         body_point_ids=self.body_point_ids)  # fmt: skip
+                                         body_point_ids=self.body_point_ids,
+                                         heading=config.canonical_heading)  # fmt: skip
         self.normalisation = self.dataset.normalisation
         # who wears what: one outfit per subject (ids in the dataset's sorted subject order) and its
         # anny phenotype; the denoiser's config is resolved here so the checkpoint records it
@@ -144,7 +145,8 @@ def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDatas
     """Two frames (test split if it has any, else train) with fixed point subsets, for the periodic samples."""
     try:
         ds = PointCloudDataset(data, "test", num_points=None, random_subsample=False,
-                               subjects=train_set.subject_names, body_point_ids=train_set.body_point_ids)  # fmt: skip
+                               subjects=train_set.subject_names, body_point_ids=train_set.body_point_ids,
+                               heading=train_set.normalisation.heading)  # fmt: skip
     except ValueError:
         ds = train_set
     picks = sorted({0, len(ds) // 2})
@@ -154,7 +156,7 @@ def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDatas
         n = item["points"].shape[0]
         sel = np.random.default_rng([config.seed, 3, i]).choice(n, min(n, config.num_points), replace=False)
         frames.append({"points": item["points"][sel], "joints": item["joints"], "root": item["root"],
-                       "key": item["frame_key"], "subject": item["subject"], "body": item.get("body")})  # fmt: skip
+                       "angle": item["angle"], "key": item["frame_key"], "subject": item["subject"], "body": item.get("body")})  # fmt: skip
     return frames
 
 
@@ -177,8 +179,8 @@ def _render_samples(model: nn.Module, schedule: NoiseSchedule, config: PocoLocoT
     model.train(was_training)
     clouds = []
     for k, f in enumerate(frames):
-        root = f["root"].numpy()
-        gt = norm.denormalise(f["points"].numpy(), root)
-        pred = norm.denormalise(x[k, :, :3].float().cpu().numpy(), root)
+        root, angle = f["root"].numpy(), f["angle"].numpy()
+        gt = norm.denormalise(f["points"].numpy(), root, angle)
+        pred = norm.denormalise(x[k, :, :3].float().cpu().numpy(), root, angle)
         clouds += [(gt, None, None, f"data {f['key']}"), (pred, None, None, f"sample, step {step}")]
     return Path(render_grid(clouds, out / "samples" / f"step_{step:06d}.png", views=("front", "side"), ncols=2))
