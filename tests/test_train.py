@@ -6,6 +6,7 @@ import os
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -503,3 +504,51 @@ def test_canonical_heading_trains_records_and_samples_turn_with_the_body(tiny_da
     kept = ~res.regenerated[0]
     assert kept.any()
     np.testing.assert_allclose(res.points[0][kept], (rotate_z(src - root, 0.02) + root + [0.3, 0, 0])[kept], atol=1e-5)
+
+
+def test_joint_velocity_from_neighbouring_frames_trains_and_samples(tiny_dataset, tmp_path, capsys):
+    """--joint-velocity: velocities are the backward difference to the previous stored frame (the next
+    one at a sequence's start) in m/s, normalised like the points; the model samples from a DATASET:
+    frame with them (different from the body at rest once the velocity MLP is non-zero) and refuses
+    velocities of the wrong shape; a model without them refuses velocities."""
+    from pocoloco.data import format as fmt
+    from pocoloco.data.dataset import frame_velocity
+    from pocoloco.methods import load_method
+    from pocoloco.methods.pocoloco.sampling import sample_clouds
+
+    subject, seq, path = fmt.DatasetLayout(tiny_dataset).iter_frames("test")[1]
+    frames = sorted(p for s, q, p in fmt.DatasetLayout(tiny_dataset).iter_frames("test") if (s, q) == (subject, seq))
+    j = [fmt.read_frame(p, ["joints"]).joints.astype(np.float64) for p in frames[:3]]
+    fps = json.loads((Path(frames[0]).parent.parent / "sequence.json").read_text())["fps"]
+    np.testing.assert_allclose(frame_velocity(frames[1], j[1]), (j[1] - j[0]) * fps, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(frame_velocity(frames[0], j[0]), (j[1] - j[0]) * fps, rtol=1e-5, atol=1e-5)
+    ds = PointCloudDataset(tiny_dataset, "test", num_points=None, velocity=True)
+    k = ds.frames.index((subject, seq, frames[1]))
+    np.testing.assert_allclose(ds[k]["velocity"].numpy(), (j[1] - j[0]) * fps / ds.normalisation.std, rtol=1e-4, atol=1e-4)
+
+    out = tmp_path / "run"
+    assert cli_main(["train", "--data", str(tiny_dataset), "--out", str(out), "--preset", "latent_tiny", "--steps", "2",
+                     "--sample-every", "2", "--joint-velocity", "--outfit-codes", "--no-progress", "--threads", "1"]) == 0  # fmt: skip
+    method = load_method(out)
+    assert method.model.config.joint_velocity and method.model.velocity_in is not None
+    spec = f"{tiny_dataset}:{subject}/test/{seq}/{int(fmt.read_frame(frames[1], ['frame_index']).frame_index)}"
+    pose = method.load_pose(spec)
+    assert pose.velocity is not None and np.abs(pose.velocity).max() > 0
+    with torch.no_grad():  # make the (zero-initialised) velocity MLP matter
+        method.model.velocity_in[2].weight.normal_(0, 0.5)
+    moving = method.predict(pose, 32, seeds=[0]).points
+    pose.velocity = None
+    at_rest = method.predict(pose, 32, seeds=[0]).points
+    assert not np.allclose(moving, at_rest)
+    with pytest.raises(ValueError, match="velocity must be"):
+        sample_clouds(method.model, method.normalisation, method.config, pose.joints, 1, 16, steps=2,
+                      velocity=np.zeros((3, 3)), **method.condition(0))  # fmt: skip
+    assert cli_main(["sample", "--ckpt", str(out), "--joints", spec, "--num", "1", "--steps", "2", "--points", "32",
+                     "--no-render", "--out", str(tmp_path / "s")]) == 0  # fmt: skip
+    from pocoloco.models.conditioning import PoseCondition
+    from pocoloco.models.latent import LatentDenoiser
+
+    plain = LatentDenoiser(train_preset("latent_tiny").denoiser)
+    jt = torch.zeros(1, 24, 3)
+    with pytest.raises(ValueError, match="no joint velocities"):
+        plain(torch.zeros(1, 8, 3), torch.zeros(1), PoseCondition(jt, velocity=torch.zeros(1, 24, 3)))

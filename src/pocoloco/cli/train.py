@@ -30,6 +30,7 @@ FIELD_OPTIONS = {
     "min_snr": "min_snr_gamma", "workers": "num_workers", "normal_start": "normal_start",
     "query_points": "query_points", "subjects": "subjects", "outfit_codes": "outfit_codes",
     "body_shape": "body_shape", "body_points": "body_points", "canonical_heading": "canonical_heading",
+    "joint_velocity": "joint_velocity",
 }  # fmt: skip
 
 
@@ -154,6 +155,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--canonical-heading", action="store_true", default=None,
                    help="turn every frame about the vertical axis to face one way before normalising, and samples "
                         "back (not in the paper; default off)")  # fmt: skip
+    g.add_argument("--joint-velocity", action="store_true", default=None,
+                   help="latent presets: also condition on the joints' velocities (the neighbouring frame of the "
+                        "sequence; the cloth follows the motion, not only the pose). Sampling takes them from a "
+                        "DATASET: frame; other poses and the apps take the body at rest (not in the paper; default off)")  # fmt: skip
     parser.add_argument("--subjects", nargs="+",
                         help="train on these subjects only: one model per subject as the PocoLoco paper, or hold one "
                              "out for `pocoloco fit` (default: all)")  # fmt: skip

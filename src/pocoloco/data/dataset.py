@@ -27,6 +27,7 @@ frames).
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -38,8 +39,10 @@ from torch.utils.data import Dataset
 
 from . import format as fmt
 
-__all__ = ["Normalisation", "PointCloudDataset", "rotate_z"]
+__all__ = ["Normalisation", "PointCloudDataset", "frame_velocity", "rotate_z"]
 
+#: frames per second of a dataset whose card does not record it (the synthetic presets' rate)
+DEFAULT_FPS = 25.0
 #: the 24-joint skeleton's (left, right) hips and shoulders, whose left-to-right directions give the heading
 HEADING_PAIRS = ((1, 2), (16, 17))
 
@@ -137,6 +140,37 @@ class Normalisation:
             p = rotate_z(p, angle)
         return p + root[..., None, :]
 
+    def normalise_velocity(self, velocity, joints):
+        """(..., J, 3) joint velocities (m/s, world) -> the normalised frame of ``joints``: turned
+        like the points (with ``heading``) and divided by the std (no centring: a velocity)."""
+        v = rotate_z(velocity, -self.angle(joints)) if self.heading else velocity
+        return v / self.std
+
+
+def frame_velocity(path: str | os.PathLike, joints: np.ndarray, fps: float | None = None) -> np.ndarray:
+    """(J, 3) float32 joint velocities (m/s) of the frame file ``path`` with ``joints``: the
+    difference to the previous stored frame of its sequence (the next one at the sequence's start,
+    or across one rejected frame, divided by the frame gap); zeros for a frame with no neighbour
+    (a body at rest). fps: frames per second (None: the sequence's ``sequence.json``, else
+    ``DEFAULT_FPS``)."""
+    folder, name = os.path.split(os.fspath(path))
+    if fps is None:
+        try:
+            with open(os.path.join(os.path.dirname(folder), "sequence.json")) as f:
+                fps = float(json.load(f).get("fps") or DEFAULT_FPS)
+        except (OSError, ValueError, TypeError, AttributeError):
+            fps = DEFAULT_FPS
+    stem, ext = os.path.splitext(name)
+    if not stem.isdigit():
+        return np.zeros_like(np.asarray(joints, np.float32))
+    index = int(stem)
+    for other in (index - 1, index + 1, index - 2, index + 2):
+        neighbour = os.path.join(folder, f"{other:0{len(stem)}d}{ext}")
+        if other >= 0 and os.path.exists(neighbour):
+            other_joints = fmt.read_frame(neighbour, ["joints"]).joints
+            return ((np.asarray(joints, np.float64) - other_joints) * fps / (index - other)).astype(np.float32)
+    return np.zeros_like(np.asarray(joints, np.float32))
+
 
 class PointCloudDataset(Dataset):
     """Frames of one split of a pocoloco dataset, as dicts of tensors.
@@ -147,6 +181,8 @@ class PointCloudDataset(Dataset):
         joints:    (24, 3) float32, same transform
         root:      (3,) float32, the root joint in metres (to invert the normalisation)
         angle:     () float32, the heading turned away (``heading=True``; else 0)
+        velocity:  (24, 3) float32 joint velocities (:func:`frame_velocity`), normalised
+                   (``Normalisation.normalise_velocity``; only if ``velocity``)
         normals:   (N, 3) float32 (only if with_normals), turned like the points
         labels:    (N,) int64 point classes (``format.LABEL_UNKNOWN`` for imported data)
         body:      (K, 3) float32 posed-body vertices ``body_vertices[body_point_ids]``, same
@@ -159,7 +195,8 @@ class PointCloudDataset(Dataset):
     every access from torch's global RNG (seeded by ``torch.manual_seed`` and
     per worker by ``DataLoader``), so epochs and workers differ;
     ``random_subsample=False`` draws a fixed subset per index from
-    ``seed``. ``heading``: turn every frame to face one way (:class:`Normalisation`). A frame with fewer than ``num_points`` points raises.
+    ``seed``. ``heading``: turn every frame to face one way (:class:`Normalisation`). ``velocity``: also
+    give each frame's joint velocities. A frame with fewer than ``num_points`` points raises.
 
     A dataset whose frame files (of any split of these subjects) disagree with its card or
     ``sequence.json`` files (a missing, extra, truncated or unreadable frame;
@@ -178,6 +215,7 @@ class PointCloudDataset(Dataset):
         random_subsample: bool = True,
         body_point_ids: Sequence[int] | None = None,
         heading: bool = False,
+        velocity: bool = False,
     ):
         self.root = os.fspath(root)
         self.body_point_ids = None if body_point_ids is None else np.asarray(body_point_ids, np.int64)
@@ -201,6 +239,8 @@ class PointCloudDataset(Dataset):
         self.normalisation = Normalisation.from_card(self.card) if normalise else Normalisation.identity()
         if heading:
             self.normalisation = dataclasses.replace(self.normalisation, heading=True)
+        self.velocity = velocity
+        self.fps = float((self.card.get("generation_config") or {}).get("fps") or DEFAULT_FPS)
         self.layout = fmt.DatasetLayout(self.root)
         chosen = self.subject_names if subjects is None else sorted(subjects)
         fmt.check_frames(self.root, subjects=chosen, card=self.card)  # every split: one line on a bad frame
@@ -249,6 +289,9 @@ class PointCloudDataset(Dataset):
             "subject": self._subject_id[subject],
             "frame_key": self.frame_key(index),
         }
+        if self.velocity:
+            v = self.normalisation.normalise_velocity(frame_velocity(path, fr.joints, self.fps), fr.joints)
+            item["velocity"] = torch.from_numpy(np.ascontiguousarray(v, np.float32))
         if self.with_normals:
             normals = fr.normals[sel]
             if self.normalisation.heading:  # directions turn with the body

@@ -227,7 +227,8 @@ class Pose:
     posed body and vtransf (V, 3, 3) its per-vertex skinning transforms, or None (joints only);
     mean_shape (V, 3) the posed mean-shape body centred on its own root (POP's pose input) or
     None; subject: the dataset subject the body belongs to (None for joints / an anny pose file);
-    source: where it came from.
+    source: where it came from; velocity (J, 3) joint velocities in m/s (a dataset frame's, for
+    models conditioned on them) or None (at rest).
     """
 
     joints: np.ndarray
@@ -236,6 +237,7 @@ class Pose:
     mean_shape: np.ndarray | None = None
     subject: str | None = None
     source: str = ""
+    velocity: np.ndarray | None = None
 
     @property
     def has_body(self) -> bool:

@@ -51,7 +51,7 @@ class StepBatches(torch.utils.data.Dataset):
 
     def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
         g, idx = self.frame_indices(int(step))
-        pts, jts, roots, angles, subjects, bodies = [], [], [], [], [], []
+        pts, jts, roots, angles, subjects, bodies, velocities = [], [], [], [], [], [], []
         for gk, i in zip(g, idx, strict=True):
             item = self.dataset[int(i)]
             n = item["points"].shape[0]
@@ -69,8 +69,12 @@ class StepBatches(torch.utils.data.Dataset):
             subjects.append(item["subject"])
             if "body" in item:
                 bodies.append(item["body"])
+            if "velocity" in item:
+                velocities.append(item["velocity"])
         batch = {"points": torch.stack(pts), "joints": torch.stack(jts), "root": torch.stack(roots),
                  "angle": torch.stack(angles), "index": torch.from_numpy(idx), "subject": torch.tensor(subjects, dtype=torch.long)}  # fmt: skip
         if bodies:
             batch["body"] = torch.stack(bodies)
+        if velocities:
+            batch["velocity"] = torch.stack(velocities)
         return batch

@@ -47,13 +47,15 @@ def phenotype_vector(phenotype: dict[str, float] | None) -> list[float]:
 class PoseCondition:
     """joints (B, J, 3) normalised; outfit (B,) int64 or None; shape (B, S) or None; code (B, D) or
     None: an outfit embedding given directly instead of an id (fitting a new outfit); body (B, K, 3)
-    normalised posed-body vertices or None."""
+    normalised posed-body vertices or None; velocity (B, J, 3) normalised joint velocities or None
+    (a model trained with them then takes the body as at rest)."""
 
     joints: torch.Tensor
     outfit: torch.Tensor | None = None
     shape: torch.Tensor | None = None
     code: torch.Tensor | None = None
     body: torch.Tensor | None = None
+    velocity: torch.Tensor | None = None
 
 
 def split_condition(cond) -> tuple[torch.Tensor, torch.Tensor | torch.Tensor | None, torch.Tensor | None]:
@@ -67,6 +69,11 @@ def split_condition(cond) -> tuple[torch.Tensor, torch.Tensor | torch.Tensor | N
 def body_of(cond) -> torch.Tensor | None:
     """The (B, K, 3) posed-body vertices of a condition, or None."""
     return cond.body if isinstance(cond, PoseCondition) else None
+
+
+def velocity_of(cond) -> torch.Tensor | None:
+    """The (B, J, 3) joint velocities of a condition, or None."""
+    return cond.velocity if isinstance(cond, PoseCondition) else None
 
 
 class WhoWearsWhat(nn.Module):

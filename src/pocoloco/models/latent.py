@@ -77,7 +77,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from pocoloco.models.conditioning import PoseCondition, WhoWearsWhat, body_of, split_condition
+from pocoloco.models.conditioning import PoseCondition, WhoWearsWhat, body_of, split_condition, velocity_of
 from pocoloco.models.layers import (
     ATTENTION_IMPLS,
     MLP,
@@ -106,7 +106,10 @@ class LatentDenoiserConfig:
     :class:`~pocoloco.models.pocoloco.PocoLocoDenoiserConfig` (outfit and body-shape tokens join the
     latent stream). body_points: K posed-body vertices given with the condition, one token each in
     the latent stream (0: none, the paper's template-free input); with ``joint_offsets`` every point
-    also gets its offsets to them, as to the joints
+    also gets its offsets to them, as to the joints. joint_velocity: the joint tokens also get an
+    MLP of each joint's velocity (:class:`~pocoloco.models.conditioning.PoseCondition` ``velocity``;
+    not in the paper: the cloth follows the motion, not only the pose); zero-initialised, and zero
+    velocity (a body at rest) when the condition has none
     (``attention="dense"`` is the materialised-softmax reference, same weights and maths).
     """
 
@@ -132,6 +135,7 @@ class LatentDenoiserConfig:
     num_outfits: int = 0
     shape_dim: int = 0
     body_points: int = 0
+    joint_velocity: bool = False
 
     def __post_init__(self):
         if self.posenc not in POSENC_KINDS:
@@ -283,6 +287,11 @@ class LatentDenoiser(nn.Module):
         self.joint_in = nn.Linear(enc_dim, D)
         self.joint_embed = nn.Parameter(torch.randn(cfg.num_joints, D) * 0.02)  # (J, D)
         self.who = WhoWearsWhat(D, cfg.num_outfits, cfg.shape_dim) if cfg.num_outfits or cfg.shape_dim else None
+        self.velocity_in = (nn.Sequential(nn.Linear(3, D), nn.GELU(), nn.Linear(D, D)) if cfg.joint_velocity
+                            else None)  # fmt: skip
+        if self.velocity_in is not None:  # starts as the model without motion
+            nn.init.zeros_(self.velocity_in[2].weight)
+            nn.init.zeros_(self.velocity_in[2].bias)
         # posed-body tokens: Linear(posenc(b_k)) + E_k, like the joints (K fixed vertex ids)
         self.body_in = nn.Linear(enc_dim, D) if cfg.body_points else None
         self.body_embed = nn.Parameter(torch.randn(cfg.body_points, D) * 0.02) if cfg.body_points else None
@@ -382,6 +391,16 @@ class LatentDenoiser(nn.Module):
         p = self.ln_points(p)
         time = self.time_embed(t)[:, None].to(p.dtype)  # (B, 1, D)
         joint_tokens = self.joint_in(self._encode(joints.to(x.dtype))) + self.joint_embed  # (B, J, D)
+        velocity = velocity_of(cond)
+        if self.velocity_in is not None:
+            if velocity is None:  # a body at rest
+                velocity = torch.zeros_like(joints)
+            if velocity.shape != joints.shape or not torch.isfinite(velocity).all():
+                raise ValueError(f"velocity must be finite with the joints' shape {tuple(joints.shape)}, "
+                                 f"got {tuple(velocity.shape)}")  # fmt: skip
+            joint_tokens = joint_tokens + self.velocity_in(velocity.to(joint_tokens.dtype))
+        elif velocity is not None:
+            raise ValueError("this model takes no joint velocities (trained without --joint-velocity)")
         latents = self.latents.expand(B, -1, -1).to(joint_tokens.dtype)  # (B, M, D)
         stream = [latents, time.to(joint_tokens.dtype), joint_tokens]
         if self.who is not None:

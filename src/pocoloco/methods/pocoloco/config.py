@@ -52,7 +52,9 @@ class PocoLocoTrainConfig:
     needs a posed body to sample, like POP and CloSET). canonical_heading: turn every frame about
     the vertical axis to face one way before normalising (:class:`pocoloco.data.dataset.Normalisation`;
     not in the paper), so the model need not learn each facing direction; sampling turns the result
-    back.
+    back. joint_velocity: latent presets: also condition on the joints' velocities (difference to the
+    neighbouring frame of the sequence; not in the paper: the cloth follows the motion); sampling
+    takes them from a dataset frame, else the body is taken at rest.
     """
 
     preset: str = "small"
@@ -88,6 +90,7 @@ class PocoLocoTrainConfig:
     subjects: tuple[str, ...] | None = None
     body_points: int = 0
     canonical_heading: bool = False
+    joint_velocity: bool = False
 
     def __post_init__(self):
         if self.model != "pocoloco":
@@ -105,6 +108,8 @@ class PocoLocoTrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.body_points and self.architecture != "latent":
             raise ValueError("body_points (--body-points) needs the latent denoiser (e.g. --preset latent_small)")
+        if self.joint_velocity and self.architecture != "latent":
+            raise ValueError("joint_velocity (--joint-velocity) needs the latent denoiser (e.g. --preset latent_small)")
         for name in ("warmup_steps", "ckpt_every", "sample_every", "num_workers", "body_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")

@@ -11,7 +11,17 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, load_joints, pose_from_frame, subject_of_spec
+from pocoloco.data.dataset import frame_velocity
+from pocoloco.data.poses import (
+    MeanShapeCache,
+    Pose,
+    dataset_frame_path,
+    load_body_pose,
+    load_joints,
+    pose_from_frame,
+    pose_spec_kind,
+    subject_of_spec,
+)
 from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
@@ -158,12 +168,19 @@ class PocoLocoMethod(Method):
             pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
             return load_body_pose(spec, pheno, False)
         joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
-        return Pose(joints, subject=subject_of_spec(str(spec)), source=str(spec))
+        velocity = None
+        if self.config.joint_velocity and pose_spec_kind_or_none(str(spec)) == "dataset":
+            velocity = frame_velocity(dataset_frame_path(str(spec)), joints)
+        return Pose(joints, subject=subject_of_spec(str(spec)), source=str(spec), velocity=velocity)
 
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
         if self.needs_body:
-            return pose_from_frame(path, subject, False, frame=frame)
-        return super().pose_from_frame(path, subject, frame=frame, cache=cache)
+            pose = pose_from_frame(path, subject, False, frame=frame)
+        else:
+            pose = super().pose_from_frame(path, subject, frame=frame, cache=cache)
+        if self.config.joint_velocity:  # the motion, from the neighbouring frame of the sequence
+            pose.velocity = frame_velocity(path, pose.joints)
+        return pose
 
     def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
                 options: SamplerOptions = SamplerOptions(), code: torch.Tensor | None = None) -> SampledClouds:  # fmt: skip
@@ -181,12 +198,21 @@ class PocoLocoMethod(Method):
         return sample_clouds(self.model, self.normalisation, self.config, np.asarray(pose.joints), len(seeds),
                              num_points, sampler=options.sampler, steps=options.steps, seeds=list(seeds),
                              batch_size=options.batch_size, progress=options.progress, clip=options.clip,
-                             bf16=options.bf16, body=self.body_points_of(pose), **kw)  # fmt: skip
+                             bf16=options.bf16, body=self.body_points_of(pose),
+                             velocity=pose.velocity if self.config.joint_velocity else None, **kw)  # fmt: skip
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         steps = options.steps if options.steps is not None else SAMPLER_STEPS[options.sampler]
         return {"preset": self.config.preset, "weights": self.weights, "sampler": options.sampler, "steps": steps,
                 "batch_size": options.batch_size, "clip": options.clip, "bf16": options.bf16}  # fmt: skip
+
+
+def pose_spec_kind_or_none(spec: str) -> str | None:
+    """:func:`pocoloco.data.poses.pose_spec_kind`, None for bare joints (instead of its error)."""
+    try:
+        return pose_spec_kind(spec)
+    except ValueError:
+        return None
 
 
 class LoadedDenoiser(NamedTuple):

@@ -42,18 +42,21 @@ DEFAULT_CLIP = 5.0
 
 
 def condition_for(joints: torch.Tensor, outfit: int | None = None, shape: Sequence[float] | None = None,
-                  body: torch.Tensor | None = None, code: torch.Tensor | None = None) -> torch.Tensor | PoseCondition:  # fmt: skip
+                  body: torch.Tensor | None = None, code: torch.Tensor | None = None,
+                  velocity: torch.Tensor | None = None) -> torch.Tensor | PoseCondition:  # fmt: skip
     """The denoiser's conditioning for B copies of one pose: the (B, J, 3) joints alone, or a
     :class:`~pocoloco.models.conditioning.PoseCondition` with the outfit id (or an outfit code (D,)
-    instead), the body shape and the (1, K, 3) normalised posed-body vertices."""
-    if outfit is None and shape is None and body is None and code is None:
+    instead), the body shape, the (1, K, 3) normalised posed-body vertices and the (1, J, 3)
+    normalised joint velocities."""
+    if outfit is None and shape is None and body is None and code is None and velocity is None:
         return joints
     B = joints.shape[0]
     return PoseCondition(joints, None if outfit is None else torch.full((B,), int(outfit), device=joints.device),
                          None if shape is None else torch.as_tensor(np.asarray(shape, np.float32), device=joints.device)
                          .expand(B, -1).to(joints.dtype),
                          code=None if code is None else code.to(joints.device, joints.dtype).reshape(1, -1).expand(B, -1),
-                         body=None if body is None else body.to(joints.device, joints.dtype).expand(B, -1, -1))  # fmt: skip
+                         body=None if body is None else body.to(joints.device, joints.dtype).expand(B, -1, -1),
+                         velocity=None if velocity is None else velocity.to(joints.device, joints.dtype).expand(B, -1, -1))  # fmt: skip
 
 
 @torch.no_grad()
@@ -75,6 +78,7 @@ def sample_clouds(
     shape: Sequence[float] | None = None,
     body: np.ndarray | None = None,
     code: torch.Tensor | None = None,
+    velocity: np.ndarray | None = None,
 ) -> SampledClouds:
     """Draw ``num`` clouds of ``num_points`` points from the denoiser, conditioned on one pose.
 
@@ -102,6 +106,8 @@ def sample_clouds(
         body: (K, 3) posed-body vertices in metres, same frame as ``joints`` (models trained with
             ``body_points = K``; None for the others).
         code: an outfit code (D,) used instead of ``outfit``'s embedding (a fitted outfit).
+        velocity: (J, 3) joint velocities in m/s, same frame as ``joints`` (models trained with
+            ``joint_velocity``; None: the body at rest).
         bf16: run the denoiser under bf16 autocast (its matmuls and attention in bfloat16; the
             sampler's arithmetic and the returned points stay float32). Several times faster on
             CPUs with AMX / avx512_bf16 and on recent GPUs; slower on CPUs without them.
@@ -131,6 +137,13 @@ def sample_clouds(
         if body.ndim != 2 or body.shape[1] != 3 or not np.isfinite(body).all():
             raise ValueError(f"body must be a finite (K, 3) array of posed-body vertices, got shape {body.shape}")
         body_t = torch.as_tensor(normalisation.normalise(body, joints)[0], dtype=dtype, device=device)[None]
+    velocity_t = None
+    if velocity is not None:
+        velocity = np.asarray(velocity, np.float32)
+        if velocity.shape != joints.shape or not np.isfinite(velocity).all():
+            raise ValueError(f"velocity must be a finite {joints.shape} array of joint velocities (m/s), got "
+                             f"shape {velocity.shape}")  # fmt: skip
+        velocity_t = torch.as_tensor(normalisation.normalise_velocity(velocity, joints), dtype=dtype, device=device)[None]
     root = normalisation.root(joints)  # (3,) metres
     schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
     kwargs: dict[str, Any] = {"prediction_type": config.prediction_type, "clip": clip}
@@ -145,7 +158,7 @@ def sample_clouds(
             rng = PerSampleRNG(chunk, device=device)
             noise = rng.randn((num_points, C), dtype=dtype, device=device)  # (B, N, C)
             cond = condition_for(torch.as_tensor(joints_n, dtype=dtype, device=device).expand(len(chunk), J, 3),
-                                 outfit, shape, body_t, code)  # fmt: skip
+                                 outfit, shape, body_t, code, velocity_t)  # fmt: skip
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 x = sample(sampler, model, schedule, noise, cond, rng=rng, **kwargs)  # (B, N, C)
             out[b0 : b0 + len(chunk)] = x.float().cpu().numpy()

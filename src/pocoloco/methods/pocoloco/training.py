@@ -48,7 +48,7 @@ class PocoLocoTask(TrainingTask):
         self.dataset = PointCloudDataset(data, "train", num_points=None, with_normals=config.denoiser.point_channels == 6,
                                          random_subsample=False, subjects=config.subjects,
                                          body_point_ids=self.body_point_ids,
-                                         heading=config.canonical_heading)  # fmt: skip
+                                         heading=config.canonical_heading, velocity=config.joint_velocity)  # fmt: skip
         self.normalisation = self.dataset.normalisation
         # who wears what: one outfit per subject (ids in the dataset's sorted subject order) and its
         # anny phenotype; the denoiser's config is resolved here so the checkpoint records it
@@ -61,8 +61,9 @@ class PocoLocoTask(TrainingTask):
         self.shapes = torch.tensor([phenotype_vector(o["phenotype"]) for o in self.outfits], dtype=torch.float32)
         self.config = config.replace(denoiser=config.denoiser.replace(
             num_outfits=len(names) if config.outfit_codes else 0,
-            shape_dim=len(SHAPE_KEYS) if config.body_shape else 0, **({"body_points": config.body_points}
-                                                                   if config.body_points else {})))  # fmt: skip
+            shape_dim=len(SHAPE_KEYS) if config.body_shape else 0,
+            **({"body_points": config.body_points} if config.body_points else {}),
+            **({"joint_velocity": True} if config.joint_velocity else {})))  # fmt: skip
         self.schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
         self.generator: torch.Generator | None = None
         self._preview_frames: list[dict[str, Any]] | None = None
@@ -83,22 +84,24 @@ class PocoLocoTask(TrainingTask):
         c = self.config
         return StepBatches(self.dataset, c.batch_size, c.num_points, c.seed, c.steps, rank, world)
 
-    def condition(self, joints: torch.Tensor, subject: torch.Tensor,
-                  body: torch.Tensor | None = None) -> torch.Tensor | PoseCondition:  # fmt: skip
+    def condition(self, joints: torch.Tensor, subject: torch.Tensor, body: torch.Tensor | None = None,
+                  velocity: torch.Tensor | None = None) -> torch.Tensor | PoseCondition:  # fmt: skip
         """The denoiser's conditioning for frames of these subject ids (B,): the joints alone, or
-        with the outfit ids, body shapes and posed bodies (B, K, 3) the config asks for."""
+        with the outfit ids, body shapes, posed bodies (B, K, 3) and joint velocities (B, J, 3)
+        the config asks for."""
         c = self.config
-        if not (c.outfit_codes or c.body_shape or c.body_points):
+        if not (c.outfit_codes or c.body_shape or c.body_points or c.joint_velocity):
             return joints
         outfit = self.outfit_of_subject[subject.cpu()].to(joints.device)
         return PoseCondition(joints, outfit if c.outfit_codes else None,
                              self.shapes.to(joints.device)[outfit] if c.body_shape else None,
-                             body=body if c.body_points else None)  # fmt: skip
+                             body=body if c.body_points else None,
+                             velocity=velocity if c.joint_velocity else None)  # fmt: skip
 
     def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
         c = self.config
         x0 = batch["points"]  # (B, N, C)
-        cond = self.condition(batch["joints"], batch["subject"], batch.get("body"))
+        cond = self.condition(batch["joints"], batch["subject"], batch.get("body"), batch.get("velocity"))
         if self.generator is None or self.generator.device != x0.device:
             self.generator = torch.Generator(x0.device)
         self.generator.manual_seed(seed_of(c.seed, 2, step, rank))
@@ -146,7 +149,7 @@ def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDatas
     try:
         ds = PointCloudDataset(data, "test", num_points=None, random_subsample=False,
                                subjects=train_set.subject_names, body_point_ids=train_set.body_point_ids,
-                               heading=train_set.normalisation.heading)  # fmt: skip
+                               heading=train_set.normalisation.heading, velocity=train_set.velocity)  # fmt: skip
     except ValueError:
         ds = train_set
     picks = sorted({0, len(ds) // 2})
@@ -156,7 +159,7 @@ def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDatas
         n = item["points"].shape[0]
         sel = np.random.default_rng([config.seed, 3, i]).choice(n, min(n, config.num_points), replace=False)
         frames.append({"points": item["points"][sel], "joints": item["joints"], "root": item["root"],
-                       "angle": item["angle"], "key": item["frame_key"], "subject": item["subject"], "body": item.get("body")})  # fmt: skip
+                       "angle": item["angle"], "velocity": item.get("velocity"), "key": item["frame_key"], "subject": item["subject"], "body": item.get("body")})  # fmt: skip
     return frames
 
 
@@ -169,7 +172,8 @@ def _render_samples(model: nn.Module, schedule: NoiseSchedule, config: PocoLocoT
     C = config.denoiser.point_channels
     joints = torch.stack([f["joints"] for f in frames]).to(device)  # (B, J, 3)
     body = torch.stack([f["body"] for f in frames]).to(device) if frames[0].get("body") is not None else None
-    cond = joints if condition is None else condition(joints, torch.tensor([f["subject"] for f in frames]), body)
+    vel = torch.stack([f["velocity"] for f in frames]).to(device) if frames[0].get("velocity") is not None else None
+    cond = joints if condition is None else condition(joints, torch.tensor([f["subject"] for f in frames]), body, vel)
     rng = PerSampleRNG([config.seed * 1000 + k for k in range(len(frames))], device=device)
     noise = rng.randn((config.num_points, C), device=device)  # (B, N, C)
     was_training = model.training
