@@ -48,6 +48,16 @@ def test_lr_warmup_and_cosine():
     assert [lr_at(const, s) for s in range(4, 10)] == [1.0] * 6
 
 
+def test_lr_wsd_is_constant_then_linear_to_zero():
+    c = train_preset("tiny", steps=10, warmup_steps=2, lr=1.0, lr_schedule="wsd", decay_steps=4)
+    lrs = [lr_at(c, s) for s in range(10)]
+    assert lrs == [0.5, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.75, 0.5, 0.25]  # decay over steps 6..9, 0 at step 10
+    with pytest.raises(ValueError, match="decay_steps"):
+        train_preset("tiny", steps=10, lr_schedule="wsd", decay_steps=0)
+    with pytest.raises(ValueError, match="decay_steps"):
+        train_preset("tiny", steps=10, lr_schedule="wsd", decay_steps=11)
+
+
 def test_ema_decay_warmup():
     assert ema_decay_at(0.999, 0) == pytest.approx(0.1)
     assert ema_decay_at(0.999, 10) == pytest.approx(11 / 20)
@@ -201,6 +211,20 @@ def test_resume_with_other_config_or_without_flag_raises(tiny_dataset, tmp_path)
         train(cfg, tiny_dataset, tmp_path / "empty", resume=True, progress=False)
     # more steps is an allowed change
     assert train(cfg.replace(steps=3), tiny_dataset, tmp_path / "run", resume=True, progress=False).step == 3
+    # so is a new learning-rate curve that keeps the rates of the steps taken: a constant run cooled down
+    with pytest.raises(ValueError, match=r"cannot resume with steps, lr_schedule, decay_steps changed: the learning rate of step 2"):
+        train(cfg.replace(steps=6, lr_schedule="wsd", decay_steps=5), tiny_dataset, tmp_path / "run", resume=True,
+              progress=False)  # fmt: skip
+    cooled = train(cfg.replace(steps=6, lr_schedule="wsd", decay_steps=3), tiny_dataset, tmp_path / "run", resume=True,
+                   progress=False)  # fmt: skip
+    assert cooled.step == 6
+    lrs = [json.loads(line)["lr"] for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines() if '"lr"' in line]
+    assert lrs[-3:] == pytest.approx([cfg.lr, cfg.lr * 2 / 3, cfg.lr / 3])
+    # a cosine run cannot be stretched: its past rates would change
+    cos = tiny(steps=3, lr_schedule="cosine", warmup_steps=0)
+    train(cos, tiny_dataset, tmp_path / "cos", progress=False)
+    with pytest.raises(ValueError, match="cannot resume with steps changed"):
+        train(cos.replace(steps=6), tiny_dataset, tmp_path / "cos", resume=True, progress=False)
 
 
 @pytest.mark.parametrize(

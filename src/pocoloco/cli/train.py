@@ -30,7 +30,7 @@ FIELD_OPTIONS = {
     "min_snr": "min_snr_gamma", "workers": "num_workers", "normal_start": "normal_start",
     "query_points": "query_points", "subjects": "subjects", "outfit_codes": "outfit_codes",
     "body_shape": "body_shape", "body_points": "body_points", "canonical_heading": "canonical_heading",
-    "joint_velocity": "joint_velocity",
+    "joint_velocity": "joint_velocity", "lr_schedule": "lr_schedule", "decay_steps": "decay_steps",
 }  # fmt: skip
 
 
@@ -129,6 +129,12 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, help="total optimiser steps" + d("steps"))
     parser.add_argument("--batch-size", type=int, help="clouds (frames) per step per process" + d("batch_size"))
     parser.add_argument("--lr", type=float, help="peak learning rate" + d("lr"))
+    parser.add_argument("--lr-schedule", choices=("constant", "cosine", "wsd"),
+                        help="after the warm-up: constant, cosine to 0 at --steps, or wsd: constant, then linear to 0 "
+                             "over the last --decay-steps. A run may be resumed with another schedule or --steps if "
+                             "the steps already taken keep their learning rates (e.g. a constant run cooled down "
+                             "with wsd)" + d("lr_schedule"))  # fmt: skip
+    parser.add_argument("--decay-steps", type=int, help="wsd: steps of the final linear decay")
     parser.add_argument("--num-points", type=int, help="points per training cloud (scan points for pop / closet)"
                         + d("num_points"))  # fmt: skip
     parser.add_argument("--seed", type=int, help="seed of everything random" + d("seed"))

@@ -96,15 +96,26 @@ def frozen(model: nn.Module):
 # ---------------------------------------------------------------------------- pure schedules
 def lr_at(config: Any, step: int) -> float:
     """Learning rate of optimiser step ``step`` (0-based): linear warm-up over ``warmup_steps``,
-    then constant or cosine (to 0 at ``steps``)."""
+    then constant, cosine (to 0 at ``steps``) or ``wsd``: constant, then linear to 0 over the
+    last ``decay_steps`` (warm-up / stable / decay, Hu et al. 2024, MiniCPM)."""
     warmup = getattr(config, "warmup_steps", 0)
     if warmup and step < warmup:
         return config.lr * (step + 1) / warmup
-    if getattr(config, "lr_schedule", "constant") == "cosine":
+    schedule = getattr(config, "lr_schedule", "constant")
+    if schedule == "cosine":
         span = max(config.steps - warmup, 1)
         progress = min(max(step - warmup, 0) / span, 1.0)
         return config.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
+    if schedule == "wsd":
+        start = config.steps - config.decay_steps
+        if step >= start:
+            return config.lr * max(config.steps - step, 0) / config.decay_steps
     return config.lr
+
+
+#: config fields that shape the learning-rate curve: they may change on resume only if the curve
+#: of the steps already taken stays the same
+LR_FIELDS = ("steps", "lr_schedule", "decay_steps")
 
 
 def ema_decay_at(ema_decay: float, step: int) -> float:
@@ -344,10 +355,17 @@ def check_run_folder(out: str | os.PathLike, resume: bool) -> Path | None:
 def _check_resume_config(task: TrainingTask, ck: ckpt_io.Checkpoint) -> None:
     stored = type(task.config).from_dict(ck.config)
     a, b = stored.to_dict(), task.config.to_dict()
-    diff = [k for k in a if k not in task.resumable_changes and a[k] != b.get(k)]
+    diff = [k for k in a if k not in task.resumable_changes and k not in LR_FIELDS and a[k] != b.get(k)]
     if diff:
         detail = "; ".join(f"{k}: checkpoint {a[k]!r} vs requested {b.get(k)!r}" for k in diff[:3])
         raise ValueError(f"{ck.path}: cannot resume with a different config ({detail})")
+    lr_changes = [k for k in LR_FIELDS if k in a and a[k] != b.get(k)]
+    if lr_changes:  # a new LR curve is fine if the steps already taken saw the same one
+        changed = next((s for s in range(ck.step) if lr_at(stored, s) != lr_at(task.config, s)), None)
+        if changed is not None:
+            raise ValueError(f"{ck.path}: cannot resume with {', '.join(lr_changes)} changed: the learning rate of "
+                             f"step {changed} (already taken) would change from {lr_at(stored, changed):.3g} to "
+                             f"{lr_at(task.config, changed):.3g}")  # fmt: skip
 
 
 def _to_device(batch: Any, device: torch.device) -> Any:

@@ -19,8 +19,9 @@ from pocoloco.models.pocoloco import DENOISER_PRESETS, PocoLocoDenoiserConfig
 __all__ = ["LR_SCHEDULES", "SCHEDULE_KINDS", "TRAIN_PRESETS", "PocoLocoTrainConfig", "train_preset"]
 
 SCHEDULE_KINDS = ("four", "linear", "cosine")
-LR_SCHEDULES = ("constant", "cosine")
-#: TrainConfig fields that may change when resuming (they do not affect the optimisation).
+LR_SCHEDULES = ("constant", "cosine", "wsd")
+#: TrainConfig fields that may change when resuming (they do not affect the optimisation; the
+#: learning-rate curve's fields may too, if the steps already taken keep their rates: trainer.LR_FIELDS).
 RESUMABLE_CHANGES = frozenset({"steps", "ckpt_every", "sample_every", "log_every", "sample_steps", "keep_checkpoints",
                                "num_workers"})  # fmt: skip
 
@@ -32,7 +33,10 @@ class PocoLocoTrainConfig:
     preset: name of the denoiser preset (``tiny`` / ``small`` / ``paper``); denoiser: its config
     (with any overrides). steps: total optimiser steps. batch_size: clouds per step *per process*.
     num_points: N points per cloud. lr / weight_decay / adam_betas / adam_eps: AdamW.
-    warmup_steps: linear LR warm-up; lr_schedule: ``constant`` or ``cosine`` (to 0 at ``steps``).
+    warmup_steps: linear LR warm-up; lr_schedule: ``constant``, ``cosine`` (to 0 at ``steps``) or
+    ``wsd`` (warm-up, stable, decay: constant, then linear to 0 over the last ``decay_steps``; a
+    constant run resumed as ``wsd`` is the same run until its decay starts, so a long constant run
+    can be cooled down from any checkpoint).
     grad_clip: max gradient L2 norm (None: no clipping). ema_decay: EMA decay (warm-up applied).
     schedule / num_timesteps: the beta schedule ("four" = PocoLoco's quartic). prediction_type:
     what the network predicts. min_snr_gamma: min-SNR-gamma weighting (None: plain L_simple).
@@ -70,6 +74,7 @@ class PocoLocoTrainConfig:
     adam_eps: float = 1e-8
     warmup_steps: int = 500
     lr_schedule: str = "constant"
+    decay_steps: int = 0
     grad_clip: float | None = 1.0
     ema_decay: float = 0.999
     schedule: str = "four"
@@ -121,6 +126,11 @@ class PocoLocoTrainConfig:
             raise ValueError(f"adam_betas must be two numbers in [0, 1), got {self.adam_betas}")
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
+        if isinstance(self.decay_steps, bool) or not isinstance(self.decay_steps, int) or self.decay_steps < 0:
+            raise ValueError(f"decay_steps must be an integer >= 0, got {self.decay_steps!r}")
+        if self.lr_schedule == "wsd" and not 0 < self.decay_steps <= self.steps:
+            raise ValueError(f"lr_schedule wsd needs 0 < decay_steps <= steps, got decay_steps={self.decay_steps} "
+                             f"and steps={self.steps}")  # fmt: skip
         if self.grad_clip is not None and not self.grad_clip > 0:
             raise ValueError(f"grad_clip must be > 0 or None, got {self.grad_clip}")
         if not 0 <= self.ema_decay < 1:
