@@ -134,7 +134,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "over the last --decay-steps. A run may be resumed with another schedule or --steps if "
                              "the steps already taken keep their learning rates (e.g. a constant run cooled down "
                              "with wsd)" + d("lr_schedule"))  # fmt: skip
-    parser.add_argument("--decay-steps", type=int, help="wsd: steps of the final linear decay")
+    parser.add_argument("--decay-steps", type=int, help="wsd: steps of the final linear decay (default 0: none; wsd needs > 0)")
     parser.add_argument("--num-points", type=int, help="points per training cloud (scan points for pop / closet)"
                         + d("num_points"))  # fmt: skip
     parser.add_argument("--seed", type=int, help="seed of everything random" + d("seed"))
