@@ -112,10 +112,11 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
     trained_names = loaded.outfit_names()
     subject = poses[0].subject
     # the body the scans were taken on: a trained subject's, else the one its dataset card records
-    card_subject = read_card(scans[0][1].rpartition(":")[0]).get("subjects", {}).get(subject) or {}
-    phenotype = dict(card_subject.get("phenotype") or loaded.outfits[0].get("phenotype", {}))
     if subject in trained_names:
         phenotype = loaded.outfits[loaded.outfit_id(subject)].get("phenotype", {})
+    else:
+        card_subject = read_card(scans[0][1].rpartition(":")[0]).get("subjects", {}).get(subject) or {}
+        phenotype = dict(card_subject.get("phenotype") or loaded.outfits[0].get("phenotype", {}))
     t0 = time.perf_counter()
     fit = loaded.fit_outfit(fit_scans, steps=steps, lr=lr, progress=progress, shape=phenotype_vector(phenotype),
                             seed=seed)  # fmt: skip

@@ -27,7 +27,6 @@ frames).
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -156,9 +155,9 @@ def frame_velocity(path: str | os.PathLike, joints: np.ndarray, fps: float | Non
     folder, name = os.path.split(os.fspath(path))
     if fps is None:
         try:
-            with open(os.path.join(os.path.dirname(folder), "sequence.json")) as f:
-                fps = float(json.load(f).get("fps") or DEFAULT_FPS)
-        except (OSError, ValueError, TypeError, AttributeError):
+            fps = float(fmt.read_sequence_meta(os.path.join(os.path.dirname(folder), "sequence.json")).get("fps")
+                        or DEFAULT_FPS)  # fmt: skip
+        except (OSError, ValueError, TypeError):
             fps = DEFAULT_FPS
     stem, ext = os.path.splitext(name)
     if not stem.isdigit():
@@ -279,12 +278,13 @@ class PointCloudDataset(Dataset):
         fr = fmt.read_frame(path, keys, allow_missing=True)
         sel = self._choose(index, fr.points.shape[0], path)
         points, joints = self.normalisation.normalise(fr.points[sel], fr.joints)
+        angle = self.normalisation.angle(fr.joints)  # the heading turned away (0 without heading)
         labels = fr.labels[sel] if fr.labels is not None else np.full(len(points), fmt.LABEL_UNKNOWN, np.uint8)
         item: dict[str, Any] = {
             "points": torch.from_numpy(np.ascontiguousarray(points, np.float32)),
             "joints": torch.from_numpy(np.ascontiguousarray(joints, np.float32)),
             "root": torch.from_numpy(self.normalisation.root(fr.joints).astype(np.float32)),
-            "angle": torch.tensor(float(self.normalisation.angle(fr.joints)), dtype=torch.float32),
+            "angle": torch.tensor(float(angle), dtype=torch.float32),
             "labels": torch.from_numpy(labels.astype(np.int64)),
             "subject": self._subject_id[subject],
             "frame_key": self.frame_key(index),
@@ -295,7 +295,7 @@ class PointCloudDataset(Dataset):
         if self.with_normals:
             normals = fr.normals[sel]
             if self.normalisation.heading:  # directions turn with the body
-                normals = rotate_z(normals, -self.normalisation.angle(fr.joints))
+                normals = rotate_z(normals, -angle)
             item["normals"] = torch.from_numpy(np.ascontiguousarray(normals, np.float32))
         if self.body_point_ids is not None:
             if fr.body_vertices is None:

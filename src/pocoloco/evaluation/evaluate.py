@@ -297,7 +297,7 @@ def _load_methods(ckpt, data, card: dict[str, Any], subjects: list[str], setting
         if per_subject and trained and subject not in trained:
             raise ValueError(f"{method.path}: the model for {subject!r} was trained on {list(trained)} only")
         if method.outfit_names():  # one-line error before any work if a subject was never trained
-            for s in [settings.outfit] if settings.outfit else subjects if not per_subject else [subject]:
+            for s in [settings.outfit] if settings.outfit else ([subject] if per_subject else subjects):
                 method.outfit_id(s)
         elif settings.outfit:
             raise ValueError(f"--outfit {settings.outfit}: {method.path} has no outfits (a joints-only model)")

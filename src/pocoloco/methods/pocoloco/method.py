@@ -19,7 +19,6 @@ from pocoloco.data.poses import (
     load_body_pose,
     load_joints,
     pose_from_frame,
-    pose_spec_kind,
     subject_of_spec,
 )
 from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
@@ -168,10 +167,9 @@ class PocoLocoMethod(Method):
             pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
             return load_body_pose(spec, pheno, False)
         joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
-        velocity = None
-        if self.config.joint_velocity and pose_spec_kind_or_none(str(spec)) == "dataset":
-            velocity = frame_velocity(dataset_frame_path(str(spec)), joints)
-        return Pose(joints, subject=subject_of_spec(str(spec)), source=str(spec), velocity=velocity)
+        subject = subject_of_spec(str(spec))  # None unless a DATASET:... frame
+        velocity = frame_velocity(dataset_frame_path(str(spec)), joints) if self.config.joint_velocity and subject else None
+        return Pose(joints, subject=subject, source=str(spec), velocity=velocity)
 
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
         if self.needs_body:
@@ -205,14 +203,6 @@ class PocoLocoMethod(Method):
         steps = options.steps if options.steps is not None else SAMPLER_STEPS[options.sampler]
         return {"preset": self.config.preset, "weights": self.weights, "sampler": options.sampler, "steps": steps,
                 "batch_size": options.batch_size, "clip": options.clip, "bf16": options.bf16}  # fmt: skip
-
-
-def pose_spec_kind_or_none(spec: str) -> str | None:
-    """:func:`pocoloco.data.poses.pose_spec_kind`, None for bare joints (instead of its error)."""
-    try:
-        return pose_spec_kind(spec)
-    except ValueError:
-        return None
 
 
 class LoadedDenoiser(NamedTuple):
