@@ -72,6 +72,8 @@ def main() -> None:
     ap.add_argument("--ckpt-pop", help="POP run folder or checkpoint")
     ap.add_argument("--scans", type=int, nargs="+", default=[1, 3], help="numbers of scans fitted (POP: 1 only)")
     ap.add_argument("--fit-steps", type=int, default=400)
+    ap.add_argument("--start", choices=("nearest", "mean"), default="nearest", help="fit start (pocoloco fit --start)")
+    ap.add_argument("--anchor", type=float, default=0.0, help="PocoLoco's pull to the start (pocoloco fit --anchor)")
     ap.add_argument("--frames", type=int, default=12, help="test frames per subject")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--points", type=int, default=2048)
@@ -121,7 +123,8 @@ def main() -> None:
                             export_frame(path, ply, "ply")
                         scans.append((ply, spec))
                     t0 = time.perf_counter()
-                    fit_outfit(ckpt, scans, fitted, name=subject, steps=args.fit_steps)
+                    fit_outfit(ckpt, scans, fitted, name=subject, steps=args.fit_steps, start=args.start,
+                               anchor=args.anchor if kind == "pocoloco" else 0.0)  # fmt: skip
                     print(f"fitted {tag} in {time.perf_counter() - t0:.0f} s", flush=True)
                 rep = json.loads((fitted / "fit.json").read_text())
                 nearest = rep["before_nearest_outfit"]["outfit"]

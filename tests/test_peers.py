@@ -228,12 +228,12 @@ def test_fit_cli_adds_an_outfit_and_sample_animates_it(runs, tiny_dataset, test_
     scan = _scan_of(path, tmp_path)
     out = tmp_path / "fitted"
     argv = ["fit", "--ckpt", str(runs["pop"]), "--scan", str(scan), "--frame", spec, "--steps", "25", "--lr", "0.05",
-            "--name", "dress", "--out", str(out)]  # fmt: skip
+            "--name", "dress", "--start", "mean", "--out", str(out)]  # fmt: skip
     assert main(argv) == 0, capsys.readouterr().err
     assert "fitted" in capsys.readouterr().out
     rep = json.loads((out / "fit.json").read_text())
     assert rep["outfit"] == "dress" and rep["outfit_id"] == 2 and rep["loss_last"] < rep["loss_first"]
-    assert rep["after"]["chamfer_cm"] <= rep["before_mean_outfit"]["chamfer_cm"] + 1e-6
+    assert rep["start"] == "mean" and rep["after"]["chamfer_cm"] <= rep["before_start"]["chamfer_cm"] + 1e-6
     new = load_method(out, expect="pop")
     old = load_method(runs["pop"])
     assert new.outfit_names() == ["skirt", "tight", "dress"]
@@ -251,6 +251,24 @@ def test_fit_cli_adds_an_outfit_and_sample_animates_it(runs, tiny_dataset, test_
     err = _one_line_error(capsys, main(["sample", "--ckpt", str(runs["pop"]), "--outfit", "dress", "--joints", spec,
                                         "--out", str(tmp_path / "s2")]))  # fmt: skip
     assert "outfit 'dress' was never trained" in err
+
+
+def test_fit_starts_from_the_nearest_trained_outfit(runs, test_frame, tmp_path, capsys):
+    """The default start is the trained outfit whose prediction is closest to the scan: with a zero
+    learning rate the fitted outfit is exactly that outfit's features (and scores what it scores)."""
+    spec, subject, path = test_frame
+    scan = _scan_of(path, tmp_path)
+    out = tmp_path / "fitted"
+    assert main(["fit", "--ckpt", str(runs["pop"]), "--scan", str(scan), "--frame", spec, "--steps", "1", "--lr", "0",
+                 "--name", "copy", "--out", str(out)]) == 0, capsys.readouterr().err  # fmt: skip
+    rep = json.loads((out / "fit.json").read_text())
+    old, new = load_method(runs["pop"]), load_method(out)
+    nearest = old.outfit_names().index(rep["before_nearest_outfit"]["outfit"])
+    assert rep["start"] == "nearest" and torch.equal(new.model.geom[2], old.model.geom[nearest])
+    assert rep["after"]["chamfer_cm"] == pytest.approx(rep["before_start"]["chamfer_cm"])
+    assert "--anchor is for PocoLoco" in _one_line_error(capsys, main(
+        ["fit", "--ckpt", str(runs["pop"]), "--scan", str(scan), "--frame", spec, "--steps", "1", "--anchor", "1",
+         "--out", str(tmp_path / "f2")]))  # fmt: skip
 
 
 @pytest.mark.parametrize("kind, message", [("few", "fitting needs at least 256"), ("nonormals", "has no normals"),

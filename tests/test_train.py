@@ -465,7 +465,7 @@ def test_pocoloco_fits_an_unseen_outfit_code(tiny_dataset, tmp_path, capsys):
     assert cli_main([*argv, "--frame", *specs]) == 0, capsys.readouterr().err
     rep = json.loads((tmp_path / "fitted" / "fit.json").read_text())
     assert rep["model_kind"] == "pocoloco" and len(rep["scans"]) == 2 and rep["outfit_id"] == 1
-    assert np.isfinite(rep["after"]["chamfer_cm"]) and np.isfinite(rep["before_mean_outfit"]["chamfer_cm"])
+    assert np.isfinite(rep["after"]["chamfer_cm"]) and np.isfinite(rep["before_start"]["chamfer_cm"])
     old, new = load_method(run), load_method(tmp_path / "fitted")
     assert new.outfit_names() == ["tight", "skirt_new"] and new.model.config.num_outfits == 2
     # the body shape is the scans' body (skirt's phenotype from the dataset card), not a trained subject's
@@ -474,7 +474,14 @@ def test_pocoloco_fits_an_unseen_outfit_code(tiny_dataset, tmp_path, capsys):
     for k, v in old.model.state_dict().items():  # only the outfit table grew
         w = new.model.state_dict()[k]
         assert torch.equal(w[: v.shape[0]] if "outfit_embed" in k else w, v), k
-    assert not torch.equal(new.model.who.outfit_embed.weight[1], old.model.who.outfit_embed.weight[0])
+    start = old.model.who.outfit_embed.weight[0]  # the nearest (only) trained outfit: where the fit starts
+    assert rep["start"] == "nearest" and not torch.equal(new.model.who.outfit_embed.weight[1], start)
+    # --anchor pulls the code to its start: a strong pull keeps it closer than the plain diffusion loss
+    assert cli_main([*argv[:argv.index("--out")], "--anchor", "1e4", "--out", str(tmp_path / "anchored"), "--scan",
+                     *argv[argv.index("--scan") + 1:], "--frame", *specs]) == 0, capsys.readouterr().err  # fmt: skip
+    anchored = load_method(tmp_path / "anchored").model.who.outfit_embed.weight[1]
+    free = new.model.who.outfit_embed.weight[1]
+    assert (anchored - start).abs().max() < 0.5 * (free - start).abs().max()
     assert cli_main(["sample", "--ckpt", str(tmp_path / "fitted"), "--outfit", "skirt_new", "--joints", specs[0],
                      "--num", "1", "--steps", "2", "--points", "32", "--no-render", "--out", str(tmp_path / "s")]) == 0  # fmt: skip
     # eval scores the unseen subject in a named outfit (before: the trained one; after: the fitted one)

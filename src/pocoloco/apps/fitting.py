@@ -2,9 +2,9 @@
 
 The method does the fitting (POP: only a new geometric feature tensor is optimised against one
 scan, paper Sec. 3.3 / Eq. 7; PocoLoco: only a new outfit code, with the diffusion loss, on one or
-a few scans; both start from the mean of the trained outfits, the network frozen); this module
-checks the inputs, scores the model on the scan before (the mean outfit, where fitting starts, and
-the best trained outfit) and after fitting, and writes a new checkpoint with the outfit added (then
+a few scans; both start from the trained outfit nearest to the first scan, or from the mean of the
+trained outfits, the network frozen); this module checks the inputs, scores the model on the scan
+before (every trained outfit; the start) and after fitting, and writes a new checkpoint with the outfit added (then
 ``pocoloco sample --outfit NAME`` puts it in new poses) and ``fit.json``.
 """
 
@@ -40,7 +40,8 @@ class FitReport:
     checkpoint: Path
     outfit: str
     outfit_id: int
-    before_mean: dict[str, float]
+    start: str
+    before_start: dict[str, float]
     before_nearest: dict[str, float]
     nearest_outfit: str
     after: dict[str, float]
@@ -70,7 +71,7 @@ def _read_scan(path: str | os.PathLike, need_normals: bool) -> tuple[np.ndarray,
 
 def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike, str]], out: str | os.PathLike,
                name: str | None = None, steps: int = 400, lr: float | None = None, num_points: int | None = None,
-               seed: int = 0, progress=None) -> FitReport:  # fmt: skip
+               seed: int = 0, start: str = "nearest", anchor: float = 0.0, progress=None) -> FitReport:  # fmt: skip
     """Fit a new outfit to scans of a garment the model never saw and write ``out`` = a new checkpoint
     folder with the outfit appended (atomic), plus ``out/fit.json``.
 
@@ -78,9 +79,11 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
     in)], world frame of that frame's body; POP takes one scan (paper Eq. 7; its loss needs the
     normals), PocoLoco one or a few. Each scan is subsampled to ``num_points`` (default: the model's
     own). Only the new outfit code is optimised (POP: its geometric feature tensor; PocoLoco: its
-    outfit embedding, with the diffusion loss), from the mean of the trained outfits; the network is
-    frozen. Chamfer is reported on the first scan before (the mean outfit = the start point; the best
-    trained outfit) and after fitting, with the same seeds for every row.
+    outfit embedding, with the diffusion loss); the network is frozen. ``start``: ``nearest`` = the
+    trained outfit whose samples are closest (Chamfer) to the first scan, ``mean`` = the mean of the
+    trained outfits (POP Sec. 3.3). ``anchor`` (PocoLoco): weight of an L2 pull of the code to its
+    start. Chamfer is reported on the first scan before (the start; the best trained outfit) and
+    after fitting, with the same seeds for every row.
     """
     loaded = load_method(ckpt)
     if not loaded.fits_outfits:
@@ -90,6 +93,10 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
         raise ValueError(f"--steps must be >= 1, got {steps}")
     if not scans:
         raise ValueError("fitting needs at least one --scan")
+    if start not in ("nearest", "mean"):
+        raise ValueError(f"--start must be 'nearest' or 'mean', got {start!r}")
+    if not (np.isfinite(anchor) and anchor >= 0):
+        raise ValueError(f"--anchor must be a finite number >= 0, got {anchor}")
     out = Path(out)
     if latest_checkpoint(out / "checkpoints") is not None or (out / META_FILE).exists():
         raise ValueError(f"{out}: already holds a checkpoint; choose another --out")
@@ -117,11 +124,6 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
     else:
         card_subject = read_card(scans[0][1].rpartition(":")[0]).get("subjects", {}).get(subject) or {}
         phenotype = dict(card_subject.get("phenotype") or loaded.outfits[0].get("phenotype", {}))
-    t0 = time.perf_counter()
-    fit = loaded.fit_outfit(fit_scans, steps=steps, lr=lr, progress=progress, shape=phenotype_vector(phenotype),
-                            seed=seed)  # fmt: skip
-    seconds = time.perf_counter() - t0
-
     scan, scan_n = read[0]
     n_eval = min(len(scan), 10_000)
     esel = np.sort(np.random.default_rng([seed, 7]).choice(len(scan), n_eval, replace=False))
@@ -133,24 +135,30 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
 
     per_outfit = [score(outfit=i) for i in range(len(trained_names))]
     best = int(np.argmin([m["chamfer_cm"] for m in per_outfit]))
-    mean_code = loaded.mean_outfit_code()
+    start_code = loaded.outfit_code(best) if start == "nearest" else loaded.mean_outfit_code()
+    t0 = time.perf_counter()
+    fit = loaded.fit_outfit(fit_scans, steps=steps, lr=lr, progress=progress, shape=phenotype_vector(phenotype),
+                            seed=seed, init=start_code, anchor=anchor)  # fmt: skip
+    seconds = time.perf_counter() - t0
+
     sources = "; ".join(f"{os.fspath(p)} (body of {f})" for p, f in scans)
     new_id = loaded.add_outfit(fit.features, {"name": name, "phenotype": phenotype, "source": f"fitted to {sources}"})
-    before_mean = score(code=mean_code, outfit=new_id)  # the scans' body, the mean code (where fitting starts)
+    before_start = score(code=start_code, outfit=new_id)  # the scans' body, the start code
     after = score(outfit=new_id)  # exactly what the saved checkpoint samples
     from_path = str(loaded.path)
     path = loaded.save(out / "checkpoints", extra={"fitted_from": from_path})
-    report = FitReport(path, name, new_id, before_mean, per_outfit[best], trained_names[best], after,
+    report = FitReport(path, name, new_id, start, before_start, per_outfit[best], trained_names[best], after,
                        fit.losses, seconds)  # fmt: skip
     write_json_atomic(out / "fit.json", {
         "checkpoint": str(path), "from": from_path, "model_kind": loaded.kind,
         "scans": [{"scan": os.fspath(p), "frame": f} for p, f in scans], "scan": os.fspath(scans[0][0]),
         "frame": scans[0][1], "outfit": name, "outfit_id": new_id, "steps": steps, "scan_points_fit": n_fit,
-        "eval_points": n_eval, "before_mean_outfit": before_mean,
+        "start": start, "anchor": anchor, "eval_points": n_eval, "before_start": before_start,
         "before_nearest_outfit": {"outfit": report.nearest_outfit, **per_outfit[best]}, "after": after,
         "loss_first": fit.losses[0], "loss_last": fit.losses[-1], "seconds": seconds,
         "note": "Chamfer on the first scan (10K points at most) with the same number of model points and the same "
-                "seed for every row; 'before' = the mean of the trained outfits' codes (where fitting starts) and "
-                "the best single trained outfit",
+                "seed for every row; 'before_start' = the start code ('nearest': the best trained outfit's code on "
+                "the scans' body; 'mean': the mean of the trained outfits' codes), 'before_nearest_outfit' = the "
+                "best trained outfit as trained (its own body shape)",
     })  # fmt: skip
     return report

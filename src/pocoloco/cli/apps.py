@@ -356,6 +356,11 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=400, help="Adam steps (default 400, as the POP paper)")
     parser.add_argument("--lr", type=float, help="learning rate (default: POP's feature lr; PocoLoco 1e-2)")
     parser.add_argument("--points", type=int, help="scan points per cloud used by the loss (default: the model's)")
+    parser.add_argument("--start", choices=("nearest", "mean"), default="nearest",
+                        help="start code: the trained outfit nearest to the first scan (default) or the mean of the "
+                             "trained outfits (POP paper)")  # fmt: skip
+    parser.add_argument("--anchor", type=float, default=0.0,
+                        help="PocoLoco: weight of an L2 pull of the code to its start (default 0)")  # fmt: skip
     parser.add_argument("--seed", type=int, default=0, help="seed of the scan points used and scored (default 0)")
     add_threads_argument(parser)
     parser.add_argument("--out", required=True, help="new folder: the checkpoint with the added outfit + fit.json")
@@ -370,11 +375,11 @@ def cmd_fit(args: argparse.Namespace) -> None:
             raise ValueError(f"--ckpt {args.ckpt}: checkpoint is of model {kind!r}, expected {args.model!r} (--model)")
     with progress_bar("fit", total=args.steps, loss=True) as update:
         rep = fit_outfit(args.ckpt, list(zip(args.scan, args.frame)), args.out, name=args.name, steps=args.steps,
-                         lr=args.lr, num_points=args.points, seed=args.seed,
+                         lr=args.lr, num_points=args.points, seed=args.seed, start=args.start, anchor=args.anchor,
                          progress=lambda d, n, loss: update(d, loss=f"{loss:.3f}"))  # fmt: skip
-    b, nb, a = rep.before_mean, rep.before_nearest, rep.after
+    b, nb, a = rep.before_start, rep.before_nearest, rep.after
     print(f"outfit {rep.outfit!r} (id {rep.outfit_id}) fitted in {rep.seconds:.1f} s: Chamfer {b['chamfer_cm']:.2f} cm "
-          f"(mean outfit) / {nb['chamfer_cm']:.2f} cm (nearest trained outfit {rep.nearest_outfit!r}) -> "
+          f"(start: {rep.start}) / {nb['chamfer_cm']:.2f} cm (nearest trained outfit {rep.nearest_outfit!r}) -> "
           f"{a['chamfer_cm']:.2f} cm; CD {b['pop_chamfer_e-4m2']:.2f} -> {a['pop_chamfer_e-4m2']:.2f} 1e-4 m^2")  # fmt: skip
     print(f"wrote {rep.checkpoint} and {Path(args.out) / 'fit.json'}; pose it with "
           f"`pocoloco sample --ckpt {args.out} --outfit {rep.outfit} --joints DATASET:subject/split/sequence/index`")

@@ -83,7 +83,7 @@ class Method(ABC):
     kind: ClassVar[str]
     deterministic: ClassVar[bool] = False
     needs_body: ClassVar[bool] = False
-    #: can fit a new outfit to scans (``fit_outfit``, ``fit_points``, ``mean_outfit_code``,
+    #: can fit a new outfit to scans (``fit_outfit``, ``fit_points``, ``mean_outfit_code``, ``outfit_code``,
     #: ``add_outfit``; ``predict(..., code=...)``); a model may decide per checkpoint (a property)
     fits_outfits: ClassVar[bool] = False
     #: the fit needs the scans' normals (POP's point-to-plane loss)

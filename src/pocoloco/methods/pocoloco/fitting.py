@@ -2,8 +2,10 @@
 only a new outfit code (one row of the outfit embedding, :mod:`pocoloco.models.conditioning`) is
 optimised with the diffusion loss (PocoLoco paper Eq. 7: epsilon-prediction MSE at random t) on one
 or a few scans of the garment, each with the pose (joints) it was captured in. The code starts from
-the mean of the trained outfits' codes, as POP's geometric features do (POP Sec. 3.3). Unlike POP's
-deterministic fit, the fitted model then *samples* the new outfit in any pose.
+a given code (``pocoloco fit`` passes the trained outfit nearest to the first scan) or the mean of
+the trained outfits' codes, as POP's geometric features do (POP Sec. 3.3); an optional L2 pull to
+the start (``anchor``) keeps a fit to one pose from drifting to codes that only explain that pose.
+Unlike POP's deterministic fit, the fitted model then *samples* the new outfit in any pose.
 """
 
 from __future__ import annotations
@@ -33,13 +35,16 @@ class CodeFit:
 
 def fit_outfit_code(model: nn.Module, normalisation: Normalisation, config, scans: Sequence[tuple[np.ndarray, np.ndarray]],
                     shape: Sequence[float] | None = None, steps: int = 400, lr: float = 1e-2, batch_size: int = 8,
-                    num_points: int | None = None, seed: int = 0, progress=None) -> CodeFit:  # fmt: skip
+                    num_points: int | None = None, seed: int = 0, init: torch.Tensor | None = None,
+                    anchor: float = 0.0, progress=None) -> CodeFit:  # fmt: skip
     """Optimise a new outfit code against ``scans``: [(points (P, 3) metres, joints (24, 3) metres)],
     or [(points, joints, body (K, 3) metres)] for a model that reads the posed body (``body_points``).
 
     Each step draws ``batch_size`` clouds (a scan each, round robin, ``num_points`` of its points,
     default the model's training N), normalises them with their pose, and takes one Adam step on the
     code only. ``shape``: the (S,) body shape of the scans' body (models conditioned on it).
+    ``init``: the (D,) start code (default: the mean of the trained codes); ``anchor``: weight of
+    ``mean((code - init)^2)`` added to the loss (0 = plain diffusion loss).
     The model's parameters, buffers and training flag are left unchanged.
     """
     who = getattr(model, "who", None)
@@ -49,6 +54,8 @@ def fit_outfit_code(model: nn.Module, normalisation: Normalisation, config, scan
         raise ValueError(f"steps must be a positive integer, got {steps!r}")
     if not scans:
         raise ValueError("fitting needs at least one scan")
+    if not (anchor >= 0.0 and np.isfinite(anchor)):
+        raise ValueError(f"anchor must be a finite number >= 0, got {anchor!r}")
     weight = who.outfit_embed.weight
     device, dtype = weight.device, weight.dtype
     N = int(num_points or config.num_points)
@@ -63,7 +70,10 @@ def fit_outfit_code(model: nn.Module, normalisation: Normalisation, config, scan
         clouds.append((torch.as_tensor(p, dtype=dtype), torch.as_tensor(j, dtype=dtype), b))
     schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
     gen = torch.Generator(device).manual_seed(int(seed))
-    code = nn.Parameter(weight.detach().mean(0).clone())  # (D,)
+    start = weight.detach().mean(0) if init is None else torch.as_tensor(init).detach().to(weight).reshape(-1)
+    if start.shape != weight.shape[1:]:
+        raise ValueError(f"init must be a code of shape {tuple(weight.shape[1:])}, got {tuple(torch.as_tensor(init).shape)}")
+    code = nn.Parameter(start.clone())  # (D,)
     opt = torch.optim.Adam([code], lr=lr)
     shape_t = None if shape is None else torch.as_tensor(np.asarray(shape, np.float32), dtype=dtype, device=device)
     fit = CodeFit(code.data)
@@ -82,6 +92,8 @@ def fit_outfit_code(model: nn.Module, normalisation: Normalisation, config, scan
             cond = PoseCondition(joints, None, None if shape_t is None else shape_t.expand(B, -1),
                                  code[None].expand(B, -1), body)  # fmt: skip
             loss, _ = diffusion_loss(model, x0, cond, schedule, config.prediction_type, generator=gen)
+            if anchor > 0.0:
+                loss = loss + anchor * (code - start).square().mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

@@ -85,17 +85,23 @@ class PocoLocoMethod(Method):
 
     def fit_outfit(self, scans: Sequence[tuple[np.ndarray, np.ndarray | None, Pose]], steps: int = 400,
                    lr: float | None = None, progress=None, shape: Sequence[float] | None = None,
-                   seed: int = 0) -> CodeFit:  # fmt: skip
+                   seed: int = 0, init: torch.Tensor | None = None, anchor: float = 0.0) -> CodeFit:  # fmt: skip
         """Fit a new outfit code to ``scans`` [(points (P, 3), normals or None, pose)], the network
-        frozen (:func:`~pocoloco.methods.pocoloco.fitting.fit_outfit_code`)."""
+        frozen, from ``init`` (default the mean code) with an optional pull ``anchor`` to it
+        (:func:`~pocoloco.methods.pocoloco.fitting.fit_outfit_code`)."""
         return fit_outfit_code(self.model, self.normalisation, self.config,
                                [(points, pose.joints, self.body_points_of(pose)) for points, _, pose in scans],
                                shape=shape if self.config.body_shape else None, steps=steps,
-                               lr=1e-2 if lr is None else lr, seed=seed, progress=progress)  # fmt: skip
+                               lr=1e-2 if lr is None else lr, seed=seed, init=init, anchor=anchor,
+                               progress=progress)  # fmt: skip
 
     def mean_outfit_code(self) -> torch.Tensor:
-        """The mean of the trained outfits' codes (D,): where fitting starts."""
+        """The mean of the trained outfits' codes (D,): where ``fit --start mean`` starts."""
         return self.model.who.outfit_embed.weight.detach().mean(0)
+
+    def outfit_code(self, outfit: int) -> torch.Tensor:
+        """Outfit ``outfit``'s code (D,): where ``fit --start nearest`` starts."""
+        return self.model.who.outfit_embed.weight.detach()[self.outfit_id(outfit)].clone()
 
     def add_outfit(self, code: torch.Tensor, entry: dict[str, Any]) -> int:
         """Append a fitted outfit (its code and its ``meta.json`` entry); returns its id."""

@@ -86,22 +86,30 @@ class POPMethod(SkinnedMethod):
         return int(self.model.config.num_scan_points)
 
     def fit_outfit(self, scans, steps: int = 400, lr: float | None = None, progress=None, shape=None,
-                   seed: int = 0) -> POPFit:  # fmt: skip
+                   seed: int = 0, init: torch.Tensor | None = None, anchor: float = 0.0) -> POPFit:  # fmt: skip
         """Fit a new outfit to one scan ``scans = [(points (P, 3), unit normals (P, 3), pose)]`` (world
-        frame of the pose): only a new geometric feature tensor is optimised, from the mean of the
-        trained outfits; the network is frozen (:func:`~pocoloco.methods.pop.fitting.fit_unseen_outfit`,
+        frame of the pose): only a new geometric feature tensor is optimised, from ``init`` (default:
+        the mean of the trained outfits); the network is frozen. POP's Eq. 7 has no pull to the
+        start: ``anchor`` must be 0 (:func:`~pocoloco.methods.pop.fitting.fit_unseen_outfit`,
         paper Eq. 7 fits one scan)."""
         if len(scans) != 1:
             raise ValueError(f"POP fits an outfit to one scan (paper Eq. 7), got {len(scans)}")
+        if anchor:
+            raise ValueError("POP's fit (paper Eq. 7) has no pull to the start: --anchor is for PocoLoco")
         scan_points, scan_normals, pose = scans[0]
         root = np.asarray(pose.joints[0], np.float32)
         pv = pose.mean_shape if self.needs_mean_shape else pose.body_vertices - root
         return fit_unseen_outfit(self.model, scan_points - root, scan_normals, pv, pose.body_vertices - root,
-                                 pose.vtransf, steps=steps, lr=lr, progress=progress)  # fmt: skip
+                                 pose.vtransf, steps=steps, lr=lr, init=init, progress=progress)  # fmt: skip
 
     def mean_outfit_code(self) -> torch.Tensor:
-        """The mean of the trained outfits' feature tensors (1, Cg, Ri, Ri): where fitting starts."""
+        """The mean of the trained outfits' feature tensors (1, Cg, Ri, Ri): ``fit --start mean``."""
         return self.model.geom.detach().mean(0, keepdim=True)
+
+    def outfit_code(self, outfit: int) -> torch.Tensor:
+        """Outfit ``outfit``'s feature tensor (1, Cg, Ri, Ri): ``fit --start nearest``."""
+        i = self.outfit_id(outfit)
+        return self.model.geom.detach()[i:i + 1].clone()
 
     def add_outfit(self, code: torch.Tensor, entry: dict[str, Any]) -> int:
         """Append a fitted outfit (its features and its ``meta.json`` entry); returns its id."""
