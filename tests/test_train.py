@@ -410,8 +410,13 @@ def test_who_wears_what_conditioning_end_to_end(tiny_dataset, tmp_path, capsys, 
     subjects = fmt.DatasetLayout(tiny_dataset).subjects()
     assert method.outfit_names() == subjects and method.model.config.num_outfits == len(subjects)
     assert method.model.config.shape_dim == 6 and (out / "samples" / "step_000002.png").is_file()
-    # a shipped demo pose has no subject: the outfit must be named
-    code = cli_main(["sample", "--ckpt", str(out), "--joints", "demo:skirt", "--out", str(tmp_path / "x")])
+    # a shipped demo pose wears the outfit of its name if the model has one (tiny has a skirt), else
+    # the outfit must be named
+    assert "skirt" in subjects and "shirt" not in subjects
+    assert cli_main(["sample", "--ckpt", str(out), "--joints", "demo:skirt", "--num", "1", "--steps", "2", "--points",
+                     "32", "--no-render", "--out", str(tmp_path / "d")]) == 0  # fmt: skip
+    assert json.loads((tmp_path / "d" / "sample.json").read_text())["outfit"] == "skirt"
+    code = cli_main(["sample", "--ckpt", str(out), "--joints", "demo:shirt", "--out", str(tmp_path / "x")])
     assert code == 2 and "--outfit is required" in capsys.readouterr().err
     spec = f"{tiny_dataset}:{fmt.DatasetLayout(tiny_dataset).iter_frames('test')[0][0]}/test/" + \
         f"{fmt.DatasetLayout(tiny_dataset).iter_frames('test')[0][1]}/0"  # fmt: skip

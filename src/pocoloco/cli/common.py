@@ -115,13 +115,17 @@ def choose_device(arg: str | None) -> torch.device:
 
 
 def pick_outfit(method: Method, outfit: str | None, spec: str | None) -> int | None:
-    """``--outfit``'s id: the one named, else the subject of a ``DATASET:...`` spec; None for models
-    without outfits (which refuse an ``--outfit``); a one-line error when none can be chosen."""
+    """``--outfit``'s id: the one named, else the subject of a ``DATASET:...`` spec, else the name of
+    a ``demo:NAME`` pose when the model has an outfit of that name; None for models without outfits
+    (which refuse an ``--outfit``); a one-line error when none can be chosen."""
     names = method.outfit_names()
     if not names:
         method.outfit_id(outfit)  # refuses a given outfit
         return None
-    name = outfit if outfit is not None else (subject_of_spec(os.fspath(spec)) if spec is not None else None)
+    name = outfit
+    if name is None and spec is not None:
+        spec = os.fspath(spec)
+        name = subject_of_spec(spec) or (spec[len("demo:"):] if spec.startswith("demo:") else None)
     if name is None or (outfit is None and name not in names):
         raise ValueError(f"--outfit is required (this {method.kind} checkpoint has outfits {', '.join(names)})")
     return method.outfit_id(name)
@@ -173,7 +177,7 @@ def add_app_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
     parser.add_argument("--steps", type=int, help=f"sampler steps (default: {steps_defaults()}; at most t)")
     parser.add_argument("--seed", type=int, default=0, help="output k uses seed SEED + k (default 0)")
     parser.add_argument("--outfit", help="models that know who wears what: outfit name or id (default: the subject "
-                                         "of a DATASET:... pose or motion)")  # fmt: skip
+                                         "of a DATASET:... pose or motion, or NAME of demo:NAME if it is an outfit)")  # fmt: skip
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
     add_any_pose_argument(parser)
     add_device_argument(parser)

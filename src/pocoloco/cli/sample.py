@@ -93,7 +93,8 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num", type=int, default=None,
                         help="K hypotheses to draw (default 3; POP / CloSET are deterministic: 1)")  # fmt: skip
     parser.add_argument("--outfit",
-                        help="POP / CloSET: outfit name or id (default: the subject of a DATASET:... frame)")  # fmt: skip
+                        help="models with outfits (POP, CloSET, PocoLoco --outfit-codes): outfit name or id (default: the "
+                             "subject of a DATASET:... frame, or NAME of demo:NAME if it is an outfit)")  # fmt: skip
     parser.add_argument("--sampler", default="dpm++sde",
                         help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde: SDE-DPM-Solver++, {SAMPLER_STEPS['dpm++sde']} steps)")  # fmt: skip
     parser.add_argument("--steps", type=int,
