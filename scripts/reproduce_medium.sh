@@ -4,7 +4,7 @@
 # the unseen-outfit fit. Every step resumes where a killed run stopped: rerun the script.
 #
 #   bash scripts/reproduce_medium.sh                  # everything, ~10 h on a 2-core CPU
-#   RUNS=/big/disk STEPS_POCOLOCO=20000 bash scripts/reproduce_medium.sh
+#   RUNS=/big/disk STEPS_POCOLOCO=15000 bash scripts/reproduce_medium.sh
 #
 # Two jobs run side by side (one thread each): PocoLoco on one core, POP then CloSET on the other.
 # Progress goes to $RUNS/*.log. Needs `bash scripts/setup.sh` first.
@@ -14,7 +14,7 @@ PY=.venv/bin/python
 PL=.venv/bin/pocoloco
 RUNS=${RUNS:-$HOME/.cache/pocoloco/runs}
 DATA=${DATA:-$HOME/.cache/pocoloco/data}
-STEPS_POCOLOCO=${STEPS_POCOLOCO:-20000}
+STEPS_POCOLOCO=${STEPS_POCOLOCO:-10000}  # the who run converged by ~7,000 (BENCHMARKS, "Training length")
 STEPS_POP=${STEPS_POP:-10000}
 STEPS_CLOSET=${STEPS_CLOSET:-10000}
 mkdir -p "$RUNS" "$DATA"
