@@ -223,6 +223,93 @@ def test_export_for_sampling_keeps_the_ema_weights_and_cannot_resume(run, frame,
         export_for_sampling(run, out)
 
 
+def test_float16_export_loads_as_float32_rounded_weights(run, tmp_path):
+    """``dtype="float16"``: floating tensors stored as fp16 (half the bytes), loaded back as float32
+    equal to the fp16-rounded originals; meta.json records the dtype."""
+    from safetensors.torch import load_file
+
+    from pocoloco.engine.checkpoint import export_for_sampling, load_checkpoint
+
+    full = load_checkpoint(run, training_state=False).ema_state
+    out32 = export_for_sampling(run, tmp_path / "f32")
+    out16 = export_for_sampling(run, tmp_path / "f16", dtype="float16")
+    stored = load_file(str(out16 / "model.safetensors"))
+    assert {str(v.dtype) for v in stored.values()} == {"torch.float16"}
+    size32, size16 = ((o / "model.safetensors").stat().st_size for o in (out32, out16))
+    assert 0.45 < size16 / size32 < 0.55, (size16, size32)
+    loaded = load_checkpoint(out16, training_state=False)
+    assert loaded.meta["weights_dtype"] == "float16" and load_checkpoint(out32).meta["weights_dtype"] == "float32"
+    assert loaded.model_state.keys() == full.keys()
+    for k, v in full.items():
+        assert loaded.model_state[k].dtype == torch.float32 and torch.equal(loaded.model_state[k], v.half().float()), k
+    with pytest.raises(ValueError, match="choose one of float32, float16"):
+        export_for_sampling(run, tmp_path / "x", dtype="bfloat16")
+
+
+def test_float16_export_keeps_integer_buffers_and_refuses_overflow(run, tmp_path):
+    """Integer / bool buffers are stored as they are (a model's index buffers); a float beyond fp16's
+    range is a one-line error, not a silent inf."""
+    from safetensors.torch import load_file
+
+    from pocoloco.engine.checkpoint import export_for_sampling, load_checkpoint, save_checkpoint
+
+    ck = load_checkpoint(run, training_state=False)
+    extra = {"idx": torch.arange(5, dtype=torch.int64), "mask": torch.tensor([True, False]),
+             "bf": torch.tensor([0.1, -2.5], dtype=torch.bfloat16)}  # fmt: skip
+    state = {**ck.model_state, **extra}
+    src = save_checkpoint(tmp_path / "ck", ck.step, model_kind=ck.model_kind, preset=ck.preset, config=ck.config,
+                          normalisation=ck.normalisation, model_state=state)  # fmt: skip
+    stored = load_file(str(export_for_sampling(src, tmp_path / "o", dtype="float16") / "model.safetensors"))
+    assert torch.equal(stored["idx"], extra["idx"]) and torch.equal(stored["mask"], extra["mask"])
+    assert stored["bf"].dtype == torch.float16
+    loaded = load_checkpoint(src, training_state=False).model_state  # bf16 in a training checkpoint: float32 too
+    assert loaded["bf"].dtype == torch.float32 and torch.equal(loaded["bf"], extra["bf"].float())
+    big = tmp_path / "big"
+    name = next(k for k, v in ck.model_state.items() if v.is_floating_point())
+    save_checkpoint(big, ck.step, model_kind=ck.model_kind, preset=ck.preset, config=ck.config,
+                    normalisation=ck.normalisation, model_state={**ck.model_state, name: ck.model_state[name] + 1e5})  # fmt: skip
+    with pytest.raises(ValueError, match=f"tensor '{name}' does not fit in torch.float16") as e:
+        export_for_sampling(big, tmp_path / "o2", dtype="float16")
+    assert len(str(e.value).splitlines()) == 1 and not (tmp_path / "o2").exists()
+
+
+def test_float16_export_samples_like_float32(run, frame, tmp_path):
+    """A tiny model's denoiser outputs and 3-step samples from the fp16 export stay within a tight
+    tolerance of the float32 export (fp16 keeps ~3 significant digits of each weight)."""
+    from pocoloco.engine.checkpoint import export_for_sampling
+
+    m32 = load_denoiser(export_for_sampling(run, tmp_path / "f32"))
+    m16 = load_denoiser(export_for_sampling(run, tmp_path / "f16", dtype="float16"))
+    assert all(p.dtype == torch.float32 for p in m16.model.state_dict().values() if p.is_floating_point())
+    joints = _joints(frame)
+    kw = dict(sampler="dpm++", steps=3, seeds=[0, 1])
+    a = sample_clouds(*m32, joints, 2, 64, **kw).points  # (2, 64, 3) metres
+    b = sample_clouds(*m16, joints, 2, 64, **kw).points
+    assert b.dtype == np.float32
+    err, spread = np.abs(a - b).max(), np.abs(a - a.mean(axis=1, keepdims=True)).max()
+    assert 0 < err < 1e-4 * spread, (err, spread)  # measured: 3e-6 of the spread
+
+
+def test_non_finite_half_weights_are_a_one_line_corrupt_checkpoint_error(run, tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    from pocoloco.engine.checkpoint import CorruptCheckpointError, export_for_sampling, load_checkpoint
+
+    out = export_for_sampling(run, tmp_path / "f16", dtype="float16")
+    f = out / "model.safetensors"
+    state = load_file(str(f))
+    name = next(iter(state))
+    state[name] = state[name].clone()
+    state[name].view(-1)[0] = float("nan")
+    save_file(state, str(f))
+    with pytest.raises(CorruptCheckpointError) as e:
+        load_checkpoint(out, training_state=False)
+    msg = str(e.value)
+    assert len(msg.splitlines()) == 1 and str(f) in msg and name in msg and "non-finite" in msg, msg
+    with pytest.raises(ValueError, match="non-finite"):
+        load_denoiser(out)
+
+
 def test_default_checkpoint_samples_a_demo_pose(tmp_path, capsys):
     """The shipped model (if this copy has it) samples the README's demo pose."""
     from pocoloco.engine.shipped import DEFAULT_MODEL_DIR, resolve_ckpt_arg
@@ -245,8 +332,11 @@ def test_export_model_cli(run, tmp_path):
     from conftest import run_cli
 
     r = run_cli("export-model", "--ckpt", str(run), "--out", str(tmp_path / "m"))
-    assert r.returncode == 0 and "EMA weights" in r.stdout, r.stderr
+    assert r.returncode == 0 and "EMA weights, float16" in r.stdout, r.stderr  # fp16 by default: what ships
     assert sorted(p.name for p in (tmp_path / "m").iterdir()) == ["meta.json", "model.safetensors"]
+    assert json.loads((tmp_path / "m" / "meta.json").read_text())["weights_dtype"] == "float16"
+    r = run_cli("export-model", "--ckpt", str(run), "--out", str(tmp_path / "m32"), "--dtype", "float32")
+    assert r.returncode == 0 and json.loads((tmp_path / "m32" / "meta.json").read_text())["weights_dtype"] == "float32"
     r = run_cli("export-model", "--ckpt", str(run), "--out", str(tmp_path / "m"))
     assert r.returncode == 2 and "already exists" in r.stderr
 

@@ -11,7 +11,7 @@ import numpy as np
 from pocoloco.apps.meshing import estimate_normals, mesh_from_points
 from pocoloco.body.surface import write_uv_map
 from pocoloco.data.published import read_ply
-from pocoloco.engine.checkpoint import export_for_sampling, resolve_checkpoint
+from pocoloco.engine.checkpoint import WEIGHTS_DTYPES, export_for_sampling, resolve_checkpoint
 from pocoloco.viz.render import (
     VIEWS,
     render_gif,
@@ -153,10 +153,10 @@ def cmd_view(args: argparse.Namespace) -> None:
 # -------------------------------------------------------------------------------- export-model
 def cmd_export_model(args: argparse.Namespace) -> None:
     """A small sampling-only copy of a checkpoint (how the shipped models were made)."""
-    out = export_for_sampling(resolve_checkpoint(args.ckpt), args.out, use_ema=not args.raw_weights)
+    out = export_for_sampling(resolve_checkpoint(args.ckpt), args.out, use_ema=not args.raw_weights, dtype=args.dtype)
     size = sum(f.stat().st_size for f in out.iterdir())
     weights = json.loads((out / "meta.json").read_text(encoding="utf-8"))["weights"]  # raw if the model keeps no EMA
-    print(f"wrote {out} ({size / 1e6:.1f} MB, {'EMA' if weights == 'ema' else 'raw'} weights)")
+    print(f"wrote {out} ({size / 1e6:.1f} MB, {'EMA' if weights == 'ema' else 'raw'} weights, {args.dtype})")
 
 
 # ---------------------------------------------------------------------------------------- uvmap
@@ -190,6 +190,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--ckpt", required=True, help="checkpoint folder, checkpoints folder or run folder")
     s.add_argument("--out", required=True, help="new folder to write (must not exist)")
     s.add_argument("--raw-weights", action="store_true", help="export the raw weights instead of the EMA")
+    s.add_argument("--dtype", choices=list(WEIGHTS_DTYPES), default="float16",
+                   help="storage dtype of the floating weights (default float16: half the bytes, what ships; "
+                        "loaded back as float32)")  # fmt: skip
     s.set_defaults(func=cmd_export_model)
     s = sub.add_parser("uvmap", help="rasterise the anny UV layout: pixel -> (face, barycentric) + template position map")
     s.add_argument("--resolution", type=int, default=256, help="map size R (default 256)")

@@ -26,6 +26,9 @@ checkpoints folder: it falls back to the newest intact checkpoint with a one-lin
 Public API: :func:`save_checkpoint`, :func:`load_checkpoint` -> :class:`Checkpoint`,
 :func:`resolve_checkpoint`, :func:`read_meta`, :func:`export_for_sampling`,
 :func:`capture_rng_state`, :func:`restore_rng_state`, :func:`clean_stale_temporaries`.
+
+Weights files may hold half-precision floats (``export_for_sampling(..., dtype="float16")``, how the
+shipped models are stored): loading casts fp16 / bf16 tensors to float32, the models' compute dtype.
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ __all__ = [
     "Checkpoint",
     "CheckpointFallbackWarning",
     "CorruptCheckpointError",
+    "WEIGHTS_DTYPES",
     "capture_rng_state",
     "latest_checkpoint",
     "clean_stale_temporaries",
@@ -73,6 +77,9 @@ MODEL_FILE = "model.safetensors"
 EMA_FILE = "ema.safetensors"
 STATE_FILE = "training_state.pt"
 LATEST_FILE = "latest"
+#: storage dtypes of :func:`export_for_sampling` (``weights_dtype`` in its ``meta.json``)
+WEIGHTS_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+_HALF_DTYPES = (torch.float16, torch.bfloat16)  # cast to float32 when loaded
 _STEP_DIR = re.compile(r"^step_(\d+)$")
 
 
@@ -269,7 +276,7 @@ class Checkpoint:
         model_kind / preset: what was trained (e.g. "pocoloco" / "small").
         config: the training config as a dict (``TrainConfig.from_dict`` rebuilds it).
         normalisation: the dataset normalisation the model was trained with.
-        model_state: raw weights. ema_state: EMA weights or None.
+        model_state: raw weights. ema_state: EMA weights or None (half-precision files load as float32).
         optimizer_state / rng_state: training state, or None if not saved / not loaded.
         meta: the whole ``meta.json``.
     """
@@ -314,14 +321,24 @@ def one_line(e: BaseException) -> str:
 
 
 def _load_safetensors(f: Path, device: str | torch.device) -> dict[str, torch.Tensor]:
+    """The tensors of a weights file; half-precision floats (fp16 / bf16) cast to float32, the
+    models' compute dtype (a non-finite one is a :class:`CorruptCheckpointError`)."""
     from safetensors.torch import load_file
 
     if not f.is_file():
         raise CorruptCheckpointError(f"{f}: missing from the checkpoint")
     try:
-        return load_file(str(f), device=str(device))
+        state = load_file(str(f), device=str(device))
     except Exception as e:  # safetensors raises its own error types for truncated / garbage files
         raise CorruptCheckpointError(f"{f}: corrupt weights file ({one_line(e)})") from None
+    for k, v in state.items():
+        if v.dtype in _HALF_DTYPES:
+            state[k] = v = v.float()
+            if not bool(torch.isfinite(v).all()):
+                bad = int((~torch.isfinite(v)).sum())
+                raise CorruptCheckpointError(f"{f}: corrupt weights file ({k!r} holds {bad} non-finite "
+                                             f"half-precision value{'s' if bad > 1 else ''})")  # fmt: skip
+    return state
 
 
 def load_checkpoint(
@@ -428,20 +445,29 @@ def _load_one(ckpt: Path, expect_model: str | None, expect_preset: str | None, m
     )  # fmt: skip
 
 
-def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema: bool = True) -> Path:
+def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema: bool = True,
+                        dtype: str = "float32") -> Path:
     """Write a small sampling-only copy of a checkpoint: ``meta.json`` + one ``model.safetensors``.
 
     The weights are the EMA weights (``use_ema``, if the checkpoint has them) or the raw ones; no
     optimiser or RNG state, so it cannot be resumed. Written atomically (temporary folder, rename).
-    This is how the model shipped in ``pocoloco/assets`` was made. Returns ``out``.
+    This is how the models shipped in ``pocoloco/assets`` were made. Returns ``out``.
+
+    dtype: storage dtype of the floating tensors, ``"float32"`` or ``"float16"`` (half the bytes;
+        integer / bool buffers untouched; loading casts back to float32). Recorded in ``meta.json``
+        as ``weights_dtype``. A value beyond float16's range (65504) is a one-line ValueError.
     """
     from safetensors.torch import save_file
 
+    if dtype not in WEIGHTS_DTYPES:
+        raise ValueError(f"weights dtype {dtype!r}: choose one of {', '.join(WEIGHTS_DTYPES)}")
     ck = load_checkpoint(path, expect_model=None, training_state=False)
     state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
+    if dtype != "float32":
+        state = {k: _cast_finite(k, v, WEIGHTS_DTYPES[dtype], ck.path) for k, v in state.items()}
     meta = dict(ck.meta)
     meta.update(has_ema=False, has_training_state=False, exported_from=str(ck.path),
-                weights="ema" if (use_ema and ck.ema_state is not None) else "raw")  # fmt: skip
+                weights="ema" if (use_ema and ck.ema_state is not None) else "raw", weights_dtype=dtype)  # fmt: skip
     out = Path(out)
     if out.exists():
         raise ValueError(f"{out}: already exists")
@@ -457,3 +483,14 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def _cast_finite(name: str, v: torch.Tensor, dtype: torch.dtype, source: Path) -> torch.Tensor:
+    """Floating ``v`` cast to ``dtype`` (others as they are); a finite value that overflows is a ValueError."""
+    if not v.is_floating_point():
+        return v
+    cast = v.to(dtype)
+    if not bool(torch.isfinite(cast).all()) and bool(torch.isfinite(v).all()):
+        raise ValueError(f"{source}: tensor {name!r} does not fit in {dtype} (max |value| "
+                         f"{float(v.abs().max()):.4g}); export it as float32")  # fmt: skip
+    return cast

@@ -2,7 +2,7 @@
 ``default:closet``): where each lives under ``assets/`` and how to name it in reports.
 
 ``assets/pocoloco_small/`` holds a sampling-only checkpoint (``meta.json`` + the EMA weights as
-``model.safetensors``) of PocoLoco's ``latent_small`` preset (the linear-in-N latent denoiser)
+``model.safetensors``, stored as fp16 and loaded as float32) of PocoLoco's ``latent_small`` preset (the linear-in-N latent denoiser)
 trained on the ``small`` synthetic dataset; ``assets/pocoloco_transformer/`` the previous default,
 the ``small`` preset (the paper's all-points transformer), as ``default:transformer``;
 ``assets/pop_small/`` and ``assets/closet_small/`` the same for the two peers (``small`` presets,
