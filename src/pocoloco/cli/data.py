@@ -1,5 +1,5 @@
-"""``pocoloco data synth | info | verify | preview | export | import``: the synthetic capture pipeline
-and the dataset tools."""
+"""``pocoloco data synth | info | verify | preview | export | import | pack``: the synthetic capture
+pipeline and the dataset tools."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ from pocoloco.data.format import (
     scan_frames,
     verify_dataset,
 )
+from pocoloco.data.pack import pack_summary, write_pack
 from pocoloco.data.published import export_frame, import_loose_style
 from pocoloco.viz.preview import preview_dataset
 
@@ -285,9 +286,24 @@ def cmd_data_import(args: argparse.Namespace) -> None:
     print(f"imported {frames} frames into {seq}")
 
 
+def cmd_data_pack(args: argparse.Namespace) -> None:
+    """``pocoloco data pack``: all or nothing (the pack is written atomically at the end)."""
+    out = Path(args.out)
+    if out.is_dir():
+        raise ValueError(f"--out {out}: is a folder; name the pack file to write")
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"--out {out}: already exists; pass --overwrite to replace it")
+    subjects = [s.strip() for s in args.subjects.split(",")] if args.subjects else None
+    with progress_bar("frames", transient=False) as update:
+        meta = write_pack(args.path, out, splits=args.splits, every=args.every, eval_every=args.eval_every,
+                          points=args.points, resolution_mm=args.resolution_mm, subjects=subjects,
+                          velocity=args.velocity, seed=args.seed, progress=update)  # fmt: skip
+    print(f"wrote {out}: {pack_summary(meta)}")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     data = sub.add_parser("data", help="synthetic data: generate, inspect, verify, preview, export, import").add_subparsers(
-        dest="data_command", required=True, metavar="{synth,heldout,info,verify,preview,export,import}")  # fmt: skip
+        dest="data_command", required=True, metavar="{synth,heldout,info,verify,preview,export,import,pack}")  # fmt: skip
 
     s = data.add_parser("synth", help="generate (or resume) a synthetic capture dataset")
     s.add_argument("--preset", default="small", help=f"one of {', '.join(SYNTH_PRESETS)} (default: small)")
@@ -371,3 +387,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--split", default="train", choices=SPLITS, help="split to import into (default train)")
     s.add_argument("--sequence", help="sequence name (default: the ply folder's name)")
     s.set_defaults(func=cmd_data_import)
+
+    s = data.add_parser("pack", help="one compact file with what PocoLoco's training reads (for a remote GPU): "
+                                     "a subset of frames and points, quantised; `pocoloco train --data FILE` takes it")  # fmt: skip
+    s.add_argument("path", help="dataset folder")
+    s.add_argument("--out", required=True, help="pack file to write (e.g. medium.pack)")
+    s.add_argument("--splits", nargs="+", default=["train"], choices=SPLITS,
+                   help="splits to pack (default train; test / heldout give training previews and validation)")  # fmt: skip
+    s.add_argument("--every", type=int, default=3, help="keep every K-th frame of each train sequence (default 3)")
+    s.add_argument("--eval-every", type=int, default=20,
+                   help="keep every K-th frame of each test / heldout sequence (default 20)")  # fmt: skip
+    s.add_argument("--points", type=int, default=1536,
+                   help="points per frame, drawn uniformly without replacement (default 1536)")  # fmt: skip
+    s.add_argument("--resolution-mm", type=float, default=1.0, help="position quantisation step in mm (default 1)")
+    s.add_argument("--subjects", help="only these subjects, comma-separated (default: all)")
+    s.add_argument("--velocity", action="store_true", help="also store joint velocities (for --joint-velocity models)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the point subsets (default 0)")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing pack file")
+    s.set_defaults(func=cmd_data_pack)

@@ -1,5 +1,6 @@
 """``pocoloco train``: any method, one loop (:mod:`pocoloco.engine.trainer`); also what ``torchrun``
-launches (``torchrun --nproc_per_node=2 -m pocoloco train ...``: DDP, gloo on CPU, NCCL on GPUs)."""
+launches (``torchrun --nproc_per_node=2 -m pocoloco train ...``: DDP, gloo on CPU, NCCL on GPUs).
+Every run ends with a sampling-only copy of its last checkpoint in ``RUN/model`` (``--ckpt RUN/model``)."""
 
 from __future__ import annotations
 
@@ -12,9 +13,9 @@ import torch
 import torch.distributed as dist
 
 from pocoloco.cli.common import add_threads_argument, console
-from pocoloco.data.format import read_card
+from pocoloco.data.pack import is_pack, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
-from pocoloco.engine.trainer import check_run_folder, dist_info, init_distributed
+from pocoloco.engine.trainer import LR_SCALING_RULES, check_run_folder, dist_info, init_distributed, scaled_lr
 from pocoloco.engine.trainer import train as run_training
 from pocoloco.methods import METHODS, method_class
 from pocoloco.methods.pocoloco.config import SCHEDULE_KINDS
@@ -78,15 +79,23 @@ def _config_from_args(args: argparse.Namespace):
         if extra:
             raise ValueError("--no-decomposition cannot change on --resume (it comes from the checkpoint)")
         return config_from_checkpoint(root, args.model, **overrides)
+    if "batch_size" in overrides and "lr" not in overrides and args.lr_scaling != "none":
+        base = cls.preset(args.preset or "small", **extra)
+        overrides["lr"] = scaled_lr(base.lr, overrides["batch_size"], base.batch_size, args.lr_scaling)
     return cls.preset(args.preset or "small", **extra, **overrides)
 
 
 def cmd_train(args: argparse.Namespace) -> None:
     """Validate everything (options, data, run folder), then print the banner and train."""
-    read_card(args.data)  # one line if --data is not a dataset
+    training_card(args.data)  # one line if --data is neither a dataset folder nor a training pack
     config = _config_from_args(args)
+    if is_pack(args.data) and config.model != "pocoloco":
+        raise ValueError(f"--data {args.data}: a training pack holds what PocoLoco trains on; --model {config.model} "
+                         "trains on the dataset folder")  # fmt: skip
     task = method_class(config.model).training_task(config, args.data)
     check_run_folder(args.out, args.resume)
+    if args.time_budget is not None and not args.time_budget > 0:
+        raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")
     device, started = init_distributed(args.device)
     rank, world = dist_info()
     local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
@@ -100,14 +109,18 @@ def cmd_train(args: argparse.Namespace) -> None:
             console(stderr=True).print(
                 f"[bold]pocoloco train[/] model={config.model} preset={config.preset} params={n_params:,} "
                 f"device={device} world={world} threads={torch.get_num_threads()} steps={config.steps} "
-                f"batch={config.batch_size}x{world} N={config.num_points} -> {args.out}"
+                f"batch={config.batch_size}x{world} N={config.num_points} lr={config.lr:.3g}"
+                + (f" budget={args.time_budget:g} min" if args.time_budget else "") + f" -> {args.out}"
             )  # fmt: skip
         result = run_training(task, args.data, args.out, device=device, resume=args.resume,
-                              progress=not args.no_progress)  # fmt: skip
+                              progress=not args.no_progress,
+                              time_budget_s=None if args.time_budget is None else 60.0 * args.time_budget,
+                              compile_model=args.compile, export_to=Path(args.out) / "model")  # fmt: skip
         if rank == 0:
             n_params = sum(p.numel() for p in result.model.parameters())
-            print(f"trained to step {result.step} ({result.steps_per_s:.3f} steps/s, {n_params:,} parameters), loss "
-                  f"{result.final_loss:.4f}; checkpoint {result.last_checkpoint}")  # fmt: skip
+            why = " (time budget reached)" if result.stopped_by_budget else ""
+            print(f"trained to step {result.step}{why} ({result.steps_per_s:.3f} steps/s, {n_params:,} parameters), "
+                  f"loss {result.final_loss:.4f}; checkpoint {result.last_checkpoint}; model {result.export}")  # fmt: skip
     finally:
         if started:
             dist.destroy_process_group()
@@ -118,10 +131,12 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     d = _preset_defaults
     parser.add_argument("--model", default="pocoloco", choices=list(METHODS),
                         help="method to train (default pocoloco: the diffusion model; pop / closet: its peers)")  # fmt: skip
-    parser.add_argument("--data", required=True, help="pocoloco dataset folder (trains on its train split)")
+    parser.add_argument("--data", required=True,
+                        help="pocoloco dataset folder (trains on its train split), or for pocoloco a training pack "
+                             "file (`pocoloco data pack`)")  # fmt: skip
     parser.add_argument("--preset", default=None,
                         help="training preset: tiny (tests), small (this CPU), paper (the paper's settings); pocoloco also "
-                             "latent_tiny, latent_small, latent_paper (the linear-in-N latent network) "
+                             "latent_tiny, latent_small, latent_base (one GPU), latent_paper (the linear-in-N latent network) "
                              "(default small; with --resume, the checkpoint's config)")  # fmt: skip
     parser.add_argument("--out", required=True, help="run folder (checkpoints, logs, samples)")
     parser.add_argument("--resume", action="store_true",
@@ -174,6 +189,15 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--normal-start", type=int,
                    help="first step with the normal loss (default: 62.5%% of --steps, as POP)")  # fmt: skip
     g.add_argument("--query-points", type=int, help="closet: surface points per training frame" + d("query_points"))
+    parser.add_argument("--lr-scaling", choices=LR_SCALING_RULES, default="sqrt",
+                        help="with --batch-size and no --lr: scale the preset's learning rate by sqrt(B / B_preset) "
+                             "(Adam's rule), linearly, or not at all (default sqrt)")  # fmt: skip
+    parser.add_argument("--time-budget", type=float, metavar="MINUTES",
+                        help="stop after this many minutes of training (a leased machine): the last step's checkpoint "
+                             "is written and the model exported as usual; the LR schedule still runs to --steps "
+                             "(default: none)")  # fmt: skip
+    parser.add_argument("--compile", action="store_true",
+                        help="torch.compile the forward pass (GPU; single process; default off)")  # fmt: skip
     parser.add_argument("--device", default=None, help="cuda, cuda:1, cpu (default: cuda if available, else cpu)")
     add_threads_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -51,6 +51,7 @@ def diffusion_loss(
     generator: torch.Generator | None = None,
     t: torch.Tensor | None = None,
     noise: torch.Tensor | None = None,
+    as_tensors: bool = False,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """One Monte-Carlo estimate of the diffusion training loss.
 
@@ -70,6 +71,8 @@ def diffusion_loss(
         generator: RNG for t and noise (on x0's device).
         t: optional (B,) int64 timesteps to use instead of random ones.
         noise: optional (B, N, C) noise to use instead of random noise.
+        as_tensors: logs as detached 0-d tensors on x0's device (no host synchronisation, for
+            GPU training; an empty quarter is NaN instead of absent).
     Returns:
         (loss, logs): the scalar loss (differentiable) and floats ``loss``, ``mse`` (unweighted)
         and ``mse_q0`` .. ``mse_q3``, the unweighted MSE of the samples whose t falls in each
@@ -103,8 +106,14 @@ def diffusion_loss(
     else:
         loss = mse_b.mean()
 
-    logs = {"loss": float(loss.detach()), "mse": float(mse_b.detach().mean())}
     quarter = (t * 4) // T
+    if as_tensors:  # no host sync: 0-d tensors, NaN for a quarter no sample fell in
+        m = mse_b.detach().float()
+        sums = torch.zeros(4, device=m.device).index_add_(0, quarter, m)
+        counts = torch.zeros(4, device=m.device).index_add_(0, quarter, torch.ones_like(m))
+        means = sums / counts
+        return loss, {"loss": loss.detach(), "mse": m.mean(), **{f"mse_q{q}": means[q] for q in range(4)}}
+    logs = {"loss": float(loss.detach()), "mse": float(mse_b.detach().mean())}
     for q in range(4):
         sel = quarter == q
         if bool(sel.any()):

@@ -70,6 +70,9 @@ __all__ = [
     "check_run_folder",
     "dist_info",
     "ema_decay_at",
+    "export_run",
+    "fused_optimizer_options",
+    "scaled_lr",
     "init_distributed",
     "lr_at",
     "train",
@@ -111,6 +114,27 @@ def lr_at(config: Any, step: int) -> float:
         if step >= start:
             return config.lr * max(config.steps - step, 0) / config.decay_steps
     return config.lr
+
+
+LR_SCALING_RULES = ("sqrt", "linear", "none")
+
+
+def scaled_lr(lr: float, batch_size: int, base_batch_size: int, rule: str = "sqrt") -> float:
+    """The learning rate for ``batch_size`` clouds per step of a recipe tuned at ``base_batch_size``:
+    ``sqrt`` (Adam's square-root rule: the gradient noise falls as 1/sqrt(B); Malladi et al.,
+    NeurIPS 2022), ``linear`` (SGD's rule; Goyal et al. 2017) or ``none``."""
+    if rule not in LR_SCALING_RULES:
+        raise ValueError(f"lr scaling rule must be one of {LR_SCALING_RULES}, got {rule!r}")
+    ratio = batch_size / base_batch_size
+    return lr * (math.sqrt(ratio) if rule == "sqrt" else ratio if rule == "linear" else 1.0)
+
+
+def fused_optimizer_options(model: nn.Module) -> dict[str, Any]:
+    """``{"fused": True}`` for Adam / AdamW when the model's parameters are on a GPU (one kernel for
+    all parameters instead of a loop over them); ``{}`` on the CPU, where the loop is kept so that
+    resumed runs stay bit-exact with earlier ones."""
+    p = next(model.parameters(), None)
+    return {"fused": True} if p is not None and p.is_cuda else {}
 
 
 #: config fields that shape the learning-rate curve: they may change on resume only if the curve
@@ -338,6 +362,8 @@ class TrainResult:
     last_checkpoint: Path | None
     steps_per_s: float
     final_loss: float
+    stopped_by_budget: bool = False
+    export: Path | None = None
 
 
 def check_run_folder(out: str | os.PathLike, resume: bool) -> Path | None:
@@ -388,11 +414,22 @@ def train(
     resume: bool = False,
     progress: bool = True,
     log_fn=None,
+    time_budget_s: float | None = None,
+    compile_model: bool = False,
+    export_to: str | os.PathLike | None = None,
 ) -> TrainResult:
     """Run ``task`` into the run folder ``out`` (``data``: recorded in config.json and checkpoints).
 
     Args:
-        device: where to train (the caller chooses; with DDP the process's device).
+        device: where to train (the caller chooses; with DDP the process's device). On CUDA,
+            matmuls and convolutions run in TF32 and the logged floats are read from the device
+            only at log steps (no host synchronisation per step).
+        time_budget_s: stop after the first step that ends this many seconds after the loop
+            started (model building and data loading excluded), with the usual final checkpoint;
+            the learning-rate schedule still runs to ``config.steps`` (choose ``steps`` to fit).
+        compile_model: run the forward pass through ``torch.compile`` (single process only).
+        export_to: after training, write a sampling-only copy of the last checkpoint there
+            (:func:`pocoloco.engine.checkpoint.export_for_sampling`, replacing an older copy).
         resume: continue from the newest intact checkpoint in ``out``, which must have the same
             config (``task.resumable_changes`` excepted) and pass ``task.check_resume``;
             without it, an existing checkpoint is an error.
@@ -402,6 +439,11 @@ def train(
     """
     config = task.config
     device = torch.device(device)
+    if time_budget_s is not None and not time_budget_s > 0:
+        raise ValueError(f"time budget must be > 0 seconds, got {time_budget_s}")
+    if device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
     rank, world = dist_info()
     out = Path(out)
     ckpt_root = out / "checkpoints"
@@ -442,6 +484,9 @@ def train(
         net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
                                       find_unused_parameters=task.ddp_find_unused)  # fmt: skip
 
+    if compile_model and world == 1:
+        net = torch.compile(model)
+
     batches = task.step_batches(model, rank, world)
     loader = torch.utils.data.DataLoader(
         batches, batch_size=None, sampler=range(start_step, config.steps),
@@ -473,6 +518,7 @@ def train(
 
     bar = ProgressBar(progress and rank == 0, start_step, config.steps)
     last_ckpt, saved_step, loss_val, t0, step = None, None, float("nan"), time.perf_counter(), start_step
+    stopped_by_budget = False
     model.train()
     try:
         for step, batch in zip(range(start_step, config.steps), loader, strict=True):
@@ -489,11 +535,21 @@ def train(
             optimizer.step()
             decay_now = ema.update(model, step) if ema is not None else None
             done = step + 1
-            loss_val = logs["loss"]
-            if not math.isfinite(loss_val):
-                raise FloatingPointError(f"loss is {loss_val} at step {done}; lower --lr or check the data")
+            if time_budget_s is not None and not stopped_by_budget:
+                over = torch.tensor(float(time.perf_counter() - t0 >= time_budget_s))
+                if world > 1:  # every rank stops at the same step
+                    over = over.to(device)
+                    dist.all_reduce(over, op=dist.ReduceOp.MAX)
+                stopped_by_budget = bool(over)
+            log_now = done % config.log_every == 0 or done == config.steps or stopped_by_budget
+            if log_now or not torch.is_tensor(logs["loss"]):  # tensors (a GPU task): read at log steps only
+                logs = {k: float(v) for k, v in logs.items()}
+                logs = {k: v for k, v in logs.items() if k == "loss" or not math.isnan(v)}
+                loss_val = logs["loss"]
+                if not math.isfinite(loss_val):
+                    raise FloatingPointError(f"loss is {loss_val} at step {done}; lower --lr or check the data")
 
-            if done % config.log_every == 0 or done == config.steps:
+            if log_now:
                 if world > 1:
                     lt = torch.tensor([loss_val], device=device)
                     dist.all_reduce(lt)
@@ -517,6 +573,8 @@ def train(
                     last_ckpt, saved_step = save(done), done
                     logger.plot(out / "loss.png")
             step = done
+            if stopped_by_budget:
+                break
         if rank == 0 and step > start_step and saved_step != step:
             last_ckpt = save(step)
             logger.plot(out / "loss.png")
@@ -527,5 +585,26 @@ def train(
     if world > 1:
         dist.barrier()
     elapsed = time.perf_counter() - t0
+    exported = None
+    if export_to is not None and rank == 0:
+        exported = export_run(out, export_to)
     return TrainResult(model=model, ema=model if ema is None else ema.module, step=step, last_checkpoint=last_ckpt,
-                       steps_per_s=(step - start_step) / max(elapsed, 1e-9), final_loss=loss_val)  # fmt: skip
+                       steps_per_s=(step - start_step) / max(elapsed, 1e-9), final_loss=loss_val,
+                       stopped_by_budget=stopped_by_budget, export=exported)  # fmt: skip
+
+
+def export_run(run: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """A sampling-only copy of the newest intact checkpoint of ``run`` at ``out`` (EMA weights, fp16),
+    replacing an older copy only once the new one is complete."""
+    import shutil
+    import uuid
+
+    out = Path(out)
+    tmp = out.parent / f".{out.name}.export-{uuid.uuid4().hex[:8]}"
+    ckpt_io.export_for_sampling(Path(run) / "checkpoints", tmp, dtype="float16")
+    old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
+    if out.exists():
+        os.replace(out, old)
+    os.replace(tmp, out)
+    shutil.rmtree(old, ignore_errors=True)
+    return out

@@ -211,6 +211,9 @@ LATENT_PRESETS: dict[str, LatentDenoiserConfig] = {
     # point stream (the 128 / 128 of the first version cost 2x more per training step and learned
     # no faster per step): a training step at 16 x 512 points is ~0.6x PocoLoco ``small``'s
     "small": LatentDenoiserConfig(width=256, depth=4, num_latents=64, point_width=64, heads=4, head_dim=None),
+    # GPU-sized, still small enough to ship (9.2M parameters with outfit codes and body shape, 18 MB
+    # as fp16): 1.5x ``small``'s depth, 1.25x its width, 1.5x its latents and point width
+    "base": LatentDenoiserConfig(width=320, depth=6, num_latents=96, point_width=96, heads=5, head_dim=None),
     # tests and smoke runs
     "tiny": LatentDenoiserConfig(width=32, depth=2, num_latents=8, point_width=16, heads=2, head_dim=None,
                                  rw_heads=2),

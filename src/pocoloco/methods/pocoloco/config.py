@@ -205,6 +205,13 @@ TRAIN_PRESETS: dict[str, PocoLocoTrainConfig] = {
         batch_size=16, num_points=512, lr=5e-4, weight_decay=0.01, warmup_steps=200, lr_schedule="constant",
         grad_clip=1.0, ema_decay=0.999, ckpt_every=250, sample_every=1000, log_every=10, sample_steps=25,
     ),
+    # the latent network sized for one GPU and still shippable (``LATENT_PRESETS["base"]``): batch 64
+    # (larger batches: --batch-size, whose learning rate follows the sqrt rule, `pocoloco train --lr-scaling`)
+    "latent_base": PocoLocoTrainConfig(
+        preset="latent_base", architecture="latent", denoiser=LATENT_PRESETS["base"], steps=20_000,
+        batch_size=64, num_points=512, lr=5e-4, weight_decay=0.01, warmup_steps=300, lr_schedule="constant",
+        grad_clip=1.0, ema_decay=0.999, ckpt_every=1000, sample_every=2000, log_every=25, sample_steps=25,
+    ),
     "latent_tiny": PocoLocoTrainConfig(
         preset="latent_tiny", architecture="latent", denoiser=LATENT_PRESETS["tiny"], steps=20, batch_size=2,
         num_points=256, lr=1e-3, weight_decay=0.0, warmup_steps=2, grad_clip=1.0, ema_decay=0.99, ckpt_every=10,

@@ -22,10 +22,11 @@ from torch import nn
 
 from pocoloco.data.dataset import Normalisation, PointCloudDataset
 from pocoloco.data.format import DatasetLayout, read_subject
+from pocoloco.data.pack import PackedDataset, is_pack, open_point_clouds
 from pocoloco.data.step_batches import StepBatches
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, diffusion_loss, sample_ddim
 from pocoloco.engine.checkpoint import Checkpoint
-from pocoloco.engine.trainer import TrainingTask
+from pocoloco.engine.trainer import TrainingTask, fused_optimizer_options
 from pocoloco.methods.pocoloco.config import RESUMABLE_CHANGES, PocoLocoTrainConfig
 from pocoloco.models.conditioning import SHAPE_KEYS, PoseCondition, phenotype_vector
 from pocoloco.models.denoisers import build_denoiser
@@ -44,8 +45,11 @@ class PocoLocoTask(TrainingTask):
 
     def __init__(self, config: PocoLocoTrainConfig, data: str | Path):
         self.data = data
+        if config.body_points and is_pack(data):
+            raise ValueError(f"{data}: a training pack holds no posed bodies: train --body-points on the dataset folder")
         self.body_point_ids = body_point_ids(data, config) if config.body_points else None
-        self.dataset = PointCloudDataset(data, "train", num_points=None, with_normals=config.denoiser.point_channels == 6,
+        # a dataset folder or a training pack (pocoloco.data.pack): the same items
+        self.dataset = open_point_clouds(data, "train", num_points=None, with_normals=config.denoiser.point_channels == 6,
                                          random_subsample=False, subjects=config.subjects,
                                          body_point_ids=self.body_point_ids,
                                          heading=config.canonical_heading, velocity=config.joint_velocity)  # fmt: skip
@@ -78,7 +82,7 @@ class PocoLocoTask(TrainingTask):
             (decay if p.ndim >= 2 else no_decay).append(p)
         return torch.optim.AdamW([{"params": decay, "weight_decay": c.weight_decay},
                                   {"params": no_decay, "weight_decay": 0.0}],
-                                 lr=c.lr, betas=c.adam_betas, eps=c.adam_eps)  # fmt: skip
+                                 lr=c.lr, betas=c.adam_betas, eps=c.adam_eps, **fused_optimizer_options(model))  # fmt: skip
 
     def step_batches(self, model: nn.Module, rank: int, world: int) -> StepBatches:
         c = self.config
@@ -107,7 +111,8 @@ class PocoLocoTask(TrainingTask):
         self.generator.manual_seed(seed_of(c.seed, 2, step, rank))
         weighting = "min_snr" if c.min_snr_gamma is not None else "none"
         loss, logs = diffusion_loss(net, x0, cond, self.schedule, c.prediction_type, weighting,
-                                    c.min_snr_gamma or 5.0, generator=self.generator)  # fmt: skip
+                                    c.min_snr_gamma or 5.0, generator=self.generator,
+                                    as_tensors=x0.device.type != "cpu")  # no per-step host sync on a GPU; fmt: skip
         return loss, {"loss": logs["loss"], **{k: v for k, v in logs.items() if k.startswith("mse")}}
 
     def check_resume(self, ck: Checkpoint) -> None:
@@ -144,12 +149,13 @@ def body_point_ids(data, config: PocoLocoTrainConfig) -> list[int]:
     return [int(i) for i in idx[0]]
 
 
-def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDataset) -> list[dict[str, Any]]:
+def _sample_frames(data, config: PocoLocoTrainConfig, train_set: PointCloudDataset | PackedDataset
+                   ) -> list[dict[str, Any]]:  # fmt: skip
     """Two frames (test split if it has any, else train) with fixed point subsets, for the periodic samples."""
     try:
-        ds = PointCloudDataset(data, "test", num_points=None, random_subsample=False,
-                               subjects=train_set.subject_names, body_point_ids=train_set.body_point_ids,
-                               heading=train_set.normalisation.heading, velocity=train_set.velocity)  # fmt: skip
+        ds = open_point_clouds(data, "test", num_points=None, random_subsample=False, subjects=train_set.subject_names,
+                               body_point_ids=train_set.body_point_ids, heading=train_set.normalisation.heading,
+                               velocity=train_set.velocity)  # fmt: skip
     except ValueError:
         ds = train_set
     picks = sorted({0, len(ds) // 2})

@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# Train PocoLoco on a leased GPU in one go (issue 27): throughput benchmark (GPU rows + one CPU row),
+# a short measured search for the network and batch, then the final run with what is left of the
+# lease, exported and packed into OUT for the trip back. Every stage writes into OUT as it goes.
+#
+#   bash scripts/gpu_job.sh PACK OUT [SECONDS]      # SECONDS: wall-clock for the whole job (default 560)
+#
+# Needs only torch, numpy, safetensors, rich and matplotlib (pocoloco runs from src/, not installed).
+# Environment: SEARCH_SECONDS (per candidate, default 30), CANDIDATES (default below), SKIP_BENCH=1.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+PACK=$1
+OUT=$2
+TOTAL=${3:-560}
+START=$(date +%s)
+PY=${PY:-python3}
+export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+DEVICE=${DEVICE:-cuda}
+SEARCH_SECONDS=${SEARCH_SECONDS:-30}
+CANDIDATES=${CANDIDATES:-latent_small:64 latent_small:256 latent_base:64 latent_base:256}
+BENCH_ARGS=${BENCH_ARGS:---device cuda cpu --cpu-rows latent_small:16 --cpu-sample-points --compile latent_small:256}
+WORKERS=${WORKERS:-6}
+mkdir -p "$OUT"
+exec > >(tee -a "$OUT/job.log") 2>&1
+elapsed() { echo $(( $(date +%s) - START )); }
+
+echo "== $(date -u +%FT%TZ) job: pack $PACK, $TOTAL s"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
+$PY -c "import torch, numpy; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), 'numpy', numpy.__version__)"
+
+if [ -z "${SKIP_BENCH:-}" ]; then
+  echo "== bench ($(elapsed) s)"
+  # shellcheck disable=SC2086
+  $PY benchmarks/bench_gpu_training.py --data "$PACK" $BENCH_ARGS --workers "$WORKERS" --json "$OUT/bench.json" \
+    || echo "bench failed (going on)"
+fi
+
+echo "== search ($(elapsed) s)"
+# shellcheck disable=SC2086
+$PY benchmarks/search_gpu_recipe.py --data "$PACK" --device "$DEVICE" --seconds "$SEARCH_SECONDS" \
+  --candidates $CANDIDATES --workers "$WORKERS" --json "$OUT/search.json" || echo "search failed (going on)"
+read -r PRESET BATCH SPS < <($PY - "$OUT/search.json" <<'EOF'
+import json, sys
+try:
+    b = json.load(open(sys.argv[1]))["best"]
+    print(b["preset"], b["batch"], b["steps_per_s"])
+except Exception:
+    print("latent_small", 256, 0)  # no search result: the CPU recipe's network at a GPU batch
+EOF
+)
+
+LEFT=$(( TOTAL - $(elapsed) - 45 ))  # start-up, final checkpoint, export and packing
+[ "$LEFT" -lt 30 ] && LEFT=30
+# steps that fit (the search's steps/s, 5 % margin), the last fifth a linear cool-down (wsd); without a
+# measured rate: a constant learning rate until the time budget
+SCHEDULE=$($PY -c "s=$SPS; n=max(200, int(s * $LEFT * 0.95)); print(f'--steps {n} --lr-schedule wsd --decay-steps {n // 5}' if s > 0 else '--steps 1000000 --lr-schedule constant')")
+MINUTES=$($PY -c "print(round($LEFT / 60, 3))")
+echo "== train $PRESET B=$BATCH: $SCHEDULE, budget $MINUTES min ($(elapsed) s)"
+# shellcheck disable=SC2086
+$PY -m pocoloco train --data "$PACK" --out "$OUT/run" --preset "$PRESET" --batch-size "$BATCH" --outfit-codes \
+  --body-shape --bf16 --device "$DEVICE" --workers "$WORKERS" $SCHEDULE --ckpt-every 1000 --sample-every 0 \
+  --log-every 50 --time-budget "$MINUTES" --no-progress || echo "train failed"
+
+echo "== pack results ($(elapsed) s)"
+# the trip back takes at most 8 files of 16 MiB: one tar of everything but the full checkpoints, in 15 MB parts
+tar -cf "$OUT/results.tar" -C "$OUT" --exclude=run/checkpoints --exclude=results.tar --exclude=job.log . 2>/dev/null
+split -b 15000000 -d "$OUT/results.tar" "$OUT/results.tar.part"
+rm -f "$OUT/results.tar"
+rm -rf "$OUT/run" "$OUT/bench.json" "$OUT/search.json"
+ls -la "$OUT"
+echo "== done ($(elapsed) s)"

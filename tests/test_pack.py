@@ -1,0 +1,184 @@
+"""Training packs (`pocoloco data pack`), training from one, and the GPU-path pieces of the trainer
+that run on the CPU too: the time budget, the exported model, the learning-rate rule, sync-free logs."""
+
+import json
+import math
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+
+from pocoloco.cli import main as cli_main
+from pocoloco.data.dataset import PointCloudDataset, frame_velocity
+from pocoloco.data.pack import PackedDataset, decode_points, encode_points, open_point_clouds, read_pack_meta, write_pack
+from pocoloco.diffusion import NoiseSchedule, diffusion_loss
+from pocoloco.engine import checkpoint as ckpt_io
+from pocoloco.engine.trainer import fused_optimizer_options, scaled_lr
+
+pytestmark = pytest.mark.usefixtures("torch_single_thread")
+
+
+@pytest.fixture(scope="module")
+def tiny_pack(tiny_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("pack") / "tiny.pack"
+    meta = write_pack(tiny_dataset, out, splits=("train", "test"), every=1, eval_every=2, points=512, velocity=True)
+    return out, meta
+
+
+# ------------------------------------------------------------------------------ encoding
+def test_points_codec_matches_plain_quantisation():
+    """The Morton-sorted delta code gives back exactly the rounded points (as a set per frame)."""
+    rng = np.random.default_rng(0)
+    rel = rng.normal(0, 0.4, (3, 700, 3)).astype(np.float32)
+    res = 1e-3
+    back = decode_points(encode_points(rel, res), 3, 700, res)
+    for f in range(3):
+        want = np.round(rel[f].astype(np.float64) / res).astype(np.int64)  # the slow reference
+        got = np.round(back[f].astype(np.float64) / res).astype(np.int64)
+        assert np.array_equal(want[np.lexsort(want.T)], got[np.lexsort(got.T)])
+    with pytest.raises(ValueError, match="beyond what"):
+        encode_points(np.full((1, 2, 3), 40.0, np.float32), 1e-3)
+
+
+# ------------------------------------------------------------------------------ the pack
+def test_pack_holds_the_dataset_frames(tiny_dataset, tiny_pack):
+    path, meta = tiny_pack
+    assert meta["splits"] == {"train": 8, "test": 4} and meta["bytes"] == path.stat().st_size
+    full = PointCloudDataset(tiny_dataset, "train", num_points=None)
+    packed = PackedDataset(path, "train", velocity=True)
+    assert len(packed) == len(full) and packed.subject_names == full.subject_names
+    assert packed.normalisation == full.normalisation
+    for i in (0, len(full) - 1):
+        a, b = full[i], packed[i]
+        assert a["frame_key"] == b["frame_key"] and a["subject"] == b["subject"]
+        assert torch.allclose(a["root"], b["root"])
+        std = full.normalisation.std
+        assert (a["joints"] - b["joints"]).abs().max() * std <= 0.5e-4 + 1e-6  # 0.05 mm
+        # every packed point is one of the frame's points, quantised to 1 mm
+        d = torch.cdist(b["points"], a["points"]).min(dim=1).values * std
+        assert b["points"].shape == (512, 3) and float(d.max()) <= 0.5e-3 * math.sqrt(3) + 1e-6
+        path_i = full.frames[i][2]
+        from pocoloco.data.format import read_frame
+
+        v = frame_velocity(path_i, read_frame(path_i, ["joints"]).joints)
+        assert np.allclose(b["velocity"].numpy() * std, v, atol=2e-3 * np.abs(v).max() + 1e-4)
+    assert len(PackedDataset(path, "test")) == 4  # every 2nd of the 8 test frames
+    sub = open_point_clouds(path, "train", num_points=None, subjects=["skirt"])
+    assert {sub[i]["subject"] for i in range(len(sub))} == {full.subject_names.index("skirt")}
+
+
+def test_pack_flags_subset_frames_and_points(tiny_dataset, tmp_path):
+    meta = write_pack(tiny_dataset, tmp_path / "p.pack", every=2, points=100, subjects=["tight"])
+    assert meta["splits"] == {"train": 2} and meta["points_per_frame"] == 100 and list(meta["subjects"]) == ["tight"]
+    ds = PackedDataset(tmp_path / "p.pack")
+    assert ds.subject_names == ["tight"] and ds[0]["subject"] == 0
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "garbage"])
+def test_damaged_pack_is_one_line(tiny_pack, tmp_path, damage):
+    src, _ = tiny_pack
+    raw = bytearray(src.read_bytes())
+    bad = tmp_path / "bad.pack"
+    if damage == "truncate":
+        raw = raw[: len(raw) // 2]
+    elif damage == "flip":  # a byte inside the train points (stored, not compressed, by the zip)
+        with zipfile.ZipFile(src) as z:
+            info = z.getinfo("train_points.npy")
+        raw[info.header_offset + 200] ^= 0xFF
+    else:
+        raw = bytearray(b"not a pack at all")
+    bad.write_bytes(bytes(raw))
+    with pytest.raises(ValueError) as e:
+        PackedDataset(bad)
+    assert str(bad) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_pack_refusals(tiny_dataset, tiny_pack, tmp_path):
+    path, _ = tiny_pack
+    with pytest.raises(ValueError, match="no 'heldout' frames"):
+        PackedDataset(path, "heldout")
+    with pytest.raises(ValueError, match="no normals"):
+        PackedDataset(path, with_normals=True)
+    with pytest.raises(ValueError, match="fewer than --points"):
+        write_pack(tiny_dataset, tmp_path / "x.pack", points=10**6)
+    with pytest.raises(ValueError, match="needs the train split"):
+        write_pack(tiny_dataset, tmp_path / "x.pack", splits=("test",))
+    assert not (tmp_path / "x.pack").exists()
+    plain = write_pack(tiny_dataset, tmp_path / "plain.pack", points=64)
+    with pytest.raises(ValueError, match="no joint velocities"):
+        PackedDataset(tmp_path / "plain.pack", velocity=True)
+    assert read_pack_meta(tmp_path / "plain.pack")["velocity"] is False and plain["velocity"] is False
+
+
+def test_cli_pack_and_train_from_it(tiny_dataset, tmp_path, capsys):
+    pack = tmp_path / "t.pack"
+    assert cli_main(["data", "pack", str(tiny_dataset), "--out", str(pack), "--every", "1", "--points", "300"]) == 0
+    assert "8 train frames x 300 points" in capsys.readouterr().out
+    assert cli_main(["data", "pack", str(tiny_dataset), "--out", str(pack)]) == 2
+    assert "already exists" in capsys.readouterr().err
+    run = tmp_path / "run"
+    base = ["train", "--data", str(pack), "--out", str(run), "--preset", "latent_tiny", "--no-progress", "--device", "cpu",
+            "--threads", "1", "--sample-every", "0"]  # fmt: skip
+    assert cli_main([*base, "--steps", "2", "--outfit-codes", "--body-shape"]) == 0
+    ck = ckpt_io.load_checkpoint(run)
+    assert ck.step == 2 and ck.normalisation == PointCloudDataset(tiny_dataset, "train").normalisation
+    assert [o["name"] for o in ck.meta["outfits"]] == ["skirt", "tight"]
+    assert (run / "model" / "meta.json").is_file()  # every run ends with its exported model
+    assert json.loads((run / "model" / "meta.json").read_text())["step"] == 2
+    assert cli_main(["train", "--model", "pop", "--data", str(pack), "--out", str(tmp_path / "pop"), "--no-progress"]) == 2
+    assert "trains on the dataset folder" in capsys.readouterr().err
+    assert cli_main([*base[:4], str(tmp_path / "b"), *base[5:], "--body-points", "8"]) == 2
+    assert "no posed bodies" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ the GPU-path pieces
+def test_time_budget_stops_with_a_checkpoint_and_an_export(tiny_pack, tmp_path, capsys):
+    path, _ = tiny_pack
+    run = tmp_path / "run"
+    argv = ["train", "--data", str(path), "--out", str(run), "--preset", "latent_tiny", "--steps", "1000", "--no-progress",
+            "--device", "cpu", "--threads", "1", "--sample-every", "0", "--ckpt-every", "0", "--time-budget", "0.0001"]  # fmt: skip
+    assert cli_main(argv) == 0
+    out = capsys.readouterr().out
+    assert "time budget reached" in out
+    ck = ckpt_io.load_checkpoint(run)
+    assert ck.step == 1  # the first step already passes a 6 ms budget
+    assert json.loads((run / "model" / "meta.json").read_text())["step"] == 1
+    assert cli_main([*argv[:-1], "0.0001", "--resume"]) == 0  # resumes, one more step, the export replaced
+    assert json.loads((run / "model" / "meta.json").read_text())["step"] == 2
+    assert cli_main([*argv[:-1], "-1", "--resume"]) == 2
+
+
+def test_lr_rule_and_fused_options(tiny_dataset, tmp_path):
+    assert scaled_lr(5e-4, 256, 16) == pytest.approx(2e-3)
+    assert scaled_lr(5e-4, 64, 16, "linear") == pytest.approx(2e-3) and scaled_lr(5e-4, 64, 16, "none") == 5e-4
+    with pytest.raises(ValueError, match="lr scaling rule"):
+        scaled_lr(1.0, 2, 1, "cubic")
+    assert fused_optimizer_options(torch.nn.Linear(2, 2)) == {}
+    from pocoloco.cli.train import _config_from_args
+    from tests.test_train import _parse
+
+    args = _parse("--data", str(tiny_dataset), "--out", str(tmp_path), "--preset", "latent_small", "--batch-size", "64")
+    assert _config_from_args(args).lr == pytest.approx(1e-3)
+    args = _parse("--data", "x", "--out", "y", "--preset", "latent_small", "--batch-size", "64", "--lr-scaling", "none")
+    assert _config_from_args(args).lr == pytest.approx(5e-4)
+    args = _parse("--data", "x", "--out", "y", "--preset", "latent_small", "--batch-size", "64", "--lr", "1e-4")
+    assert _config_from_args(args).lr == pytest.approx(1e-4)
+
+
+def test_sync_free_loss_logs_equal_the_float_logs():
+    torch.manual_seed(0)
+    lin = torch.nn.Linear(3, 3)
+    x0 = torch.randn(6, 20, 3)
+    sched = NoiseSchedule.from_kind("four", 1000)
+    t = torch.tensor([0, 10, 300, 600, 700, 999])
+    noise = torch.randn_like(x0)
+    la, a = diffusion_loss(lambda x, t_, c: lin(x), x0, None, sched, t=t, noise=noise)
+    lb, b = diffusion_loss(lambda x, t_, c: lin(x), x0, None, sched, t=t, noise=noise, as_tensors=True)
+    assert torch.equal(la, lb) and all(torch.is_tensor(v) for v in b.values())
+    assert {k for k, v in b.items() if not math.isnan(float(v))} == set(a)
+    for k in a:
+        assert float(b[k]) == pytest.approx(a[k], rel=1e-6)
+    t2 = torch.tensor([0, 1, 2, 3, 4, 5])  # every sample in the first quarter: the others are NaN
+    _, c = diffusion_loss(lambda x, t_, c_: lin(x), x0, None, sched, t=t2, noise=noise, as_tensors=True)
+    assert math.isnan(float(c["mse_q3"])) and not math.isnan(float(c["mse_q0"]))
