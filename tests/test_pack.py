@@ -182,3 +182,22 @@ def test_sync_free_loss_logs_equal_the_float_logs():
     t2 = torch.tensor([0, 1, 2, 3, 4, 5])  # every sample in the first quarter: the others are NaN
     _, c = diffusion_loss(lambda x, t_, c_: lin(x), x0, None, sched, t=t2, noise=noise, as_tensors=True)
     assert math.isnan(float(c["mse_q3"])) and not math.isnan(float(c["mse_q0"]))
+
+
+def test_a_second_train_into_a_locked_run_folder_is_refused(tiny_pack, tmp_path, capsys):
+    """Two trains into one folder: the second gets one line and writes nothing (the first holds the lock)."""
+    from pocoloco.utils.atomic import exclusive_lock
+
+    path, _ = tiny_pack
+    run = tmp_path / "run"
+    argv = ["train", "--data", str(path), "--out", str(run), "--preset", "latent_tiny", "--steps", "2", "--no-progress",
+            "--device", "cpu", "--threads", "1", "--sample-every", "0"]  # fmt: skip
+    with exclusive_lock(run, "pocoloco train"):  # what a running train holds (flock: per open file)
+        assert cli_main(argv) == 2
+        assert "in use by pocoloco train (pid" in capsys.readouterr().err
+        assert [p.name for p in run.iterdir()] == [".lock"]
+    assert not run.exists()  # nothing was written, so nothing is left
+    assert cli_main(argv) == 0 and ckpt_io.load_checkpoint(run).step == 2
+    (tmp_path / "file").write_text("x")
+    assert cli_main([*argv[:4], str(tmp_path / "file"), *argv[5:]]) == 2
+    assert "is not a folder" in capsys.readouterr().err

@@ -13,6 +13,7 @@ import torch
 import torch.distributed as dist
 
 from pocoloco.cli.common import add_threads_argument, console
+from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.data.pack import is_pack, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
 from pocoloco.engine.trainer import LR_SCALING_RULES, check_run_folder, dist_info, init_distributed, scaled_lr
@@ -93,9 +94,19 @@ def cmd_train(args: argparse.Namespace) -> None:
         raise ValueError(f"--data {args.data}: a training pack holds what PocoLoco trains on; --model {config.model} "
                          "trains on the dataset folder")  # fmt: skip
     task = method_class(config.model).training_task(config, args.data)
-    check_run_folder(args.out, args.resume)
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")
+    if int(os.environ.get("RANK", "0")) != 0:  # torchrun: rank 0 holds the run folder's lock
+        _train(args, config, task)
+        return
+    output_folder(args.out)
+    check_run_folder(args.out, args.resume)
+    with exclusive_lock(args.out, "pocoloco train"):  # a second train into the same folder is refused
+        check_run_folder(args.out, args.resume)  # again under the lock: another run may have just written one
+        _train(args, config, task)
+
+
+def _train(args: argparse.Namespace, config, task) -> None:
     device, started = init_distributed(args.device)
     rank, world = dist_info()
     local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))

@@ -19,7 +19,8 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "atomic_open", "jsonable", "output_folder", "save_npz_atomic", "write_json_atomic", "write_text_atomic"]
+__all__ = ["atomic_write", "atomic_open", "exclusive_lock", "jsonable", "output_folder", "save_npz_atomic", "write_json_atomic",
+           "write_text_atomic"]
 
 
 def _fsync_dir(folder: str) -> None:
@@ -141,3 +142,42 @@ def jsonable(x: Any) -> Any:
     if isinstance(x, float) and not math.isfinite(x):
         return None
     return x
+
+
+@contextlib.contextmanager
+def exclusive_lock(folder: str | os.PathLike, what: str) -> Iterator[Path]:
+    """Hold an exclusive lock on ``folder`` (created if missing) for the block: ``folder/.lock``,
+    locked with ``flock``, so the lock dies with its process (``kill -9`` included) and a later
+    run never finds a stale one. A second holder gets a one-line ValueError naming the holder
+    (``what``: the kind of work, for the message). Where ``fcntl`` does not exist (Windows) the
+    block runs unlocked."""
+    folder = Path(folder)
+    created = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / ".lock"
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield path
+        return
+    f = open(path, "a+", encoding="utf-8")  # noqa: SIM115 - closed below
+    locked = False
+    try:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise ValueError(f"{folder}: in use by {holder}; wait for it to end or choose another folder") from None
+        locked = True
+        f.seek(0)
+        f.truncate()
+        f.write(f"{what} (pid {os.getpid()} on {os.uname().nodename})\n")
+        f.flush()
+        yield path
+    finally:
+        if locked and created and [p.name for p in folder.iterdir()] == [".lock"]:
+            path.unlink()  # a run that failed before writing anything leaves no folder behind
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        f.close()  # releases the lock
