@@ -18,7 +18,8 @@ import json
 import math
 from pathlib import Path
 
-METRICS = ("chamfer_cm", "s2m_cm", "m2s_cm", "loose_pred_pct", "loose_gt_pct", "outlier_10cm_pct")
+METRICS = ("chamfer_cm", "s2m_cm", "m2s_cm", "best_of_k_chamfer_cm", "energy_score_cm", "s2m_garment_cm",
+           "m2s_garment_cm", "fscore_2cm_pct", "loose_pred_pct", "loose_gt_pct", "outlier_10cm_pct")
 
 
 def frame_rows(spec: str) -> dict[str, dict[str, float]]:
@@ -36,7 +37,8 @@ def frame_rows(spec: str) -> dict[str, dict[str, float]]:
 
 
 def paired(a: dict, b: dict, metric: str) -> dict[str, float] | None:
-    keys = [k for k in a if k in b and metric in a[k] and metric in b[k]]
+    # a metric is null (NaN) on some frames, e.g. the garment columns of a tight subject: those frames are left out
+    keys = [k for k in a if k in b and a[k].get(metric) is not None and b[k].get(metric) is not None]
     if not keys:
         return None
     xa = [float(a[k][metric]) for k in keys]
@@ -67,7 +69,7 @@ def main(argv=None) -> dict:
             if r is None:
                 continue
             out[ref][m] = r
-            print(f"  {m:18s} n={r['n']:3d}  {r['first']:8.3f} -> {r['second']:8.3f}   diff {r['diff']:+.3f} +- {r['se']:.3f}")
+            print(f"  {m:22s} n={r['n']:3d}  {r['first']:8.3f} -> {r['second']:8.3f}   diff {r['diff']:+.3f} +- {r['se']:.3f}")
     if args.json:
         Path(args.json).write_text(json.dumps({"second": args.second, "comparisons": out}, indent=1))
     return out

@@ -1,10 +1,12 @@
 """pocoloco eval: frame selection, the two baselines, per-frame scores vs. metrics, CLI output and bad input."""
 
 import json
+import math
 
 import numpy as np
 import pytest
 from conftest import run_cli
+from test_metrics import _brute_split, _chamfer_ref, _energy_ref
 
 from pocoloco.data.format import DatasetLayout, read_frame
 from pocoloco.evaluation.baselines import NearestFrameBaseline, select_frames
@@ -119,6 +121,40 @@ def test_evaluate_rows_match_the_metrics(run, tiny_dataset):
     assert m["nearest_frame"]["pose_rms_cm"] > 0  # test poses are not in the training set
     text = markdown_tables(result)
     assert "| PocoLoco (this checkpoint) |" in text and "nearest training frame" in text
+    assert "ES cm" in text and "best-of-K Chamfer" in text and "S2M garment cm" in text and "F garment@2cm %" in text
+
+
+def test_evaluate_scores_the_sample_set_and_the_garment(run, tiny_dataset):
+    """Per frame: best of K and the energy score of the model's K samples, and the garment / rest split
+    averaged over them, against slow references on the clouds evaluate scored; K = 1 rows (baselines)
+    have ES = best of K = Chamfer; the tight subject has no garment frame and NaN garment columns."""
+    settings = EvalSettings(split="test", num_frames=4, num_points=80, seeds=(0, 1, 2), sampler="ddim", steps=2)
+    result, examples = evaluate(run, tiny_dataset, settings, keep_examples=4)
+    assert [e["key"] for e in examples] == [r["key"] for r in result.frames]
+    for row, ex in zip(result.frames, examples):
+        gt, lab = ex["gt"]
+        samples = [np.asarray(x, np.float64) for x in ex["model"]]
+        m = row["model"]
+        assert m["num_samples"] == 3
+        assert m["best_of_k_chamfer_cm"] == pytest.approx(min(_chamfer_ref(x, gt) for x in samples), rel=1e-6)
+        assert m["energy_score_cm"] == pytest.approx(_energy_ref(samples, gt), rel=1e-6)
+        refs = [_brute_split(x, gt, lab) for x in samples]
+        for k in ("s2m_garment_cm", "s2m_rest_cm", "m2s_garment_cm", "fscore_garment_2cm_pct", "recall_2cm_pct"):
+            vals = [r[k] for r in refs if not math.isnan(r[k])]
+            assert (math.isnan(m[k]) and not vals) or m[k] == pytest.approx(np.mean(vals), rel=1e-6), k
+        for b in ("nearest_frame", "posed_body", "gt_resample"):
+            assert row[b]["num_samples"] == 1
+            assert row[b]["energy_score_cm"] == row[b]["best_of_k_chamfer_cm"] == row[b]["chamfer_cm"]
+    loose = {s: [r for r in result.frames if r["subject"] == s] for s in result.per_subject}
+    assert set(loose) == {"skirt", "tight"}
+    for subject, rows in loose.items():
+        means = result.per_subject[subject]["model"]
+        with_garment = sum(r["model"]["loose_gt_pct"] > 0 for r in rows)
+        assert means["num_frames_garment"] == with_garment
+        assert (with_garment == 0) == math.isnan(means["s2m_garment_cm"])
+    assert result.per_subject["tight"]["model"]["num_frames_garment"] == 0
+    assert result.means["model"]["num_frames_garment"] == result.per_subject["skirt"]["model"]["num_frames_garment"] > 0
+    assert result.means["model"]["num_samples"] == 3 and result.means["posed_body"]["num_samples"] == 1
 
 
 def test_nearest_frame_on_the_train_split_is_the_frame_itself(tiny_dataset):
@@ -140,6 +176,64 @@ def test_cli_writes_everything(run, tiny_dataset, tmp_path):
     doc = json.loads((out / "eval.json").read_text())
     assert doc["settings"]["num_points"] == 64 and len(doc["frames"]) == 1 and "model" in doc["means"]
     assert "Chamfer cm" in r.stdout
+    # the new columns: printed, in eval.md, and in the per-frame rows (to compare two runs frame by frame)
+    for header in ("best-of-K Chamfer", "ES cm", "| K |", "S2M garment cm", "M2S rest cm", "F@1cm %", "F@2cm %",
+                   "P@2cm %", "R@2cm %", "F garment@2cm %", "garment frames"):  # fmt: skip
+        assert header in r.stdout and header in (out / "eval.md").read_text(), header
+    frame = doc["frames"][0]["model"]
+    assert frame["num_samples"] == 2 and frame["best_of_k_chamfer_cm"] <= frame["chamfer_cm"]
+    assert {"energy_score_cm", "s2m_garment_cm", "fscore_garment_2cm_pct", "precision_2cm_pct"} <= set(frame)
+    assert doc["means"]["model"]["num_frames_garment"] in (0, 1)
+
+
+def test_bench_quality_prints_the_new_columns(run, tiny_dataset, tmp_path):
+    out = tmp_path / "q"
+    r = run_cli("bench", "quality", "--data", str(tiny_dataset), "--ckpt-pocoloco", str(run), "--frames", "2",
+                "--points", "64", "--seeds", "0", "1", "--sampler", "ddim", "--steps", "2", "--out", str(out))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    md = (out / "quality.md").read_text()
+    for header in ("best-of-K Chamfer", "ES cm", "| K |", "S2M garment cm", "S2M rest cm", "F@2cm %",
+                   "F garment@1cm %", "garment frames"):  # fmt: skip
+        assert header in r.stdout and header in md, header
+    assert md.count("S2M garment cm") == 3  # all frames, skirt, tight
+    doc = json.loads((out / "quality.json").read_text())
+    poco, body = doc["means"]["pocoloco"], doc["means"]["posed_body"]
+    assert poco["num_samples"] == 2 and body["num_samples"] == 1
+    assert body["energy_score_cm"] == pytest.approx(body["chamfer_cm"])
+    assert poco["energy_score_cm"] < poco["chamfer_cm"] and poco["best_of_k_chamfer_cm"] <= poco["chamfer_cm"]
+    assert doc["per_subject"]["tight"]["pocoloco"]["s2m_garment_cm"] is None  # NaN -> null: no garment frame
+    assert doc["per_subject"]["tight"]["pocoloco"]["num_frames_garment"] == 0
+    rows = doc["frames"]["pocoloco"]
+    assert all("energy_score_cm" in f["model"] and "best_of_k_chamfer_cm" in f["model"] for f in rows)
+
+
+def test_a_deterministic_model_has_one_sample_and_es_equal_to_its_chamfer(run, tiny_dataset, monkeypatch):
+    """POP / CloSET path (here the tiny model flagged deterministic): one cloud per frame, K = 1,
+    best of K = energy score = Chamfer, diversity 0."""
+    import pocoloco.evaluation.evaluate as E
+
+    real = E.load_method
+
+    def deterministic(*args, **kwargs):
+        method = real(*args, **kwargs)
+        method.deterministic = True
+        return method
+
+    monkeypatch.setattr(E, "load_method", deterministic)
+    settings = EvalSettings(num_frames=2, num_points=64, seeds=(0, 1, 2), sampler="ddim", steps=2, baselines=())
+    result, _ = E.evaluate(run, tiny_dataset, settings, keep_examples=0)
+    for row in result.frames:
+        m = row["model"]
+        assert m["num_samples"] == 1 and m["diversity_cm"] == 0.0
+        assert m["energy_score_cm"] == m["best_of_k_chamfer_cm"] == m["chamfer_cm"]
+    assert result.means["model"]["num_samples"] == 1
+
+
+def test_old_tables_without_the_new_keys_still_render():
+    from pocoloco.evaluation.quality import garment_table_markdown, table_markdown
+
+    old = {"pop": {"chamfer_cm": 3.0, "s2m_cm": 1.5, "m2s_cm": 1.5, "fscore_pct": 40.0}}
+    assert garment_table_markdown(old) == "" and "| POP | 3.00 | 1.50 | 1.50 |" in table_markdown(old)
 
 
 @pytest.mark.parametrize(

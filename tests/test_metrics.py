@@ -174,3 +174,192 @@ def test_outlier_shares_and_their_worst_cloud():
     assert frame_a["outlier_10cm_pct"] == pytest.approx(m["outlier_10cm_pct"] / 2)
     overall = M.summarise([frame_a, frame_b])
     assert overall["outlier_10cm_pct_max"] == pytest.approx(m["outlier_10cm_pct"])  # the worst cloud, not a mean
+
+
+# ------------------------------------------------------------- garment / rest split, F-scores at 1 / 2 cm
+def _labelled_clouds(seed: int):
+    """Small random GT cloud with labels 0 body / 1 garment / 255 unknown, and a noisy partial prediction."""
+    rng = np.random.default_rng(seed)
+    gt = rng.normal(size=(220, 3)) * 0.15
+    labels = np.where(gt[:, 1] < -0.05, 1, 0).astype(np.uint8)
+    labels[rng.random(220) < 0.05] = 255
+    pred = np.r_[gt[rng.permutation(220)[:150]] + rng.normal(size=(150, 3)) * 0.012, rng.normal(size=(20, 3)) * 0.3]
+    return pred, gt, labels
+
+
+def _brute_split(pred, gt, labels):
+    """The split metrics with explicit loops over points: each predicted point takes the label of its
+    nearest GT point; garment = label 1, rest = everything else (body and unknown)."""
+    dist = lambda a, b: math.sqrt(sum((a[c] - b[c]) ** 2 for c in range(3)))  # noqa: E731
+    to_pred = [min(dist(g, p) for p in pred) for g in gt]  # GT point -> nearest predicted point
+    near = [min(range(len(gt)), key=lambda j: dist(p, gt[j])) for p in pred]  # predicted point -> nearest GT index
+    to_gt = [dist(p, gt[j]) for p, j in zip(pred, near)]
+    out = {}
+    for part, is_part in (("garment", lambda lab: lab == 1), ("rest", lambda lab: lab != 1)):
+        g = [to_pred[j] for j in range(len(gt)) if is_part(labels[j])]
+        p = [to_gt[i] for i in range(len(pred)) if is_part(labels[near[i]])]
+        out[f"s2m_{part}_cm"] = 100 * sum(g) / len(g) if g else float("nan")
+        out[f"m2s_{part}_cm"] = 100 * sum(p) / len(p) if p else float("nan")
+    garment_gt = [to_pred[j] for j in range(len(gt)) if labels[j] == 1]
+    garment_pred = [to_gt[i] for i in range(len(pred)) if labels[near[i]] == 1]
+    for cm in (1, 2):
+        t = cm / 100
+        for name, dp, dg in (("", to_gt, to_pred), ("garment_", garment_pred, garment_gt)):
+            if not dg:
+                prec = rec = f = float("nan")
+            else:
+                prec = 100 * sum(d < t for d in dp) / len(dp) if dp else 0.0
+                rec = 100 * sum(d < t for d in dg) / len(dg)
+                f = 0.0 if prec + rec == 0 else 2 * prec * rec / (prec + rec)
+            out[f"precision_{name}{cm}cm_pct"], out[f"recall_{name}{cm}cm_pct"], out[f"fscore_{name}{cm}cm_pct"] = prec, rec, f
+    return out
+
+
+def _same(got: float, want: float) -> bool:
+    return (math.isnan(got) and math.isnan(want)) or got == pytest.approx(want, rel=1e-9, abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_split_and_fscores_match_loops(seed):
+    pred, gt, labels = _labelled_clouds(seed)
+    got = M.evaluate_frame(pred, None, gt, None, labels)
+    want = _brute_split(pred, gt, labels)
+    for k, v in want.items():
+        assert _same(got[k], v), (k, got[k], v)
+    assert 0 < got["fscore_garment_2cm_pct"] < 100 and got["fscore_2cm_pct"] > got["fscore_1cm_pct"]
+    assert got["fscore_1cm_pct"] == got["fscore_pct"]  # the default threshold is 1 cm
+    # the standalone functions agree with evaluate_frame
+    s = M.split_distances_cm(pred, gt, labels)
+    assert (s.s2m_garment, s.s2m_rest, s.m2s_garment, s.m2s_rest) == pytest.approx(
+        (got["s2m_garment_cm"], got["s2m_rest_cm"], got["m2s_garment_cm"], got["m2s_rest_cm"]))
+    g = M.garment_fscore(pred, gt, labels, threshold_m=0.02)
+    assert (g.precision, g.recall, g.fscore) == pytest.approx(
+        (got["precision_garment_2cm_pct"], got["recall_garment_2cm_pct"], got["fscore_garment_2cm_pct"]))
+    f = M.fscore(pred, gt, threshold_m=0.02)
+    assert f.fscore == pytest.approx(got["fscore_2cm_pct"])
+    # the scan without labels: no split keys; the overall F-scores stay
+    plain = M.evaluate_frame(pred, None, gt, None)
+    assert "s2m_garment_cm" not in plain and "fscore_garment_2cm_pct" not in plain and "fscore_2cm_pct" in plain
+
+
+def test_no_garment_points_give_nan_and_summaries_skip_them():
+    """A tight subject (no GT garment point): the garment keys are NaN, the rest equals the whole
+    cloud, and summarise averages the garment keys over the frames that have them and counts them."""
+    pred, gt, labels = _labelled_clouds(3)
+    tight = M.evaluate_frame(pred, None, gt, None, np.zeros(len(gt), np.uint8))
+    for k in ("s2m_garment_cm", "m2s_garment_cm", "fscore_garment_1cm_pct", "precision_garment_2cm_pct",
+              "recall_garment_2cm_pct"):  # fmt: skip
+        assert math.isnan(tight[k]), k
+    assert tight["s2m_rest_cm"] == pytest.approx(tight["s2m_cm"]) and tight["m2s_rest_cm"] == pytest.approx(tight["m2s_cm"])
+    loose = M.evaluate_frame(pred, None, gt, None, labels)
+    s = M.summarise([loose, tight, loose])
+    assert s["s2m_garment_cm"] == pytest.approx(loose["s2m_garment_cm"])  # nanmean: the tight frame skipped
+    assert s["s2m_rest_cm"] == pytest.approx((2 * loose["s2m_rest_cm"] + tight["s2m_rest_cm"]) / 3)
+    assert s["num_frames_garment"] == 2 and s["num_frames_m2s_garment"] == 2 and s["num_frames"] == 3
+    assert math.isnan(M.summarise([tight])["s2m_garment_cm"]) and M.summarise([tight])["num_frames_garment"] == 0
+    # the counts add up through nested summaries; a frame without labels reports none
+    assert M.summarise([s, M.summarise([tight])])["num_frames_garment"] == 2
+    assert "num_frames_garment" not in M.summarise([M.evaluate_frame(pred, None, gt, None)])
+
+
+def _body_and_skirt(n_body: int, n_skirt: int, seed: int = 0):
+    """A sphere 'body' (radius 15 cm) above a cylinder 'skirt' (radius 30 cm, 40 cm long); labels 0 / 1."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n_body, 3))
+    body = 0.15 * u / np.linalg.norm(u, axis=1, keepdims=True)
+    t = rng.uniform(0, 2 * math.pi, n_skirt)
+    skirt = np.c_[0.3 * np.cos(t), rng.uniform(-0.6, -0.2, n_skirt), 0.3 * np.sin(t)]
+    return np.r_[body, skirt], np.r_[np.zeros(n_body, np.uint8), np.ones(n_skirt, np.uint8)]
+
+
+def test_garment_s2m_blows_up_when_the_skirt_is_dropped():
+    gt, labels = _body_and_skirt(1500, 1500, seed=0)
+    full, _ = _body_and_skirt(1500, 1500, seed=1)  # another sampling of the same clothed shape
+    no_skirt = full[:1500]  # only the body
+    good = M.evaluate_frame(full, None, gt, None, labels)
+    bad = M.evaluate_frame(no_skirt, None, gt, None, labels)
+    assert bad["s2m_garment_cm"] > 15.0 and good["s2m_garment_cm"] < 1.5  # the skirt is >= 15 cm from the body
+    assert bad["s2m_rest_cm"] == pytest.approx(good["s2m_rest_cm"], abs=0.3)  # the body is as good as before
+    assert bad["s2m_garment_cm"] > 1.8 * bad["s2m_cm"]  # the whole-cloud S2M dilutes it with the body
+    assert math.isnan(bad["m2s_garment_cm"])  # no predicted point lands on the skirt...
+    assert bad["fscore_garment_2cm_pct"] == 0 and bad["precision_garment_2cm_pct"] == 0  # ... F 0, not NaN
+    assert good["fscore_garment_2cm_pct"] > 50
+
+
+# ---------------------------------------------------------------------------- best of K, energy score
+def _chamfer_ref(a, b) -> float:
+    """PocoLoco Chamfer in cm from scipy's cKDTree directly: mean NN distance both ways, summed."""
+    from scipy.spatial import cKDTree
+
+    return 100 * (cKDTree(a).query(b)[0].mean() + cKDTree(b).query(a)[0].mean())
+
+
+def _energy_ref(samples, gt) -> float:
+    """ES = mean_k d(X_k, y) - 1 / (2 K (K - 1)) * sum over ordered pairs k != l of d(X_k, X_l); K = 1: d(X, y)."""
+    k = len(samples)
+    to_gt = sum(_chamfer_ref(x, gt) for x in samples) / k
+    if k == 1:
+        return to_gt
+    spread = sum(_chamfer_ref(samples[i], samples[j]) for i in range(k) for j in range(k) if i != j)
+    return to_gt - spread / (2 * k * (k - 1))
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5])
+def test_energy_score_and_best_of_k_match_the_reference(k):
+    rng = np.random.default_rng(k)
+    gt = rng.normal(size=(200, 3)) * 0.2
+    samples = [gt[rng.permutation(200)[:150]] * rng.uniform(0.9, 1.1) + rng.normal(size=(150, 3)) * 0.02 for _ in range(k)]
+    want = _energy_ref(samples, gt)
+    assert M.energy_score_cm(samples, gt) == pytest.approx(want, rel=1e-9)
+    assert M.best_of_k_cm(samples, gt) == pytest.approx(min(_chamfer_ref(x, gt) for x in samples), rel=1e-9)
+    # the per-frame path of evaluate: evaluate_frame per sample + the samples' diversity
+    labels = (gt[:, 1] < 0).astype(np.uint8)
+    scores = [M.evaluate_frame(x, None, gt, None, labels) for x in samples]
+    m = M.summarise_samples(scores, M.diversity_cm(samples) if k >= 2 else None)
+    assert m["energy_score_cm"] == pytest.approx(want, rel=1e-9)
+    assert m["best_of_k_chamfer_cm"] == pytest.approx(M.best_of_k_cm(samples, gt), rel=1e-9)
+    assert m["num_samples"] == k and "num_frames" not in m and "num_frames_garment" not in m
+    assert m["chamfer_cm"] == pytest.approx(np.mean([s["chamfer_cm"] for s in scores]))  # the mean over samples stays
+    assert m["best_of_k_chamfer_cm"] <= m["chamfer_cm"] + 1e-12 and m["energy_score_cm"] <= m["chamfer_cm"] + 1e-12
+
+
+def test_energy_score_of_one_or_identical_samples_is_the_chamfer():
+    rng = np.random.default_rng(7)
+    gt = rng.normal(size=(150, 3)) * 0.2
+    x = gt + rng.normal(size=(150, 3)) * 0.01
+    d = M.chamfer_cm(x, gt)
+    assert M.energy_score_cm([x], gt) == pytest.approx(d, rel=1e-12)
+    assert M.energy_score_cm([x, x, x], gt) == pytest.approx(d, rel=1e-12)
+    assert M.best_of_k_cm([x], gt) == pytest.approx(d, rel=1e-12)
+    one = M.summarise_samples([M.evaluate_frame(x, None, gt, None)])
+    assert one["energy_score_cm"] == one["best_of_k_chamfer_cm"] == one["chamfer_cm"] and one["num_samples"] == 1
+    with pytest.raises(ValueError, match="at least one sample"):
+        M.energy_score_cm([], gt)
+    with pytest.raises(ValueError, match="mean pairwise Chamfer"):
+        M.energy_score_from_chamfers([1.0, 2.0], None)
+
+
+def test_energy_score_prefers_a_calibrated_spread():
+    """The scan's 'garment' is a sphere of radius 25, 30 or 35 cm (equally likely). A regressor predicts
+    the middle one (the conditional median); a calibrated sampler draws the three; a biased sampler
+    draws them 5 cm too wide. Mean Chamfer over samples favours the regressor (the sampler pays a
+    spread term); the energy score ranks the calibrated sampler first and the biased one below it."""
+    radii = (0.25, 0.30, 0.35)
+    gt_dirs, _ = _sphere(1500, 1.0)
+    pred_dirs, _ = _sphere(1000, 1.0)
+    pred_dirs = pred_dirs @ np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # another sampling of the sphere
+
+    def mean_over_scans(score):
+        return np.mean([score(r * gt_dirs) for r in radii])
+
+    calibrated = [r * pred_dirs for r in radii]
+    biased = [(r + 0.05) * pred_dirs for r in radii]
+    regressor = [0.30 * pred_dirs]
+    es = {name: mean_over_scans(lambda y, s=s: M.energy_score_cm(s, y))
+          for name, s in (("calibrated", calibrated), ("biased", biased), ("regressor", regressor))}  # fmt: skip
+    mean_chamfer = {name: mean_over_scans(lambda y, s=s: np.mean([M.chamfer_cm(x, y) for x in s]))
+                    for name, s in (("calibrated", calibrated), ("regressor", regressor))}  # fmt: skip
+    assert mean_chamfer["regressor"] < mean_chamfer["calibrated"] - 1.0  # the unfair ranking: 7.7 vs 9.8 cm
+    assert es["calibrated"] < es["biased"] - 1.0 and es["calibrated"] < es["regressor"] - 1.0  # 3.2 vs 6.3 vs 7.7
+    # the regressor's ES is its Chamfer
+    assert es["regressor"] == pytest.approx(mean_chamfer["regressor"])

@@ -18,13 +18,20 @@ from pocoloco.data import format as fmt
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.evaluation.baselines import NEAREST_ALIGNS
 from pocoloco.evaluation.evaluate import (
+    GARMENT_COLUMNS,
     EvalSettings,
     evaluate,
     markdown_table,
     method_titles,
     write_outputs,
 )
-from pocoloco.evaluation.quality import PER_SUBJECT_ROWS, QUALITY_ROWS, bench_quality, table_markdown
+from pocoloco.evaluation.quality import (
+    PER_SUBJECT_ROWS,
+    QUALITY_ROWS,
+    bench_quality,
+    garment_table_markdown,
+    table_markdown,
+)
 from pocoloco.utils.atomic import output_folder
 
 __all__ = ["register"]
@@ -60,7 +67,11 @@ def cmd_eval(args: argparse.Namespace) -> None:
     with progress_bar("eval") as update:
         result, examples = evaluate(args.ckpt, args.data, settings, device=args.device, progress=update)
     write_outputs(out, result, examples)
-    print(markdown_table(result.means, method_titles(result.settings)))
+    titles = method_titles(result.settings)
+    print(markdown_table(result.means, titles))
+    if any(k in m for k, _, _ in GARMENT_COLUMNS for m in result.means.values()):  # the scan has labels
+        print()
+        print(markdown_table(result.means, titles, GARMENT_COLUMNS))
     print(f"wrote {out / 'eval.json'}, {out / 'eval.md'}, {out / 'chamfer_per_frame.png'}, {out / 'examples.png'}")
 
 
@@ -101,6 +112,10 @@ def cmd_bench_quality(args: argparse.Namespace) -> None:
                            preset=args.preset, device=args.device, progress=lambda m: con.print(f"[bold]{m}"),
                            train_progress=True)  # fmt: skip
     print(table_markdown(report["means"]))
+    garment = garment_table_markdown(report["means"])
+    if garment:
+        print()
+        print(garment)
     for c in report["claims"]:
         print(f"- {c['claim']}: {'holds' if c['holds'] else 'does not hold'}")
     if report["targets"]:

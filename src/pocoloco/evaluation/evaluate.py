@@ -9,6 +9,10 @@ For every evaluated test frame (joints K, ground-truth scan G with normals and l
   averaged, as the PocoLoco paper averages its metrics over several samples. Diversity is the
   mean pairwise Chamfer (cm) among the S clouds, over the whole cloud and separately over the
   points in the garment / body region (each point takes the label of its nearest GT point).
+  Best of K (min Chamfer over the S = K clouds) and the energy score (mean Chamfer to G minus half
+  the mean pairwise Chamfer; :func:`pocoloco.evaluation.metrics.energy_score_cm`) score the set of
+  samples as a whole, with K in ``num_samples``; a deterministic model and every baseline have
+  K = 1 and best of K = energy score = Chamfer.
 * **nearest-frame** baseline: the training frame of the same subject whose root-aligned joints
   are nearest to K (sum of squared joint distances), its scan translated by the root offset.
 * **posed-body** baseline: N points sampled uniformly on the frame's posed minimally-clothed
@@ -48,7 +52,7 @@ from pocoloco.evaluation.baselines import (
     select_frames,
     subset,
 )
-from pocoloco.evaluation.metrics import diversity_cm, evaluate_frame, nearest, summarise
+from pocoloco.evaluation.metrics import diversity_cm, evaluate_frame, nearest, summarise, summarise_samples
 from pocoloco.methods import SamplerOptions, load_method
 from pocoloco.utils.atomic import (
     jsonable,
@@ -58,8 +62,8 @@ from pocoloco.utils.atomic import (
 )
 from pocoloco.viz.render import plot_curves, render_grid
 
-__all__ = ["EvalResult", "EvalSettings", "METHODS", "TABLE_COLUMNS", "evaluate", "markdown_table", "markdown_tables",
-           "method_titles", "write_outputs"]  # fmt: skip
+__all__ = ["EvalResult", "EvalSettings", "GARMENT_COLUMNS", "METHODS", "TABLE_COLUMNS", "evaluate", "markdown_table",
+           "markdown_tables", "method_titles", "write_outputs"]  # fmt: skip
 
 #: methods in the order of the tables; "model" is the checkpoint being evaluated
 METHODS = ("model", "nearest_frame", "posed_body", "gt_resample")
@@ -74,9 +78,11 @@ TABLE_COLUMNS = (
     ("chamfer_cm", "Chamfer cm", "{:.2f}"),
     ("s2m_cm", "S2M cm", "{:.2f}"),
     ("m2s_cm", "M2S cm", "{:.2f}"),
+    ("best_of_k_chamfer_cm", "best-of-K Chamfer", "{:.2f}"),
+    ("energy_score_cm", "ES cm", "{:.2f}"),
+    ("num_samples", "K", "{:.0f}"),
     ("pop_chamfer_e-4m2", "CD 1e-4 m^2", "{:.2f}"),
     ("normal_l1_e-1", "normal 1e-1", "{:.2f}"),
-    ("fscore_pct", "F@1cm %", "{:.1f}"),
     ("outlier_5cm_pct", ">5cm %", "{:.1f}"),
     ("outlier_10cm_pct", ">10cm %", "{:.1f}"),
     ("outlier_10cm_pct_max", "max >10cm %", "{:.1f}"),
@@ -86,6 +92,23 @@ TABLE_COLUMNS = (
     ("diversity_garment_cm", "div. garment", "{:.2f}"),
     ("diversity_body_cm", "div. body", "{:.2f}"),
     ("seconds_per_sample", "s/sample", "{:.2f}"),
+)
+#: columns of the second table (scan split by its labels, F-scores): (key, header, format); the
+#: garment columns average over the frames with garment points only (``num_frames_garment``)
+GARMENT_COLUMNS = (
+    ("s2m_garment_cm", "S2M garment cm", "{:.2f}"),
+    ("m2s_garment_cm", "M2S garment cm", "{:.2f}"),
+    ("s2m_rest_cm", "S2M rest cm", "{:.2f}"),
+    ("m2s_rest_cm", "M2S rest cm", "{:.2f}"),
+    ("num_frames_garment", "garment frames", "{:.0f}"),
+    ("fscore_1cm_pct", "F@1cm %", "{:.1f}"),
+    ("fscore_2cm_pct", "F@2cm %", "{:.1f}"),
+    ("precision_2cm_pct", "P@2cm %", "{:.1f}"),
+    ("recall_2cm_pct", "R@2cm %", "{:.1f}"),
+    ("fscore_garment_1cm_pct", "F garment@1cm %", "{:.1f}"),
+    ("fscore_garment_2cm_pct", "F garment@2cm %", "{:.1f}"),
+    ("precision_garment_2cm_pct", "P garment@2cm %", "{:.1f}"),
+    ("recall_garment_2cm_pct", "R garment@2cm %", "{:.1f}"),
 )
 
 
@@ -216,6 +239,9 @@ def evaluate(
         def score(points, normals):
             return evaluate_frame(points, normals, gt, gt_n, gt_lab)
 
+        def single(points, normals):  # one cloud: K = 1, best of K = energy score = Chamfer
+            return summarise_samples([score(points, normals)])
+
         if method is not None:
             method = methods.get(subject, methods.get(None))
             pose = method.pose_from_frame(path, subject, frame=fr, cache=mean_cache)
@@ -225,18 +251,18 @@ def evaluate(
             per_sample = (time.perf_counter() - t0) / len(seeds)
             normals = [None if pred.normals is None else pred.normals[k] for k in range(len(seeds))]
             if method.deterministic:
-                m = score(pred.points[0], normals[0])
+                m = single(pred.points[0], normals[0])
                 # deterministic: every seed gives the same cloud, so the diversity is exactly 0
                 m["seconds_per_sample"] = per_sample
                 m["diversity_cm"] = 0.0
                 if gt_lab is not None:
                     m["diversity_garment_cm"] = m["diversity_body_cm"] = 0.0
             else:
-                m = summarise([score(pred.points[k], normals[k]) for k in range(len(seeds))])
-                m.pop("num_frames", None)
+                div = diversity_cm(pred.points) if len(seeds) >= 2 else None
+                m = summarise_samples([score(pred.points[k], normals[k]) for k in range(len(seeds))], div)
                 m["seconds_per_sample"] = per_sample
-                if len(seeds) >= 2:
-                    m["diversity_cm"] = diversity_cm(pred.points)
+                if div is not None:
+                    m["diversity_cm"] = div
                     if gt_lab is not None:
                         m["diversity_garment_cm"] = diversity_cm(pred.points, gt, gt_lab, region="garment")
                         m["diversity_body_cm"] = diversity_cm(pred.points, gt, gt_lab, region="body")
@@ -244,7 +270,7 @@ def evaluate(
             clouds["model"] = pred.points
         if nearest_frame is not None:
             pred = nearest_frame.predict(fr.joints, settings.num_points, (1, n_done), subject=subject)
-            row["nearest_frame"] = {**score(pred["points"], pred["normals"]), "pose_rms_cm": 100 * pred["pose_rms_m"],
+            row["nearest_frame"] = {**single(pred["points"], pred["normals"]), "pose_rms_cm": 100 * pred["pose_rms_m"],
                                     "yaw_deg": pred["yaw_deg"]}  # fmt: skip
             row["nearest_frame_source"] = pred["source"]
             clouds["nearest_frame"] = (pred["points"], pred["labels"])
@@ -254,11 +280,11 @@ def evaluate(
             if subject not in faces:
                 faces[subject] = fmt.read_subject(layout.subject_path(subject)).faces
             pred = posed_body_baseline(fr, faces[subject], settings.num_points, seed=n_done)
-            row["posed_body"] = score(pred["points"], pred["normals"])
+            row["posed_body"] = single(pred["points"], pred["normals"])
             clouds["posed_body"] = (pred["points"], np.zeros(settings.num_points, np.uint8))
         if "gt_resample" in settings.baselines:
             other = subset(fr.num_points, settings.num_points, (2, n_done))
-            row["gt_resample"] = score(fr.points[other], fr.normals[other])
+            row["gt_resample"] = single(fr.points[other], fr.normals[other])
         result.frames.append(row)
         if n_done in example_ids:
             examples.append({"key": key, **clouds})
@@ -363,7 +389,7 @@ def markdown_table(means: dict[str, dict[str, float]], titles: dict[str, str] | 
 
 
 def markdown_tables(result: EvalResult) -> str:
-    """The whole ``eval.md``: settings, the mean table, one table per subject."""
+    """The whole ``eval.md``: settings, the mean tables, the same per subject."""
     s = result.settings
     titles = method_titles(s)
     head = [f"# pocoloco eval — {s.get('checkpoint', 'baselines only')}", ""]
@@ -379,10 +405,31 @@ def markdown_tables(result: EvalResult) -> str:
              "point-to-plane M2S). normal = L1 of unit normals x10. >5cm / >10cm % = share of generated points farther "
              "than that from every GT point (mean; max = the worst cloud). loose % = share of points whose nearest GT point is "
              "garment. div. = mean pairwise Chamfer among the seeds' samples (whole / garment region / body region).",
-             "", "## All frames", "", markdown_table(result.means, titles)]  # fmt: skip
+             "", FAIR_NOTE, "", "## All frames", "", *_tables(result.means, titles)]  # fmt: skip
     for subject, means in result.per_subject.items():
-        head += ["", f"## {subject}", "", markdown_table(means, titles)]
+        head += ["", f"## {subject}", "", *_tables(means, titles)]
     return "\n".join(head) + "\n"
+
+
+#: what the columns fair to a generative model mean (eval.md and quality.md)
+FAIR_NOTE = ("best-of-K Chamfer = the smallest Chamfer among the K samples of a frame (K = samples per frame: one per "
+             "seed for a generative model, 1 for a deterministic model and the baselines). ES = energy score (Gneiting & "
+             "Raftery 2007) with d = Chamfer: mean Chamfer of the K samples to the scan minus half their mean pairwise "
+             "Chamfer, = Chamfer for K = 1. Mean Chamfer over samples charges a calibrated sampler an extra spread term that "
+             "a regressor's conditional mean does not pay; ES subtracts it, so one column ranks both kinds; lower is better. "
+             "Second table: the scan split by its labels, S2M over the GT garment (rest) points, M2S over the predicted "
+             "points whose nearest GT point is garment (rest); garment columns average over the garment frames only "
+             "(tight subjects have none). F / P / R = F-score / precision / recall (%) at 1 and 2 cm, overall and on "
+             "the garment (precision over the predicted points labelled garment, recall over the GT garment points).")  # fmt: skip
+
+
+def _tables(means: dict[str, dict[str, float]], titles: dict[str, str], columns=TABLE_COLUMNS,
+            first: str = "method") -> list[str]:  # fmt: skip
+    """The main table and, when any row has its keys (not in old JSONs), the garment / F-score table."""
+    out = [markdown_table(means, titles, columns, first)]
+    if any(k in m for k, _, _ in GARMENT_COLUMNS for m in means.values()):
+        out += ["", markdown_table(means, titles, GARMENT_COLUMNS, first)]
+    return out
 
 
 def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dict[str, Any]]) -> Path:

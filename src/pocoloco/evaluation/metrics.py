@@ -23,6 +23,37 @@ POP (Ma et al. 2021, Eq. 4, 5 and Tables: "Chamfer-L2 (x1e-4 m^2)", "Normal diff
     CD  = S2M + M2S, reported in units of 1e-4 m^2 (value = m^2 * 1e4).
     Normal error = mean over predicted points of the L1 norm |n_pred - n_gt(nearest)|_1
           (sum over the 3 components) of unit normals, reported x 10 (units of 1e-1).
+
+Metrics fair to a generative model (PocoLoco convention, cm):
+
+* **Garment / rest split.** The scan's labels split it into the loose garment (``LABEL_GARMENT``)
+  and the rest (body, unknown). S2M garment = mean over GT garment points of the distance to the
+  nearest predicted point (S2M rest likewise over the other GT points); a predicted point takes
+  the label of its nearest GT point, and M2S garment = mean over the predicted points so labelled
+  of that distance (M2S rest likewise). The whole-cloud Chamfer is dominated by the body, which
+  covers most of the scan; a model that drops the skirt shows it here, as a large S2M garment.
+  A frame without garment points (a tight subject) gives NaN garment values, which the
+  summaries skip (nanmean) and count (``num_frames_garment``).
+* **F-score at 1 cm and 2 cm** (Tanks and Temples), overall and on the garment (precision over the
+  predicted points labelled garment as above, recall over the GT garment points): the share of
+  the surface reproduced within a tolerance, robust to a few far points that dominate a mean.
+* **Best of K and energy score.** A regressor trained on Chamfer approaches the conditional mean
+  surface given the pose, which minimises the expected distance to the scan; a sample from a
+  calibrated generative model is as spread as the data, so its expected Chamfer to the scan
+  carries an extra variance term (two independent draws are further apart than a draw and the
+  mean). Averaging Chamfer over samples therefore ranks the generative model below a blurry mean
+  even when it is the better model of the data. Best of K (min Chamfer over the K samples of a
+  frame) shows whether the scan lies near the samples, but rewards spread without bound. The
+  energy score (Gneiting & Raftery 2007, JASA 102:359) pays for both bias and spread::
+
+      ES = mean_k d(X_k, y) - 1 / (2 K (K - 1)) * sum_{k != l} d(X_k, X_l),   d = chamfer_cm,
+
+  (the unbiased "fair" form over K samples; the second term is half the mean pairwise Chamfer,
+  i.e. half of ``diversity_cm``). For a deterministic model or K = 1, ES = d(x, y), so one column
+  ranks regressors and samplers alike; lower is better. ES is strictly proper for the Euclidean
+  distance; Chamfer is not known to be a negative-definite kernel, so here it is a kernel score
+  of the same form that rewards a calibrated spread over a biased point (tested on toy cases),
+  not a proven proper score.
 """
 
 from __future__ import annotations
@@ -38,6 +69,8 @@ from pocoloco.ops.knn import knn_numpy
 
 #: Default F-score threshold in metres (1 cm).
 FSCORE_THRESHOLD_M = 0.01
+#: thresholds (cm) of the named F-scores of ``evaluate_frame`` (``fscore_1cm_pct``, ``fscore_garment_2cm_pct``, ...)
+FSCORE_THRESHOLDS_CM: tuple[int, ...] = (1, 2)
 
 _CM = 100.0  # metres -> cm
 _POP_SQ = 1e4  # m^2 -> 1e-4 m^2
@@ -239,6 +272,111 @@ def diversity_cm(
 
 
 # ---------------------------------------------------------------------------
+# garment / rest split, garment F-score
+# ---------------------------------------------------------------------------
+
+
+def _masked_mean(x: np.ndarray, mask: np.ndarray) -> float:
+    """Mean of ``x[mask]``; NaN (no warning) when the mask is empty."""
+    return float(x[mask].mean()) if mask.any() else float("nan")
+
+
+@dataclass(frozen=True)
+class SplitDistances:
+    """S2M / M2S in cm on the loose garment and on the rest of the scan (body, unknown labels).
+
+    s2m_garment / s2m_rest: mean over the GT garment / other points of the distance to the nearest
+    predicted point (NaN when the scan has no such point: a tight subject has no garment).
+    m2s_garment / m2s_rest: mean over the predicted points whose nearest GT point is garment / other
+    of the distance to that point (NaN when no predicted point is so labelled).
+    """
+
+    s2m_garment: float
+    s2m_rest: float
+    m2s_garment: float
+    m2s_rest: float
+
+
+def split_distances_cm(pred, gt, gt_labels, garment_labels: Sequence[int] = (LABEL_GARMENT,)) -> SplitDistances:
+    """S2M and M2S of ``pred`` (N, 3) against ``gt`` (M, 3) split by ``gt_labels`` (M,) into garment / rest, in cm."""
+    pred, gt = _cloud(pred, "pred"), _cloud(gt, "gt")
+    garment = _is_garment(_labels(gt_labels, gt), garment_labels)
+    d_gt, _ = nearest(gt, pred)
+    d_pred, idx = nearest(pred, gt)
+    return SplitDistances(_masked_mean(d_gt, garment) * _CM, _masked_mean(d_gt, ~garment) * _CM,
+                          _masked_mean(d_pred, garment[idx]) * _CM, _masked_mean(d_pred, ~garment[idx]) * _CM)  # fmt: skip
+
+
+def _garment_fscore(d_pred: np.ndarray, d_gt: np.ndarray, pred_garment: np.ndarray, gt_garment: np.ndarray,
+                    threshold_m: float) -> FScore:  # fmt: skip
+    if not gt_garment.any():
+        return FScore(float("nan"), float("nan"), float("nan"))
+    r = 100.0 * float(np.mean(d_gt[gt_garment] < threshold_m))
+    p = 100.0 * float(np.mean(d_pred[pred_garment] < threshold_m)) if pred_garment.any() else 0.0
+    return FScore(p, r, 0.0 if p + r == 0 else 2 * p * r / (p + r))
+
+
+def garment_fscore(pred, gt, gt_labels, threshold_m: float = FSCORE_THRESHOLD_M,
+                   garment_labels: Sequence[int] = (LABEL_GARMENT,)) -> FScore:  # fmt: skip
+    """F-score on the loose garment, in percent: precision over the predicted points whose nearest GT
+    point (``gt`` (M, 3), ``gt_labels`` (M,)) is garment, recall over the GT garment points.
+
+    All NaN when the scan has no garment point; precision 0 (so F 0) when it has but no predicted
+    point lands on it (the garment was dropped).
+    """
+    if not threshold_m > 0:
+        raise ValueError(f"threshold_m must be > 0, got {threshold_m}")
+    pred, gt = _cloud(pred, "pred"), _cloud(gt, "gt")
+    garment = _is_garment(_labels(gt_labels, gt), garment_labels)
+    d_pred, idx = nearest(pred, gt)
+    return _garment_fscore(d_pred, nearest(gt, pred)[0], garment[idx], garment, threshold_m)
+
+
+# ---------------------------------------------------------------------------
+# several samples per frame: best of K, energy score
+# ---------------------------------------------------------------------------
+
+
+def _samples(samples: Sequence[np.ndarray] | np.ndarray) -> list[np.ndarray]:
+    clouds = [_cloud(s, f"samples[{i}]") for i, s in enumerate(samples)]
+    if not clouds:
+        raise ValueError("at least one sample is needed")
+    return clouds
+
+
+def best_of_k_cm(samples: Sequence[np.ndarray] | np.ndarray, gt) -> float:
+    """Best of K: the smallest ``chamfer_cm`` of K >= 1 clouds (N_k, 3) against ``gt`` (M, 3), in cm."""
+    gt = _cloud(gt, "gt")
+    return float(min(chamfer_cm(c, gt) for c in _samples(samples)))
+
+
+def energy_score_from_chamfers(to_gt: Sequence[float], pairwise_mean_cm: float | None) -> float:
+    """ES from the K Chamfers to the scan and the mean Chamfer over the K (K - 1) / 2 sample pairs
+    (``diversity_cm``; None or ignored for K = 1): mean(to_gt) - pairwise_mean_cm / 2, in cm."""
+    to_gt = np.asarray(to_gt, dtype=np.float64)
+    if to_gt.ndim != 1 or len(to_gt) == 0:
+        raise ValueError(f"to_gt must be a non-empty (K,) sequence, got shape {to_gt.shape}")
+    if len(to_gt) == 1:
+        return float(to_gt[0])
+    if pairwise_mean_cm is None:
+        raise ValueError(f"K = {len(to_gt)} samples need their mean pairwise Chamfer")
+    # 1 / (2K(K-1)) * sum over ordered pairs = 1 / (K(K-1)) * sum over unordered pairs = mean pair / 2
+    return float(to_gt.mean() - 0.5 * pairwise_mean_cm)
+
+
+def energy_score_cm(samples: Sequence[np.ndarray] | np.ndarray, gt) -> float:
+    """Energy score (Gneiting & Raftery 2007) of K >= 1 clouds (N_k, 3) for the scan ``gt`` (M, 3), in cm:
+
+    ES = mean_k d(X_k, y) - 1 / (2 K (K - 1)) * sum_{k != l} d(X_k, X_l), d = ``chamfer_cm``;
+    K = 1 (a deterministic model): d(X_1, y). Lower is better.
+    """
+    gt = _cloud(gt, "gt")
+    clouds = _samples(samples)
+    to_gt = [chamfer_cm(c, gt) for c in clouds]
+    return energy_score_from_chamfers(to_gt, diversity_cm(clouds) if len(clouds) >= 2 else None)
+
+
+# ---------------------------------------------------------------------------
 # per frame and summary
 # ---------------------------------------------------------------------------
 
@@ -247,6 +385,9 @@ def diversity_cm(
 OUTLIER_CM: tuple[int, ...] = (5, 10)
 #: keys whose worst value over frames (and seeds) :func:`summarise` reports as ``<key>_max``
 MAX_KEYS: tuple[str, ...] = tuple(f"outlier_{cm}cm_pct" for cm in OUTLIER_CM)
+#: frame counts :func:`summarise` reports: count key -> the key whose finite entries it counts (the
+#: garment columns are NaN on frames without garment points, and their means skip those frames)
+FRAME_COUNTS: dict[str, str] = {"num_frames_garment": "s2m_garment_cm", "num_frames_m2s_garment": "m2s_garment_cm"}
 
 
 def evaluate_frame(
@@ -266,9 +407,13 @@ def evaluate_frame(
     gt_labels: (M,) or None (skips the loose-share keys).
     Keys (units in the name): s2m_cm, m2s_cm, chamfer_cm (PocoLoco);
     pop_s2m_e-4m2, pop_m2s_e-4m2, pop_chamfer_e-4m2 (POP); normal_l1_e-1 (POP);
-    fscore_pct, precision_pct, recall_pct (at fscore_threshold_m); outlier_5cm_pct,
+    fscore_pct, precision_pct, recall_pct (at fscore_threshold_m); fscore_{c}cm_pct,
+    precision_{c}cm_pct, recall_{c}cm_pct for c in ``FSCORE_THRESHOLDS_CM`` (1, 2); outlier_5cm_pct,
     outlier_10cm_pct (share of predicted points farther than 5 / 10 cm from every GT point);
-    loose_pred_pct, loose_gt_pct; num_pred, num_gt.
+    with gt_labels: loose_pred_pct, loose_gt_pct; s2m_garment_cm, s2m_rest_cm, m2s_garment_cm,
+    m2s_rest_cm (``split_distances_cm``, NaN where a part is empty); fscore_garment_{c}cm_pct,
+    precision_garment_{c}cm_pct, recall_garment_{c}cm_pct (``garment_fscore``, NaN without GT
+    garment points); always num_pred, num_gt.
     """
     pred, gt = _cloud(pred_points, "pred_points"), _cloud(gt_points, "gt_points")
     if not fscore_threshold_m > 0:
@@ -298,11 +443,23 @@ def evaluate_frame(
 
     f = _fscore(d_pred, d_gt, fscore_threshold_m)
     out["fscore_pct"], out["precision_pct"], out["recall_pct"] = f.fscore, f.precision, f.recall
+    for cm in FSCORE_THRESHOLDS_CM:
+        f = _fscore(d_pred, d_gt, cm / _CM)
+        out[f"fscore_{cm}cm_pct"], out[f"precision_{cm}cm_pct"], out[f"recall_{cm}cm_pct"] = f.fscore, f.precision, f.recall
 
     if gt_labels is not None:
-        garment = _is_garment(_labels(gt_labels, gt), garment_labels)
-        out["loose_pred_pct"] = 100.0 * float(garment[idx_pred].mean())
+        garment = _is_garment(_labels(gt_labels, gt), garment_labels)  # (M,)
+        pred_garment = garment[idx_pred]  # (N,) the label of the nearest GT point
+        out["loose_pred_pct"] = 100.0 * float(pred_garment.mean())
         out["loose_gt_pct"] = 100.0 * float(garment.mean())
+        out["s2m_garment_cm"] = _masked_mean(d_gt, garment) * _CM
+        out["s2m_rest_cm"] = _masked_mean(d_gt, ~garment) * _CM
+        out["m2s_garment_cm"] = _masked_mean(d_pred, pred_garment) * _CM
+        out["m2s_rest_cm"] = _masked_mean(d_pred, ~pred_garment) * _CM
+        for cm in FSCORE_THRESHOLDS_CM:
+            g = _garment_fscore(d_pred, d_gt, pred_garment, garment, cm / _CM)
+            out[f"fscore_garment_{cm}cm_pct"] = g.fscore
+            out[f"precision_garment_{cm}cm_pct"], out[f"recall_garment_{cm}cm_pct"] = g.precision, g.recall
     out["num_pred"], out["num_gt"] = float(len(pred)), float(len(gt))
     return out
 
@@ -310,10 +467,13 @@ def evaluate_frame(
 def summarise(frames: Iterable[Mapping[str, float]]) -> dict[str, float]:
     """Mean of every key over a list of ``evaluate_frame`` dicts (NaNs and missing keys skipped).
 
-    Adds ``num_frames``. Keys missing from some frames are averaged over the frames that have them.
-    The outlier shares (``MAX_KEYS``) also get ``<key>_max``, their worst value: the maximum over
-    the entries (or over the entries' own ``_max`` when they are summaries themselves, so a mean
-    over seeds, then over frames, still reports the single worst cloud).
+    Adds ``num_frames``. Keys missing from some frames (or NaN there) are averaged over the frames
+    that have them, and ``FRAME_COUNTS`` says over how many: ``num_frames_garment`` = entries with a
+    finite ``s2m_garment_cm`` (the scan has garment points), ``num_frames_m2s_garment`` = entries
+    with a finite ``m2s_garment_cm`` (reported when any entry has the key; an entry that is itself a
+    summary adds its own count). The outlier shares (``MAX_KEYS``) also get ``<key>_max``, their
+    worst value: the maximum over the entries (or over the entries' own ``_max`` when they are
+    summaries themselves, so a mean over seeds, then over frames, still reports the single worst cloud).
     """
     frames = list(frames)
     if not frames:
@@ -331,5 +491,32 @@ def summarise(frames: Iterable[Mapping[str, float]]) -> dict[str, float]:
         worst = [w for w in worst if w is not None and not np.isnan(w)]
         if worst:
             out[f"{k}_max"] = float(max(worst))
+    for count, k in FRAME_COUNTS.items():
+        if any(k in f or count in f for f in frames):
+            out[count] = float(sum(f[count] if count in f else float(k in f and not np.isnan(f[k])) for f in frames))
     out["num_frames"] = float(len(frames))
+    return out
+
+
+def summarise_samples(scores: Sequence[Mapping[str, float]], pairwise_mean_cm: float | None = None) -> dict[str, float]:
+    """One frame's metrics from the ``evaluate_frame`` dicts of its K >= 1 clouds (one per seed).
+
+    Every key is the mean over the K clouds (NaN skipped, ``summarise``; K = 1: the cloud's own
+    dict), plus best_of_k_chamfer_cm (min ``chamfer_cm`` over the K), energy_score_cm
+    (``energy_score_from_chamfers``; pairwise_mean_cm = ``diversity_cm`` of the K clouds, needed for
+    K >= 2) and num_samples = K. The seed-level counts (num_frames, ``FRAME_COUNTS``) are dropped,
+    so a summary over frames counts frames.
+    """
+    if not scores:
+        raise ValueError("summarise_samples needs at least one sample")
+    to_gt = [s["chamfer_cm"] for s in scores]
+    if len(scores) == 1:
+        out = dict(scores[0])
+    else:
+        out = summarise(scores)
+        for k in ("num_frames", *FRAME_COUNTS):
+            out.pop(k, None)
+    out["best_of_k_chamfer_cm"] = float(min(to_gt))
+    out["energy_score_cm"] = energy_score_from_chamfers(to_gt, pairwise_mean_cm)
+    out["num_samples"] = float(len(scores))
     return out

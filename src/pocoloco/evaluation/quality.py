@@ -8,9 +8,10 @@ the baselines are computed once (a baselines-only pass over the same frames). Ch
 is resumed up to K steps, or reused if it is already there); a model with neither is left out.
 
 Output (``--out``): ``quality.json`` (settings, checkpoints, the mean table, per-subject tables,
-per-frame rows of every model), ``quality.md`` (the tables and the papers' two claims checked on
-these numbers) and ``quality.png`` (one test pose per subject, every model side by side, points
-coloured by the label of their nearest GT point, rendered by :mod:`pocoloco.viz.render`).
+per-frame rows of every model, with best of K and the energy score per frame), ``quality.md`` (for
+all frames and per subject the main table and the garment / rest / F-score table, and the papers'
+two claims checked on these numbers) and ``quality.png`` (one test pose per subject, every model
+side by side, points coloured by the label of their nearest GT point, rendered by :mod:`pocoloco.viz.render`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ from pocoloco.engine.checkpoint import (
 )
 from pocoloco.engine.shipped import describe_checkpoint, resolve_ckpt_arg
 from pocoloco.evaluation.evaluate import (
+    FAIR_NOTE,
+    GARMENT_COLUMNS,
     TABLE_COLUMNS,
     EvalSettings,
     evaluate,
@@ -44,8 +47,8 @@ from pocoloco.utils.atomic import (
 )
 from pocoloco.viz.render import render_grid
 
-__all__ = ["BASELINE_ROWS", "COLUMNS", "PER_SUBJECT_ROWS", "QUALITY_ROWS", "TARGETS", "bench_quality", "check_claims", "check_targets",
-           "quality_markdown", "table_markdown"]
+__all__ = ["BASELINE_ROWS", "COLUMNS", "GARMENT_COLUMNS", "PER_SUBJECT_ROWS", "QUALITY_ROWS", "TARGETS", "bench_quality",
+           "check_claims", "check_targets", "garment_table_markdown", "quality_markdown", "table_markdown"]
 
 #: model rows: key -> (title, model kind, decomposition)
 QUALITY_ROWS: dict[str, tuple[str, str, bool | None]] = {
@@ -59,8 +62,9 @@ BASELINE_ROWS = {"nearest_frame": "nearest training frame", "posed_body": "posed
                  "gt_resample": "GT resample (noise floor)"}  # fmt: skip
 #: rows given as several checkpoints, one per subject (each trained with ``--subjects``)
 PER_SUBJECT_ROWS = ("pocoloco_per_subject",)
-#: columns of quality.md: evaluate's (same keys, headers, formats) minus F-score and the split
-#: diversity, plus time (finer: the peers take fractions of a second) and parameter count
+#: columns of quality.md: evaluate's (same keys, headers, formats) minus the split diversity, plus
+#: time (finer: the peers take fractions of a second) and parameter count; the second table
+#: (garment / rest split, F-scores at 1 and 2 cm) has evaluate's ``GARMENT_COLUMNS``
 COLUMNS = (
     *(c for c in TABLE_COLUMNS if c[0] not in ("fscore_pct", "diversity_garment_cm", "diversity_body_cm",
                                               "seconds_per_sample")),
@@ -271,6 +275,18 @@ def table_markdown(rows: dict[str, dict[str, float]]) -> str:
     return markdown_table(rows, {key: _title(key) for key in rows}, columns=COLUMNS, first="model")
 
 
+def garment_table_markdown(rows: dict[str, dict[str, float]]) -> str:
+    """The second table: S2M / M2S on the garment and the rest, F-scores at 1 and 2 cm ("" when no row has them)."""
+    if not any(k in r for k, _, _ in GARMENT_COLUMNS for r in rows.values()):
+        return ""
+    return markdown_table(rows, {key: _title(key) for key in rows}, columns=GARMENT_COLUMNS, first="model")
+
+
+def _tables(rows: dict[str, dict[str, float]]) -> list[str]:
+    garment = garment_table_markdown(rows)
+    return [table_markdown(rows)] + (["", garment] if garment else [])
+
+
 def check_claims(per_subject: dict[str, dict[str, dict[str, float]]]) -> list[dict[str, Any]]:
     """The papers' two claims on this data, computed from the per-subject tables:
 
@@ -309,16 +325,17 @@ def quality_markdown(report: dict[str, Any]) -> str:
              "Chamfer = S2M + M2S (unsquared, cm); CD 1e-4 m^2 = POP convention (squared, point-to-plane M2S); "
              "normal = L1 of unit normals x10; >5cm / >10cm % = share of generated points farther than that from "
              "every GT point (mean; max = the worst cloud); loose % = share of points whose nearest GT point is garment; "
-             "s/sample on this machine; params = all parameters incl. outfit codes.", "", "## Checkpoints", ""]  # fmt: skip
+             "s/sample on this machine; params = all parameters incl. outfit codes.", "", FAIR_NOTE, "",
+             "## Checkpoints", ""]  # fmt: skip
     for k, c in report["checkpoints"].items():
         if isinstance(c["path"], dict):
             models = ", ".join(f"{s}: `{p}` (step {c['step'][s]})" for s, p in c["path"].items())
             lines.append(f"- {_title(k)}: {models}, preset `{c['preset']}`")
         else:
             lines.append(f"- {_title(k)}: `{c['path']}` (step {c['step']}, preset `{c['preset']}`)")
-    lines += ["", "## All frames", "", table_markdown(report["means"])]
+    lines += ["", "## All frames", "", *_tables(report["means"])]
     for subject, rows in report["per_subject"].items():
-        lines += ["", f"## {subject}", "", table_markdown(rows)]
+        lines += ["", f"## {subject}", "", *_tables(rows)]
     if report["claims"]:
         lines += ["", "## The papers' claims on these numbers", ""]
         for c in report["claims"]:
