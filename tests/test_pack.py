@@ -201,3 +201,31 @@ def test_a_second_train_into_a_locked_run_folder_is_refused(tiny_pack, tmp_path,
     (tmp_path / "file").write_text("x")
     assert cli_main([*argv[:4], str(tmp_path / "file"), *argv[5:]]) == 2
     assert "is not a folder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["model.safetensors", "ema.safetensors", "training_state.pt", "meta.json"])
+def test_a_flipped_byte_anywhere_in_a_checkpoint_is_detected(tiny_pack, tmp_path, name):
+    """Every file of a checkpoint is checked against the SHA-256 its meta.json records (and meta.json
+    against its own): the damaged newest checkpoint is skipped for the older intact one."""
+    path, _ = tiny_pack
+    run = tmp_path / "run"
+    assert cli_main(["train", "--data", str(path), "--out", str(run), "--preset", "latent_tiny", "--steps", "2",
+                     "--ckpt-every", "1", "--no-progress", "--device", "cpu", "--threads", "1", "--sample-every", "0"]) == 0  # fmt: skip
+    f = run / "checkpoints" / "step_000002" / name
+    raw = bytearray(f.read_bytes())
+    if name == "meta.json":  # a digit of the normalisation: still valid JSON, a silently different value
+        i = raw.index(b'"std": ') + len(b'"std": 0.') + 2
+        raw[i] = ord("7") if raw[i] != ord("7") else ord("3")
+    else:
+        raw[len(raw) // 2] ^= 0x10
+    f.write_bytes(bytes(raw))
+    with pytest.raises(ckpt_io.CorruptCheckpointError, match="checksum mismatch"):
+        ckpt_io.load_checkpoint(f.parent)
+    with pytest.warns(ckpt_io.CheckpointFallbackWarning, match="step_000002"):
+        assert ckpt_io.load_checkpoint(run).step == 1
+    model = run / "model" / "model.safetensors"  # the exported model is sealed the same way
+    raw = bytearray(model.read_bytes())
+    raw[len(raw) // 2] ^= 0x01
+    model.write_bytes(bytes(raw))
+    with pytest.raises(ckpt_io.CorruptCheckpointError, match="checksum mismatch"):
+        ckpt_io.load_checkpoint(run / "model", training_state=False)

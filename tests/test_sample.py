@@ -152,6 +152,7 @@ def _other_model_ckpt(run, tmp_path):
     other = tmp_path / "other"
     shutil.copytree(run / "checkpoints" / "step_000002", other)
     meta = json.loads((other / "meta.json").read_text())
+    meta.pop("meta_sha256")  # a checkpoint of another model kind (its own seal: none, as older checkpoints)
     (other / "meta.json").write_text(json.dumps({**meta, "model_kind": "mystery"}))
     return other
 
@@ -302,6 +303,9 @@ def test_non_finite_half_weights_are_a_one_line_corrupt_checkpoint_error(run, tm
     state[name] = state[name].clone()
     state[name].view(-1)[0] = float("nan")
     save_file(state, str(f))
+    from pocoloco.engine.checkpoint import _write_meta
+
+    _write_meta(out, json.loads((out / "meta.json").read_text()), ["model.safetensors"])  # sealed as written
     with pytest.raises(CorruptCheckpointError) as e:
         load_checkpoint(out, training_state=False)
     msg = str(e.value)

@@ -27,12 +27,18 @@ Public API: :func:`save_checkpoint`, :func:`load_checkpoint` -> :class:`Checkpoi
 :func:`resolve_checkpoint`, :func:`read_meta`, :func:`export_for_sampling`,
 :func:`capture_rng_state`, :func:`restore_rng_state`, :func:`clean_stale_temporaries`.
 
+Checksums: ``meta.json`` records the size and SHA-256 of every other file of the checkpoint
+(``files``) and of its own content (``meta_sha256``, over the canonical JSON without that key);
+:func:`load_checkpoint` checks them, so a flipped byte anywhere is a damaged checkpoint (and the
+fallback above applies). Checkpoints written before the checksums existed load unchecked.
+
 Weights files may hold half-precision floats (``export_for_sampling(..., dtype="float16")``, how the
 shipped models are stored): loading casts fp16 / bf16 tensors to float32, the models' compute dtype.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import random
@@ -90,6 +96,43 @@ class CorruptCheckpointError(ValueError):
 
 class CheckpointFallbackWarning(UserWarning):
     """A damaged checkpoint was skipped in favour of an older intact one."""
+
+
+def _file_digest(path: Path) -> list:
+    """[bytes, SHA-256 hex] of a file."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            h.update(block)
+    return [path.stat().st_size, h.hexdigest()]
+
+
+def _meta_digest(meta: dict[str, Any]) -> str:
+    body = {k: v for k, v in meta.items() if k != "meta_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, allow_nan=False).encode()).hexdigest()
+
+
+def _write_meta(folder: Path, meta: dict[str, Any], files: list[str]) -> None:
+    """``meta.json`` with the digests of ``files`` (already written in ``folder``) and its own."""
+    meta = {k: v for k, v in meta.items() if k not in ("files", "meta_sha256")}
+    meta["files"] = {name: _file_digest(folder / name) for name in files}
+    meta["meta_sha256"] = _meta_digest(meta)
+    with open(folder / META_FILE, "w", encoding="utf-8") as f:
+        f.write(json.dumps(meta, indent=2, allow_nan=False) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _check_file(ckpt: Path, meta: dict[str, Any], name: str) -> None:
+    """A CorruptCheckpointError if ``name`` differs from the digest ``meta.json`` records for it."""
+    want = (meta.get("files") or {}).get(name)
+    f = ckpt / name
+    if want is None or not f.is_file():
+        return  # an older checkpoint without checksums, or a missing file (reported by the reader)
+    if f.stat().st_size != want[0]:
+        raise CorruptCheckpointError(f"{f}: {f.stat().st_size} bytes, meta.json records {want[0]} (truncated or damaged)")
+    if _file_digest(f)[1] != want[1]:
+        raise CorruptCheckpointError(f"{f}: checksum mismatch (the file was damaged after it was written)")
 
 
 def checkpoint_dir_name(step: int) -> str:
@@ -210,10 +253,7 @@ def save_checkpoint(
                 torch.save({"step": int(step), "optimizer": optimizer_state, "rng": rng_state}, f)
                 f.flush()
                 os.fsync(f.fileno())
-        with open(tmp / META_FILE, "w", encoding="utf-8") as f:
-            f.write(json.dumps(meta, indent=2, allow_nan=False) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        _write_meta(tmp, meta, [n for n in (MODEL_FILE, EMA_FILE, STATE_FILE) if (tmp / n).is_file()])
         if final.exists():  # re-saving a step (e.g. after a resume): move the old one aside first
             trash = root / f".old-{name}-{uuid.uuid4().hex[:8]}"
             os.replace(final, trash)
@@ -311,6 +351,8 @@ def read_meta(path: str | os.PathLike) -> dict[str, Any]:
     for key in ("model_kind", "preset", "step", "config", "normalisation"):
         if key not in meta:
             raise CorruptCheckpointError(f"{f}: corrupt checkpoint metadata (no {key!r})")
+    if "meta_sha256" in meta and _meta_digest(meta) != meta["meta_sha256"]:
+        raise CorruptCheckpointError(f"{f}: checksum mismatch (the metadata was damaged after it was written)")
     return meta
 
 
@@ -423,13 +465,17 @@ def _load_one(ckpt: Path, expect_model: str | None, expect_preset: str | None, m
                                       heading=bool(norm.get("heading", False)))  # fmt: skip
     except (KeyError, TypeError, ValueError) as e:
         raise CorruptCheckpointError(f"{ckpt / META_FILE}: corrupt normalisation stats ({e})") from None
+    _check_file(ckpt, meta, MODEL_FILE)
     model_state = _load_safetensors(ckpt / MODEL_FILE, map_location)
+    if meta.get("has_ema", False):
+        _check_file(ckpt, meta, EMA_FILE)
     ema_state = _load_safetensors(ckpt / EMA_FILE, map_location) if meta.get("has_ema", False) else None
     optimizer_state = rng_state = None
     if training_state and meta.get("has_training_state", False):
         f = ckpt / STATE_FILE
         if not f.is_file():
             raise CorruptCheckpointError(f"{f}: missing from the checkpoint")
+        _check_file(ckpt, meta, STATE_FILE)
         try:
             state = torch.load(f, map_location=map_location, weights_only=True)
         except Exception as e:
@@ -476,8 +522,8 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     try:
         save_file({k: v.contiguous() for k, v in state.items()}, str(tmp / MODEL_FILE))
         os.chmod(tmp / MODEL_FILE, 0o644)  # shipped with the package: readable by every user
-        with atomic_open(tmp / META_FILE, "w") as f:
-            json.dump(meta, f, indent=2)
+        _write_meta(tmp, meta, [MODEL_FILE])
+        os.chmod(tmp / META_FILE, 0o644)
         os.replace(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
