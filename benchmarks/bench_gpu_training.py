@@ -4,7 +4,7 @@ Training rows: the real training loop (:func:`pocoloco.engine.trainer.train`: th
 through the DataLoader, bf16 autocast, AdamW (fused on a GPU), gradient clipping, EMA; TF32 on a
 GPU) of a preset at batch B for ``--warmup`` steps, then ``--steps`` timed steps (the time between
 the two log records, both taken after a device synchronisation). points/s = steps/s x B x N (N the
-preset's points per training cloud). Peak GPU memory per row (``max_memory_allocated``).
+preset's points per training cloud, at most the pack's points per frame). Peak GPU memory per row (``max_memory_allocated``).
 
 Sampling rows: clouds per second drawn by :func:`pocoloco.methods.pocoloco.sampling.sample_clouds`
 (SDE-DPM-Solver++, 10 steps, bf16 where the device runs it natively) with the ``latent_small``
@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pocoloco.data.pack import is_pack, read_pack_meta
 from pocoloco.engine.trainer import scaled_lr, train
 from pocoloco.methods.pocoloco import train_preset
 from pocoloco.methods.pocoloco.sampling import sample_clouds
@@ -46,6 +47,8 @@ def train_row(data: str, preset: str, batch: int, device: torch.device, warmup: 
               compile_model: bool = False) -> dict:  # fmt: skip
     """Time the training loop of ``preset`` at batch ``batch`` (module docstring)."""
     base = train_preset(preset)
+    if is_pack(data):  # a pack holds P points per frame: train at min(N, P) points per cloud
+        base = base.replace(num_points=min(base.num_points, int(read_pack_meta(data)["points_per_frame"])))
     config = base.replace(batch_size=batch, lr=scaled_lr(base.lr, batch, base.batch_size), steps=warmup + steps,
                           warmup_steps=0, ckpt_every=0, sample_every=0, log_every=warmup if warmup else steps,
                           outfit_codes=True, body_shape=True, bf16=device.type == "cuda" or _cpu_bf16(),
@@ -149,9 +152,10 @@ def main(argv=None) -> dict:
             try:
                 show(train_row(args.data, preset, batch, device, args.cpu_warmup if cpu else args.warmup,
                                args.cpu_steps if cpu else args.steps, 0 if cpu else args.workers))  # fmt: skip
-            except torch.cuda.OutOfMemoryError:
-                print(f"train  {dev_name} {preset} B={batch}: out of memory", flush=True)
-                torch.cuda.empty_cache()
+            except Exception as e:  # noqa: BLE001 - out of memory, say: report the row and go on
+                print(f"train  {dev_name} {preset} B={batch}: failed ({type(e).__name__}: {str(e)[:200]})", flush=True)
+                if device.type == "cuda":
+                    torch.cuda.empty_cache()
         for n in args.cpu_sample_points if cpu and args.cpu_sample_points is not None else args.sample_points:
             show(sample_row(args.data, device, n, 1 if cpu else args.sample_clouds, 1 if cpu else args.repeats))
         if not cpu:

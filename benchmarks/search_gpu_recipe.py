@@ -102,9 +102,10 @@ def main(argv=None) -> dict:
         preset, batch = cand.split(":")
         try:
             row = run_candidate(args.data, preset, int(batch), args.seconds, device, args.workers)
-        except torch.cuda.OutOfMemoryError:
-            print(f"{cand}: out of memory", flush=True)
-            torch.cuda.empty_cache()
+        except Exception as e:  # noqa: BLE001 - out of memory, say: report the candidate and go on
+            print(f"{cand}: failed ({type(e).__name__}: {str(e)[:200]})", flush=True)
+            if device.type == "cuda":
+                torch.cuda.empty_cache()
             continue
         rows.append(row)
         print(f"{preset:13s} B={row['batch']:4d} lr={row['lr']:.2e} {row['steps']:6d} steps ({row['steps_per_s']:.2f}/s) "
