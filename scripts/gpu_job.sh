@@ -17,9 +17,9 @@ PY=${PY:-python3}
 export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 DEVICE=${DEVICE:-cuda}
 SEARCH_SECONDS=${SEARCH_SECONDS:-30}
-CANDIDATES=${CANDIDATES:-latent_small:64 latent_small:256 latent_base:64 latent_base:256}
+CANDIDATES=${CANDIDATES:-latent_small:256 latent_base:256 latent_base:1024}
 BENCH_ARGS=${BENCH_ARGS:---device cuda cpu --cpu-rows latent_small:16 --cpu-sample-points --compile latent_small:256}
-WORKERS=${WORKERS:-6}
+WORKERS=${WORKERS:-8}
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/job.log") 2>&1
 elapsed() { echo $(( $(date +%s) - START )); }
