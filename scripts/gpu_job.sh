@@ -35,10 +35,14 @@ if [ -z "${SKIP_BENCH:-}" ]; then
     || echo "bench failed (going on)"
 fi
 
-echo "== search ($(elapsed) s)"
-# shellcheck disable=SC2086
-$PY benchmarks/search_gpu_recipe.py --data "$PACK" --device "$DEVICE" --seconds "$SEARCH_SECONDS" \
-  --candidates $CANDIDATES --workers "$WORKERS" --json "$OUT/search.json" || echo "search failed (going on)"
+if [ -n "${BEST:-}" ]; then  # "PRESET BATCH STEPS_PER_S" from an earlier search: no search now
+  printf '{"best": {"preset": "%s", "batch": %s, "steps_per_s": %s}}' $BEST > "$OUT/search.json"
+else
+  echo "== search ($(elapsed) s)"
+  # shellcheck disable=SC2086
+  $PY benchmarks/search_gpu_recipe.py --data "$PACK" --device "$DEVICE" --seconds "$SEARCH_SECONDS" \
+    --candidates $CANDIDATES --workers "$WORKERS" --json "$OUT/search.json" || echo "search failed (going on)"
+fi
 read -r PRESET BATCH SPS < <($PY - "$OUT/search.json" <<'EOF'
 import json, sys
 try:

@@ -338,7 +338,8 @@ def init_distributed(device_arg: str | None) -> tuple[torch.device, bool]:
     if device.type == "cuda":
         if not torch.cuda.is_available():
             raise ValueError(f"--device {device_arg}: CUDA is not available")
-        torch.cuda.set_device(device)
+        if device.index is not None:  # "cuda" alone: the current device (set_device wants an index)
+            torch.cuda.set_device(device)
     started = False
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
