@@ -53,7 +53,13 @@ Metrics fair to a generative model (PocoLoco convention, cm):
   ranks regressors and samplers alike; lower is better. ES is strictly proper for the Euclidean
   distance; Chamfer is not known to be a negative-definite kernel, so here it is a kernel score
   of the same form that rewards a calibrated spread over a biased point (tested on toy cases),
-  not a proven proper score.
+  not a proven proper score. **Caveat, measured (BENCHMARKS.md, "PocoLoco on a GPU"):** between
+  two finite point sets, Chamfer also counts the point resampling (two 2,048-point resamples of
+  one scan are 2.82 cm apart), so the spread term of a sampler includes about half that noise
+  floor, which a deterministic row (scored once, K = 1) never subtracts: as computed here, ES
+  favours the sampler by up to ~1.4 cm at 2,048 points and does not yet rank it fairly against
+  POP / CloSET. A resampling-free distance, or the deterministic rows scored over K resamples,
+  is needed first.
 """
 
 from __future__ import annotations
