@@ -229,3 +229,15 @@ def test_a_flipped_byte_anywhere_in_a_checkpoint_is_detected(tiny_pack, tmp_path
     model.write_bytes(bytes(raw))
     with pytest.raises(ckpt_io.CorruptCheckpointError, match="checksum mismatch"):
         ckpt_io.load_checkpoint(run / "model", training_state=False)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["sample", "--joints", "demo:skirt", "--seed", "-1", "--out", "OUT"], "--seed must be in [0, 2**62], got -1"),
+    (["sample", "--joints", "demo:skirt", "--seed", str(2**64), "--out", "OUT"], "--seed must be in [0, 2**62]"),
+    (["data", "synth", "--preset", "tiny", "--shard", "", "--out", "OUT"], "--shard must be K/N"),
+])  # fmt: skip
+def test_seed_and_shard_values_are_one_line_errors(tmp_path, capsys, argv, message):
+    out = tmp_path / "out"
+    assert cli_main([str(out) if a == "OUT" else a for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1 and not out.exists()

@@ -19,7 +19,7 @@ from pocoloco.methods import Method, load_method
 from pocoloco.utils.atomic import output_folder
 from pocoloco.utils.hardware import bf16_is_fast
 
-__all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "add_any_pose_argument", "add_bf16_argument", "resolve_bf16", "add_app_arguments", "add_device_argument", "add_threads_argument",
+__all__ = ["EXIT_USER_ERROR", "MAX_SEED", "USER_ERRORS", "add_any_pose_argument", "check_seeds", "add_bf16_argument", "resolve_bf16", "add_app_arguments", "add_device_argument", "add_threads_argument",
            "apply_threads", "check_app_args", "choose_device", "pick_outfit", "steps_defaults", "console", "load_method_from_args", "progress_bar",
            "run_command"]  # fmt: skip
 
@@ -50,6 +50,7 @@ def run_command(func, args: argparse.Namespace, prog: str = "pocoloco") -> int:
                 if (name == "ckpt" or name.startswith("ckpt_")) and isinstance(value, str):
                     setattr(args, name, str(resolve_ckpt_arg(value)))
             apply_threads(getattr(args, "threads", None))
+            check_seeds(args)
             func(args)
     except USER_ERRORS as e:
         if os.environ.get("POCOLOCO_DEBUG"):
@@ -67,6 +68,19 @@ def run_command(func, args: argparse.Namespace, prog: str = "pocoloco") -> int:
 def add_threads_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads (default: torch's, all cores; 1 makes runs bit-reproducible)")  # fmt: skip
+
+
+#: the largest seed a command takes: numpy and torch take seeds below 2**63; output k uses SEED + k
+MAX_SEED = 2**62
+
+
+def check_seeds(args: argparse.Namespace) -> None:
+    """``--seed`` / ``--seeds``: one line unless 0 <= seed <= MAX_SEED (before any work)."""
+    for name in ("seed", "seeds"):
+        value = getattr(args, name, None)
+        for seed in value if isinstance(value, (list, tuple)) else [value]:
+            if seed is not None and not 0 <= seed <= MAX_SEED:
+                raise ValueError(f"--{name} must be in [0, 2**62], got {seed}")
 
 
 def apply_threads(threads: int | None) -> None:

@@ -37,7 +37,7 @@ def _parse_shard(text: str) -> tuple[int, int]:
 
 def _check_synth_modes(args: argparse.Namespace) -> None:
     """One mode at a time: a shard, the finalisation, a launch or a whole run; one-line errors."""
-    modes = [f for f, on in (("--shard", args.shard), ("--finalize-only", args.finalize_only),
+    modes = [f for f, on in (("--shard", args.shard is not None), ("--finalize-only", args.finalize_only),
                              ("--launch", args.launch)) if on]  # fmt: skip
     if len(modes) > 1:
         raise ValueError(f"{' and '.join(modes)} cannot be combined")
@@ -67,7 +67,7 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
     )
 
     _check_synth_modes(args)
-    shard = _parse_shard(args.shard) if args.shard else None
+    shard = _parse_shard(args.shard) if args.shard is not None else None  # --shard '' is an error, not "no shard"
     config = synth_preset(args.preset)
     overrides = {
         k: v
