@@ -241,3 +241,31 @@ def test_seed_and_shard_values_are_one_line_errors(tmp_path, capsys, argv, messa
     assert cli_main([str(out) if a == "OUT" else a for a in argv]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_nan_weights_are_named_when_loaded(tiny_pack, tmp_path, capsys):
+    """A diverged run's NaN weights: one line naming the file and the tensor (not a later
+    'x contains NaN' from the sampler), and ``sample`` refuses the checkpoint."""
+    from safetensors.torch import load_file, save_file
+
+    from pocoloco.engine.checkpoint import _write_meta
+
+    path, _ = tiny_pack
+    run = tmp_path / "run"
+    assert cli_main(["train", "--data", str(path), "--out", str(run), "--preset", "latent_tiny", "--steps", "1",
+                     "--no-progress", "--device", "cpu", "--threads", "1", "--sample-every", "0"]) == 0  # fmt: skip
+    capsys.readouterr()
+    ck = run / "checkpoints" / "step_000001"
+    for name in ("model.safetensors", "ema.safetensors"):
+        state = load_file(str(ck / name))
+        key = sorted(state)[0]
+        state[key].view(-1)[0] = float("nan")
+        save_file(state, str(ck / name))
+    _write_meta(ck, json.loads((ck / "meta.json").read_text()),
+                ["model.safetensors", "ema.safetensors", "training_state.pt"])  # sealed as a diverged run writes them
+    with pytest.raises(ckpt_io.CorruptCheckpointError, match=rf"{key!r} holds 1 non-finite value: NaN or infinite"):
+        ckpt_io.load_checkpoint(ck)
+    assert cli_main(["sample", "--ckpt", str(ck), "--joints", "demo:skirt", "--num", "1", "--steps", "2", "--points", "16",
+                     "--no-render", "--out", str(tmp_path / "s")]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert "NaN or infinite" in err and len(err.splitlines()) == 1

@@ -364,7 +364,8 @@ def one_line(e: BaseException) -> str:
 
 def _load_safetensors(f: Path, device: str | torch.device) -> dict[str, torch.Tensor]:
     """The tensors of a weights file; half-precision floats (fp16 / bf16) cast to float32, the
-    models' compute dtype (a non-finite one is a :class:`CorruptCheckpointError`)."""
+    models' compute dtype. A non-finite float (NaN, inf) anywhere is a :class:`CorruptCheckpointError`
+    naming the tensor (a diverged run's weights, not a user's pose, are what is wrong)."""
     from safetensors.torch import load_file
 
     if not f.is_file():
@@ -376,10 +377,10 @@ def _load_safetensors(f: Path, device: str | torch.device) -> dict[str, torch.Te
     for k, v in state.items():
         if v.dtype in _HALF_DTYPES:
             state[k] = v = v.float()
-            if not bool(torch.isfinite(v).all()):
-                bad = int((~torch.isfinite(v)).sum())
-                raise CorruptCheckpointError(f"{f}: corrupt weights file ({k!r} holds {bad} non-finite "
-                                             f"half-precision value{'s' if bad > 1 else ''})")  # fmt: skip
+        if v.is_floating_point() and not bool(torch.isfinite(v).all()):  # NaN weights: say so here, not later
+            bad = int((~torch.isfinite(v)).sum())
+            raise CorruptCheckpointError(f"{f}: corrupt weights file ({k!r} holds {bad} non-finite "
+                                         f"value{'s' if bad > 1 else ''}: NaN or infinite)")  # fmt: skip
     return state
 
 
