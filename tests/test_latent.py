@@ -238,7 +238,7 @@ def test_config_round_trip_and_presets():
 
 def test_preset_parameter_counts():
     counts = {name: LatentDenoiser(cfg).num_parameters() for name, cfg in LATENT_PRESETS.items()}
-    assert counts == {"paper": 29_655_043, "small": 3_806_723, "tiny": 43_747}
+    assert counts == {"paper": 29_655_043, "base": 9_100_227, "small": 3_806_723, "tiny": 43_747}
 
 
 @pytest.mark.parametrize(
@@ -272,7 +272,7 @@ def test_unknown_fields_and_presets():
         LatentDenoiserConfig.from_dict({**LATENT_PRESETS["tiny"].to_dict(), "latent_count": 3})
     with pytest.raises(ValueError, match="unknown LatentDenoiserConfig field.*: latent_count$"):
         LATENT_PRESETS["tiny"].replace(latent_count=3)
-    with pytest.raises(ValueError, match="unknown latent denoiser preset 'huge'; choose one of: paper, small, tiny"):
+    with pytest.raises(ValueError, match="unknown latent denoiser preset 'huge'; choose one of: paper, small, base, tiny"):
         latent_preset("huge")
 
 

@@ -65,7 +65,7 @@ Why the network is resolution-free in practice (trained on 1-2K points, sampled 
   helpful. The exact invariance is tested: feeding every point twice changes no output.
 
 Parameter counts (3-channel points, ``LATENT_PRESETS``): ``paper`` 29,655,043 (PocoLoco ``paper``
-34,218,499), ``small`` 3,806,723 (PocoLoco ``small`` 1,135,491), ``tiny`` 43,747.
+34,218,499), ``base`` 9,100,227 (one GPU), ``small`` 3,806,723 (PocoLoco ``small`` 1,135,491), ``tiny`` 43,747.
 """
 
 from __future__ import annotations
