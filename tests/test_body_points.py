@@ -104,9 +104,12 @@ def test_cli_sample_eval_and_clear_errors(body_run, tiny_dataset, skirt_frame, t
                  "--seeds", "0", "--sampler", "ddim", "--steps", "2", "--no-baselines",
                  "--out", str(tmp_path / "e")]) == 0, capsys.readouterr().err  # fmt: skip
     capsys.readouterr()
-    err = _one_line_error(capsys, main(["sample", "--ckpt", str(body_run), "--joints", "demo:skirt", "--outfit", "skirt",
-                                        "--out", str(tmp_path / "x")]))  # fmt: skip
+    np.save(tmp_path / "joints.npy", read_frame(path).joints)  # bare joints: no body to condition on
+    err = _one_line_error(capsys, main(["sample", "--ckpt", str(body_run), "--joints", str(tmp_path / "joints.npy"),
+                                        "--outfit", "skirt", "--out", str(tmp_path / "x")]))  # fmt: skip
     assert "need the posed body, not only joints" in err
+    assert main(["sample", "--ckpt", str(body_run), "--joints", "demo:skirt", "--outfit", "skirt", "--points", "40",
+                 "--num", "1", "--steps", "2", "--no-render", "--out", str(tmp_path / "d")]) == 0  # demo poses carry the body
     fr = read_frame(path)
     write_ply(tmp_path / "partial.ply", fr.points[:3000], fr.normals[:3000])
     err = _one_line_error(capsys, main(["complete", "--ckpt", str(body_run), "--partial", str(tmp_path / "partial.ply"),

@@ -83,9 +83,9 @@ def _limbs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     included: the thin parts where propagated orientation flips). Returns joints (24, 3), points
     (n, 3) and outward directions (n, 3), unit."""
     from pocoloco.body.skeleton import JOINT_PARENTS
-    from pocoloco.data.poses import demo_pose_path
+    from pocoloco.data.poses import load_joints
 
-    J = np.load(demo_pose_path("tight")).astype(np.float64)
+    J = load_joints("demo:tight").astype(np.float64)
     bones = [(p, c) for c, p in enumerate(JOINT_PARENTS) if p >= 0]
     rng = np.random.default_rng(seed)
     b = rng.integers(0, len(bones), n)
@@ -368,9 +368,9 @@ def test_cli_refine_body_bad_joints_one_line_nothing_written(tmp_path, capsys, j
     src = tmp_path / "in.ply"
     write_ply(src, _sphere(500) + [0, 0, 1.0])
     np.save(tmp_path / "j17.npy", np.zeros((17, 3)))
-    from pocoloco.data.poses import demo_pose_path
+    from pocoloco.data.poses import load_joints
 
-    np.save(tmp_path / "far.npy", np.load(demo_pose_path("tight")) + 10.0)  # a body, 10 m from the cloud
+    np.save(tmp_path / "far.npy", load_joints("demo:tight") + 10.0)  # a body, 10 m from the cloud
     argv = ["mesh", str(src), "--refine-body", "--out", str(tmp_path / "o.ply")]
     if joints:
         argv += ["--joints", str(tmp_path / joints)]

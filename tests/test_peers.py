@@ -170,7 +170,7 @@ def test_pop_gives_more_points_than_its_query_map(runs, test_frame):
     [
         ({"--outfit": "nobody"}, "outfit 'nobody' was never trained"),
         ({"--outfit": "7"}, "outfit '7' was never trained"),
-        ({"--joints": "demo:skirt"}, "need the posed body, not only joints"),
+        ({"--joints": "demo:nobody"}, "no such demo pose"),
         ({"--joints": "JOINTS"}, "need the posed body, not only joints"),
         ({"--num": "3"}, "deterministic"),
         ({"--points": "0"}, "--points must be >= 1"),
@@ -460,7 +460,7 @@ def test_describe_checkpoint_names_shipped_and_relative_paths(tmp_path, monkeypa
     from pocoloco.engine.shipped import ASSETS_DIR, describe_checkpoint
 
     assert describe_checkpoint(ASSETS_DIR / "pop_small") == "default:pop"
-    assert describe_checkpoint(ASSETS_DIR / "pocoloco_small") == "default"
+    assert describe_checkpoint(ASSETS_DIR / "pocoloco_medium") == "default"
     (tmp_path / "runs" / "a").mkdir(parents=True)
     monkeypatch.chdir(tmp_path)
     assert describe_checkpoint(tmp_path / "runs" / "a") == "runs/a"

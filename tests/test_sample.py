@@ -197,15 +197,23 @@ def test_pocoloco_cli_has_sample_and_reports_a_missing_checkpoint(tmp_path):
 
 # ------------------------------------------------------------------------ shipped model + poses
 def test_demo_poses_load_and_unknown_names_fail():
-    from pocoloco.data.poses import demo_pose_names
+    """One demo pose per outfit of ``medium``; ``demo:KIND`` is the first outfit of that kind; each
+    carries anny pose parameters that re-pose the outfit's body onto the stored joints."""
+    from pocoloco.data.poses import demo_pose_names, demo_pose_outfit, demo_pose_path, load_body_pose
 
-    assert demo_pose_names() == ["shirt", "skirt", "tight"]
-    for name in demo_pose_names():
+    names = demo_pose_names()
+    assert len(names) == 14 and {"skirt_a", "dress_b", "tight_a", "trousers_b"} <= set(names)
+    for name in names:
         j = load_joints(f"demo:{name}")
         assert j.shape == (24, 3) and np.isfinite(j).all()
         assert 0.5 < j[:, 2].max() - j[:, 2].min() < 2.5  # a standing human's height span, metres
-    with pytest.raises(ValueError, match="no such demo pose; choose one of: shirt, skirt, tight"):
-        load_joints("demo:dancer")
+        assert demo_pose_outfit(name) == name
+    assert demo_pose_path("skirt") == demo_pose_path("skirt_a") and demo_pose_outfit("skirt") == "skirt_a"
+    pose = load_body_pose("demo:skirt", {}, False)  # the posed body, as POP and CloSET take it
+    assert pose.has_body and pose.body_vertices.shape[1] == 3
+    for bad in ("dancer", "", "skirt_a/../x"):
+        with pytest.raises(ValueError, match="no such demo pose; choose one of: dress, maxi, shirt, skirt"):
+            load_joints(f"demo:{bad}")
 
 
 def test_export_for_sampling_keeps_the_ema_weights_and_cannot_resume(run, frame, tmp_path):
@@ -324,12 +332,10 @@ def test_default_checkpoint_samples_a_demo_pose(tmp_path, capsys):
         return
     model, norm, cfg = load_denoiser(DEFAULT_MODEL_DIR)
     assert cfg.preset == "latent_small" and cfg.architecture == "latent"
-    # the previous default, the paper's all-points transformer, ships as default:transformer
-    old = load_denoiser(resolve_ckpt_arg("default:transformer"))
-    assert old.config.preset == "small" and old.config.architecture == "transformer"
     out = tmp_path / "o"
     assert cli_main(["sample", "--joints", "demo:shirt", "--num", "2", "--points", "256", "--steps", "4", "--out", str(out)]) == 0
     assert (out / "hypotheses.png").is_file() and len(list(out.glob("sample_*.ply"))) == 2
+    assert "shirt_a" in (out / "sample.json").read_text()  # demo:shirt is worn by the outfit it was captured on
 
 
 def test_export_model_cli(run, tmp_path):
@@ -350,14 +356,15 @@ def test_bf16_sampling_stays_close_to_float32():
     right shape, closer to the float32 sample of the same seed than two seeds are to each other."""
     from scipy.spatial import cKDTree
 
-    from pocoloco.data.poses import demo_pose_path
     from pocoloco.engine.shipped import DEFAULT_MODEL_DIR
 
-    model, norm, cfg = load_denoiser(DEFAULT_MODEL_DIR)
-    joints = np.load(demo_pose_path("skirt"))
-    kw = dict(sampler="dpm++", steps=6, seeds=[0, 1], clip=5.0)
-    fp32 = sample_clouds(model, norm, cfg, joints, 2, 512, **kw).points
-    bf16 = sample_clouds(model, norm, cfg, joints, 2, 512, bf16=True, **kw).points
+    from pocoloco.methods import SamplerOptions, load_method
+
+    method = load_method(DEFAULT_MODEL_DIR)
+    outfit = method.outfit_id("skirt_a")
+    pose = method.load_pose("demo:skirt", outfit)
+    fp32 = method.predict(pose, 512, [0, 1], outfit, SamplerOptions("dpm++", 6, clip=5.0)).points
+    bf16 = method.predict(pose, 512, [0, 1], outfit, SamplerOptions("dpm++", 6, clip=5.0, bf16=True)).points
     assert bf16.shape == fp32.shape and bf16.dtype == np.float32 and np.isfinite(bf16).all()
 
     def chamfer(a, b):
@@ -374,12 +381,10 @@ def test_bf16_sampling_stays_close_to_float32():
 def test_implausible_skeletons_are_refused_unless_asked(tmp_path, capsys, make, message):
     """Joints far outside any body the model saw give one line naming the problem and the override,
     instead of a cloud hundreds of km wide; ``--any-pose`` samples them anyway."""
-    from pocoloco.data.poses import demo_pose_path
-
-    bad = make(np.load(demo_pose_path("tight")).astype(np.float64))
+    bad = make(load_joints("demo:tight").astype(np.float64))
     np.save(tmp_path / "bad.npy", bad)
-    argv = ["sample", "--joints", str(tmp_path / "bad.npy"), "--num", "1", "--steps", "2", "--points", "16",
-            "--no-render", "--out", str(tmp_path / "out")]  # fmt: skip
+    argv = ["sample", "--joints", str(tmp_path / "bad.npy"), "--outfit", "tight_a", "--num", "1", "--steps", "2",
+            "--points", "16", "--no-render", "--out", str(tmp_path / "out")]  # fmt: skip
     assert cli_main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and "--any-pose" in err and len(err.splitlines()) == 1, err

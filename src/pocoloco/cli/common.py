@@ -4,7 +4,9 @@ model from ``--ckpt``, progress bars and the options of the apps."""
 from __future__ import annotations
 
 import argparse
+import errno
 import os
+import re
 import sys
 import warnings
 from contextlib import contextmanager
@@ -12,7 +14,7 @@ from typing import Any
 
 import torch
 
-from pocoloco.data.poses import subject_of_spec
+from pocoloco.data.poses import demo_pose_outfit, subject_of_spec
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods import Method, load_method
@@ -52,16 +54,52 @@ def run_command(func, args: argparse.Namespace, prog: str = "pocoloco") -> int:
             apply_threads(getattr(args, "threads", None))
             check_seeds(args)
             func(args)
-    except USER_ERRORS as e:
+    except (*USER_ERRORS, OSError) as e:  # every OSError: the OS refused a path the user gave us
         if os.environ.get("POCOLOCO_DEBUG"):
             raise
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        print(f"{prog}: error: {msg}", file=sys.stderr)
+        print(f"{prog}: error: {error_line(e)}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print(f"{prog}: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
     return 0
+
+
+#: the hidden temporary file of an atomic write (``utils.atomic``): ``.NAME.<12 hex>.tmp``
+_TMP_NAME = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{12}\.tmp$")
+_OS_ERRORS = {
+    errno.EEXIST: "already exists",
+    errno.ENOENT: "no such file or folder",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "permission denied",
+    errno.ENOSPC: "no space left on the device",
+    errno.EROFS: "the filesystem is read-only",
+    errno.ENOTDIR: "a part of this path is a file, not a folder",
+    errno.EISDIR: "is a folder, not a file",
+    errno.ENAMETOOLONG: "a file or folder name in this path is longer than the filesystem allows (255 bytes)",
+}
+
+
+def user_path(path: str | os.PathLike) -> str:
+    """The path the user named: for the hidden temporary file of an atomic write, its destination."""
+    head, tail = os.path.split(os.fspath(path))
+    m = _TMP_NAME.match(tail)
+    return os.path.join(head, m["name"]) if m else os.fspath(path)
+
+
+def error_line(e: BaseException) -> str:
+    """One line for a user error; an ``OSError`` with a path names the user's path and the reason
+    in words (``out/x: already exists``), never a hidden temporary file."""
+    if isinstance(e, OSError) and e.errno is not None and e.filename is not None:
+        path = user_path(e.filename)
+        if len(path) > 120:
+            path = f"{path[:60]}...{path[-40:]}"
+        reason = _OS_ERRORS.get(e.errno, e.strerror or type(e).__name__)
+        if e.errno == errno.EEXIST and os.path.isfile(user_path(e.filename)):
+            reason = "already exists and is a file (name a folder that does not exist yet)"
+        return f"{path}: {reason}"
+    msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+    return msg
 
 
 # ------------------------------------------------------------------------- devices, threads
@@ -129,9 +167,9 @@ def choose_device(arg: str | None) -> torch.device:
 
 
 def pick_outfit(method: Method, outfit: str | None, spec: str | None) -> int | None:
-    """``--outfit``'s id: the one named, else the subject of a ``DATASET:...`` spec, else the name of
-    a ``demo:NAME`` pose when the model has an outfit of that name; None for models without outfits
-    (which refuse an ``--outfit``); a one-line error when none can be chosen."""
+    """``--outfit``'s id: the one named, else the subject of a ``DATASET:...`` spec, else for
+    ``demo:NAME`` the outfit NAME if the model has it, else the one the pose was captured on; None
+    for models without outfits (which refuse an ``--outfit``); a one-line error when none can be chosen."""
     names = method.outfit_names()
     if not names:
         method.outfit_id(outfit)  # refuses a given outfit
@@ -139,7 +177,10 @@ def pick_outfit(method: Method, outfit: str | None, spec: str | None) -> int | N
     name = outfit
     if name is None and spec is not None:
         spec = os.fspath(spec)
-        name = subject_of_spec(spec) or (spec[len("demo:"):] if spec.startswith("demo:") else None)
+        name = subject_of_spec(spec)
+        if spec.startswith("demo:"):  # the outfit of that name if the model has one, else the pose's own
+            typed = spec[len("demo:"):]
+            name = typed if typed in names else demo_pose_outfit(typed)
     if name is None or (outfit is None and name not in names):
         raise ValueError(f"--outfit is required (this {method.kind} checkpoint has outfits {', '.join(names)})")
     return method.outfit_id(name)
@@ -191,7 +232,7 @@ def add_app_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
     parser.add_argument("--steps", type=int, help=f"sampler steps (default: {steps_defaults()}; at most t)")
     parser.add_argument("--seed", type=int, default=0, help="output k uses seed SEED + k (default 0)")
     parser.add_argument("--outfit", help="models that know who wears what: outfit name or id (default: the subject "
-                                         "of a DATASET:... pose or motion, or NAME of demo:NAME if it is an outfit)")  # fmt: skip
+                                         "of a DATASET:... pose or motion, or the outfit a demo:NAME pose was captured on)")  # fmt: skip
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
     add_any_pose_argument(parser)
     add_device_argument(parser)

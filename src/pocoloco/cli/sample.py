@@ -82,19 +82,20 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco sample`` options."""
     parser.add_argument("--ckpt", default="default",
                         help="checkpoint folder, checkpoints folder or run folder of any model; 'default' (the "
-                             "default) = the PocoLoco model shipped with pocoloco (latent denoiser), default:transformer "
-                             "the previous one (the paper's transformer), default:pop / default:closet its shipped peers")  # fmt: skip
+                             "default) = the PocoLoco model shipped with pocoloco (latent denoiser, trained on medium), "
+                             "default:pop / default:closet its shipped peers")  # fmt: skip
     parser.add_argument("--joints", default="demo:skirt",
                         help="pose: .npy/.npz (24, 3) joints, a LOOSE-style joints .txt, a dataset frame .npz, "
-                             "DATASET:subject/split/sequence/index, or demo:skirt|shirt|tight (a shipped pose; "
-                             "default demo:skirt). POP / CloSET need the posed body: a dataset frame, or an .npz "
-                             "with anny pose parameters joint_rotvecs (24, 3)")  # fmt: skip
+                             "DATASET:subject/split/sequence/index, or demo:OUTFIT (a shipped pose, one per outfit: "
+                             "demo:skirt_a ... demo:trousers_b; demo:skirt = demo:skirt_a; default demo:skirt). POP / "
+                             "CloSET need the posed body: a dataset frame, demo:OUTFIT, or an .npz with anny pose "
+                             "parameters joint_rotvecs (24, 3)")  # fmt: skip
     parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
     parser.add_argument("--num", type=int, default=None,
                         help="K hypotheses to draw (default 3; POP / CloSET are deterministic: 1)")  # fmt: skip
     parser.add_argument("--outfit",
                         help="models with outfits (POP, CloSET, PocoLoco --outfit-codes): outfit name or id (default: the "
-                             "subject of a DATASET:... frame, or NAME of demo:NAME if it is an outfit)")  # fmt: skip
+                             "subject of a DATASET:... frame, or the outfit a demo:NAME pose was captured on)")  # fmt: skip
     parser.add_argument("--sampler", default="dpm++sde",
                         help=f"one of {', '.join(SAMPLER_STEPS)} (default dpm++sde: SDE-DPM-Solver++, {SAMPLER_STEPS['dpm++sde']} steps)")  # fmt: skip
     parser.add_argument("--steps", type=int,

@@ -9,8 +9,10 @@ Where poses come from (``--joints`` on the command line, :func:`load_joints` / :
 - a ``.npy`` (J, 3) array, or a ``.npz`` with a ``joints`` array (this covers dataset frame files);
 - a LOOSE-style joints text file (per line a frame id and 3J floats);
 - a dataset frame ``DATASET:subject/split/sequence/index`` (joints, and the posed body);
-- ``demo:NAME``, a pose shipped with the package (``demo:skirt``, ``demo:shirt``, ``demo:tight``:
-  the joints of frame 40 of the test sequence of each subject of the ``small`` dataset);
+- ``demo:NAME``, a pose shipped with the package, one per outfit of the ``medium`` dataset
+  (``demo:skirt_a`` ... ``demo:trousers_b``: the last frame of that subject's first test sequence,
+  its joints and anny pose parameters, so every method can take it); ``demo:KIND`` (``demo:skirt``)
+  is the first outfit of that kind (``skirt_a``);
 - an ``.npz`` with anny pose parameters ``joint_rotvecs`` (24, 3) (+ optional ``root_translation``),
   posed with a subject's phenotype (the body-driven methods).
 """
@@ -43,33 +45,49 @@ __all__ = [
     "check_joints",
     "dataset_frame_path",
     "demo_pose_names",
+    "demo_pose_outfit",
     "demo_pose_path",
     "is_anny_pose_file",
     "load_body_pose",
     "load_joints",
     "motion_path_of",
+    "outfit_of_spec",
     "pose_from_anny_file",
     "pose_from_frame",
     "pose_spec_kind",
     "subject_of_spec",
 ]
 
-#: (24, 3) joints in metres of one test frame per subject of the ``small`` dataset (frame 40 of
-#: its test sequence), usable as ``--joints demo:NAME``
+#: one ``NAME.npz`` per outfit of the ``medium`` dataset: ``joints`` (24, 3) metres, anny
+#: ``joint_rotvecs`` (24, 3) and ``root_translation`` (3,), ``outfit`` (the subject wearing it),
+#: ``source`` (the dataset frame) and ``loose_pct`` (the scan's share of loose-garment points);
+#: written by ``benchmarks/make_demo_poses.py``, usable as ``--joints demo:NAME``
 DEMO_POSES_DIR = Path(__file__).resolve().parent.parent / "assets" / "poses"
 
 
 def demo_pose_names() -> list[str]:
-    """Names of the shipped demo poses (``skirt``, ``shirt``, ``tight``)."""
-    return sorted(p.stem for p in DEMO_POSES_DIR.glob("*.npy"))
+    """Names of the shipped demo poses (one per outfit: ``dress_a`` ... ``trousers_b``)."""
+    return sorted(p.stem for p in DEMO_POSES_DIR.glob("*.npz"))
 
 
 def demo_pose_path(name: str) -> Path:
-    """The .npy of a shipped demo pose; a one-line error naming the known ones otherwise."""
-    path = DEMO_POSES_DIR / f"{name}.npy"
-    if not path.is_file():
-        raise ValueError(f"demo:{name}: no such demo pose; choose one of: {', '.join(demo_pose_names())}")
-    return path
+    """The .npz of demo pose ``name``, or of the first outfit ``name_*`` (``skirt`` -> ``skirt_a``);
+    a one-line error naming the known ones otherwise."""
+    path = DEMO_POSES_DIR / f"{name}.npz"
+    if name and "/" not in name and path.is_file():
+        return path
+    kinds = [n for n in demo_pose_names() if n.startswith(f"{name}_")]
+    if name and "/" not in name and kinds:
+        return DEMO_POSES_DIR / f"{kinds[0]}.npz"
+    names = demo_pose_names()
+    aliases = sorted({n.rsplit("_", 1)[0] for n in names if "_" in n})
+    raise ValueError(f"demo:{name}: no such demo pose; choose one of: {', '.join(aliases + names)}")
+
+
+def demo_pose_outfit(name: str) -> str:
+    """The outfit demo pose ``name`` was captured on (``skirt`` -> ``skirt_a``)."""
+    with np.load(demo_pose_path(name), allow_pickle=False) as z:
+        return str(z["outfit"]) if "outfit" in z.files else Path(demo_pose_path(name)).stem
 
 
 # ------------------------------------------------------------------------------------ joints
@@ -181,7 +199,7 @@ def load_joints(spec: str | os.PathLike, frame_id: int | None = None, num_joints
       :func:`pocoloco.data.published.read_joints_txt`): ``frame_id`` picks the line with that
       frame id (None: the first line);
     - a dataset frame ``DATASET:subject/split/sequence/index`` (e.g. ``data/tiny:s0/test/seq_000/3``);
-    - ``demo:NAME``, a pose shipped with the package (``demo:skirt``, ``demo:shirt``, ``demo:tight``).
+    - ``demo:NAME``, a pose shipped with the package (``demo:skirt``, ``demo:dress_b``, ...).
 
     Raises:
         ValueError (one line, naming the file): unreadable file, not a dataset, no such frame,
@@ -250,6 +268,18 @@ def subject_of_spec(spec: str) -> str | None:
     if ":" not in spec or spec.startswith("demo:") or Path(spec).exists():
         return None
     return spec.rpartition(":")[2].strip("/").split("/")[0] or None
+
+
+def outfit_of_spec(spec: str) -> str | None:
+    """The outfit a pose spec belongs to: the subject of a ``DATASET:...`` frame, the outfit a
+    ``demo:NAME`` pose was captured on; None otherwise (and for an unknown demo name)."""
+    spec = os.fspath(spec)
+    if spec.startswith("demo:") and not Path(spec).exists():
+        try:
+            return demo_pose_outfit(spec[len("demo:"):])
+        except ValueError:
+            return None
+    return subject_of_spec(spec)
 
 
 class MeanShapeCache:
@@ -330,9 +360,12 @@ def is_anny_pose_file(spec: str) -> bool:
 
 
 def pose_spec_kind(spec: str) -> str:
-    """"dataset" (DATASET:subject/split/sequence/index), "anny" (.npz with joint_rotvecs) or "frame"
+    """"dataset" (DATASET:subject/split/sequence/index), "anny" (.npz with joint_rotvecs, or demo:NAME) or "frame"
     (a frame .npz inside a dataset); anything else (bare joints) is a one-line error."""
     path = Path(spec)
+    if spec.startswith("demo:") and not path.exists():
+        demo_pose_path(spec[len("demo:"):])  # an unknown name: the one-line error
+        return "anny"
     if not path.exists() and ":" in spec and not spec.startswith("demo:"):
         return "dataset"
     if is_anny_pose_file(spec):
@@ -341,7 +374,7 @@ def pose_spec_kind(spec: str) -> str:
             (path.parent.parent / "motion.npz").is_file():  # fmt: skip
         return "frame"
     raise ValueError(f"{spec}: POP, CloSET and PocoLoco with --body-points need the posed body, not only joints: pass a dataset frame "
-                     "DATASET:subject/split/sequence/index or an .npz with anny pose parameters 'joint_rotvecs' (24, 3)")
+                     "DATASET:subject/split/sequence/index, demo:NAME or an .npz with anny pose parameters 'joint_rotvecs' (24, 3)")
 
 
 def load_body_pose(spec: str, phenotype: dict[str, float] | None, need_mean_shape: bool) -> Pose:
@@ -349,6 +382,10 @@ def load_body_pose(spec: str, phenotype: dict[str, float] | None, need_mean_shap
     dataset frame ``DATASET:subject/split/sequence/index``, a frame ``.npz`` inside a dataset, or an
     ``.npz`` of anny pose parameters posed with ``phenotype``; bare joints are a one-line error."""
     spec = str(spec)
+    if spec.startswith("demo:") and not Path(spec).exists():
+        pose = pose_from_anny_file(demo_pose_path(spec[len("demo:"):]), phenotype or {}, need_mean_shape)
+        pose.subject, pose.source = outfit_of_spec(spec), spec
+        return pose
     kind = pose_spec_kind(spec)
     if kind == "dataset":
         return pose_from_frame(dataset_frame_path(spec), subject_of_spec(spec), need_mean_shape)

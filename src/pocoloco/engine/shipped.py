@@ -1,14 +1,14 @@
 """The registry of models shipped with the package (``--ckpt default``, ``default:pop``,
 ``default:closet``): where each lives under ``assets/`` and how to name it in reports.
 
-``assets/pocoloco_small/`` holds a sampling-only checkpoint (``meta.json`` + the EMA weights as
-``model.safetensors``, stored as fp16 and loaded as float32) of PocoLoco's ``latent_small`` preset (the linear-in-N latent denoiser)
-trained on the ``small`` synthetic dataset; ``assets/pocoloco_transformer/`` the previous default,
-the ``small`` preset (the paper's all-points transformer), as ``default:transformer``;
-``assets/pop_small/`` and ``assets/closet_small/`` the same for the two peers (``small`` presets,
-their raw weights: they keep no EMA). How each was trained and its evaluation are in README.md
-("The default model", "POP and CloSET"). Written by
-:func:`pocoloco.engine.checkpoint.export_for_sampling` (``pocoloco export-model``).
+Each folder holds a sampling-only checkpoint (``meta.json`` + ``model.safetensors``, the weights
+stored as fp16 and loaded as float32, their SHA-256 in the meta). ``assets/pocoloco_medium/`` is
+PocoLoco's ``latent_small`` preset (the linear-in-N latent denoiser, outfit codes + body shape)
+trained on the ``medium`` synthetic dataset (14 outfits, 7 garment kinds) on one GPU for 5.5 min
+(EMA weights); ``assets/pop_*`` and ``assets/closet_*`` the two peers (``small`` presets, their raw
+weights: they keep no EMA). How each was trained and its evaluation are in README.md ("The default
+model", "POP and CloSET"). Written by :func:`pocoloco.engine.checkpoint.export_for_sampling`
+(``pocoloco export-model``).
 """
 
 from __future__ import annotations
@@ -19,11 +19,9 @@ from pathlib import Path
 __all__ = ["ASSETS_DIR", "SHIPPED_MODELS", "default_checkpoint", "describe_checkpoint", "resolve_ckpt_arg"]
 
 ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
-DEFAULT_MODEL_DIR = ASSETS_DIR / "pocoloco_small"
-#: ``--ckpt default:NAME`` -> folder under assets/ (``default`` alone is PocoLoco's; ``transformer``:
-#: PocoLoco with the paper's all-points transformer, the default before the latent denoiser)
-SHIPPED_MODELS = {"pocoloco": "pocoloco_small", "transformer": "pocoloco_transformer", "pop": "pop_small",
-                  "closet": "closet_small"}
+DEFAULT_MODEL_DIR = ASSETS_DIR / "pocoloco_medium"
+#: ``--ckpt default:NAME`` -> folder under assets/ (``default`` alone is PocoLoco's)
+SHIPPED_MODELS = {"pocoloco": "pocoloco_medium", "pop": "pop_small", "closet": "closet_small"}
 
 
 def default_checkpoint(kind: str = "pocoloco") -> Path:
@@ -53,7 +51,7 @@ def describe_checkpoint(path: str | os.PathLike) -> str:
 
 def resolve_ckpt_arg(ckpt: str | None) -> str | Path | None:
     """``"default"`` -> the shipped PocoLoco checkpoint, ``"default:pop"`` / ``"default:closet"`` /
-    ``"default:transformer"`` (/ ``"default:pocoloco"``) -> that shipped model; anything else unchanged."""
+    (/ ``"default:pocoloco"``) -> that shipped model; anything else unchanged."""
     if ckpt == "default":
         return default_checkpoint()
     if isinstance(ckpt, str) and ckpt.startswith("default:"):

@@ -18,6 +18,7 @@ from pocoloco.data.poses import (
     dataset_frame_path,
     load_body_pose,
     load_joints,
+    outfit_of_spec,
     pose_from_frame,
     subject_of_spec,
 )
@@ -170,12 +171,14 @@ class PocoLocoMethod(Method):
         if self.needs_body:  # the posed body, as POP and CloSET take it
             if frame_id is not None:
                 raise ValueError(f"{spec}: --frame-id does not apply to a model that needs the posed body")
+            if outfit is None and outfit_of_spec(spec) in self.outfit_names():  # demo:NAME: posed as its outfit
+                outfit = self.outfit_names().index(outfit_of_spec(spec))
             pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
             return load_body_pose(spec, pheno, False)
         joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
         subject = subject_of_spec(str(spec))  # None unless a DATASET:... frame
         velocity = frame_velocity(dataset_frame_path(str(spec)), joints) if self.config.joint_velocity and subject else None
-        return Pose(joints, subject=subject, source=str(spec), velocity=velocity)
+        return Pose(joints, subject=outfit_of_spec(str(spec)), source=str(spec), velocity=velocity)
 
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
         if self.needs_body:
