@@ -80,6 +80,11 @@ def load_motion(spec: str | os.PathLike, num_joints: int = 24, any_pose: bool = 
     spec = os.fspath(spec)
     path = Path(spec)
     if path.is_file():
+        with open(path, "rb") as f:
+            magic = f.read(6)
+        if magic != b"\x93NUMPY" and not magic.startswith(b"PK"):
+            raise ValueError(f"{spec}: not a NumPy .npy / .npz file (a motion is a (T, J, 3) joints .npy, an .npz "
+                             "with 'joints', or DATASET:subject/split/sequence)")  # fmt: skip
         try:
             loaded = np.load(path, allow_pickle=False)
             if hasattr(loaded, "files"):
@@ -92,9 +97,11 @@ def load_motion(spec: str | os.PathLike, num_joints: int = 24, any_pose: bool = 
         except ValueError as e:
             if str(e).startswith(spec):
                 raise
-            raise ValueError(f"{spec}: cannot read joints ({type(e).__name__})") from None
+            raise ValueError(f"{spec}: not a (T, J, 3) joints .npy or an .npz with 'joints' "
+                             f"({' '.join(str(e).split())[:120]})") from None  # fmt: skip
         except Exception as e:
-            raise ValueError(f"{spec}: cannot read joints ({type(e).__name__})") from None
+            raise ValueError(f"{spec}: not a (T, J, 3) joints .npy or an .npz with 'joints' "
+                             f"({type(e).__name__}{': ' if str(e) else ''}{' '.join(str(e).split())[:120]})") from None  # fmt: skip
         frames = None
     elif ":" in spec:
         root, _, key = spec.rpartition(":")

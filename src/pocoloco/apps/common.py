@@ -239,7 +239,7 @@ def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
 
     src = os.fspath(path)
     if not os.path.isfile(src):
-        raise ValueError(f"{src}: no such file")
+        raise ValueError(f"{src}: " + ("is a folder, not a file" if os.path.isdir(src) else "no such file"))
     if src.endswith(".npz"):
 
         fr = read_frame(src, ["points", "normals"], allow_missing=True)

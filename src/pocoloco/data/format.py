@@ -322,7 +322,7 @@ def frame_storage(path: str | os.PathLike) -> str:
 def load_npz(path: str, keys: Iterable[str] | None) -> tuple[set[str], dict[str, np.ndarray]]:
     """Read ``keys`` (all if None; missing ones skipped) from an npz; errors become one-line ValueErrors."""
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"{path}: no such file")
+        raise FileNotFoundError(f"{path}: " + ("is a folder, not a file" if os.path.isdir(path) else "no such file"))
     try:
         with np.load(path, allow_pickle=False) as z:
             if not hasattr(z, "files"):

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pocoloco.data.format import read_card
+from pocoloco.data.format import DatasetLayout, read_card
 from pocoloco.engine.checkpoint import (
     META_FILE,
     latest_checkpoint,
@@ -151,6 +151,10 @@ def bench_quality(
         raise ValueError(f"unknown model rows {unknown}; choose from {', '.join(QUALITY_ROWS)}")
     if train_steps is not None and (train_steps < 1 or work is None):
         raise ValueError("--train-steps needs a positive K and --work DIR")
+    read_card(data)  # not a dataset: that first
+    layout = DatasetLayout(data)
+    if not layout.iter_frames(settings.split, list(settings.subjects) if settings.subjects else layout.subjects()):
+        raise ValueError(f"{data}: no frames in split {settings.split!r}")  # before a word is printed
     out = output_folder(out)
     paths: dict[str, Any] = {}
     for key in QUALITY_ROWS:  # validate every given checkpoint before any long work

@@ -1,0 +1,63 @@
+"""Bad input through the CLI: one line naming the user's own path or value, exit 2, nothing
+written (issue 24). In-process, on the tiny dataset and the shipped model."""
+
+from __future__ import annotations
+
+import errno
+import os
+
+import numpy as np
+import pytest
+
+from pocoloco.cli import main
+from pocoloco.cli.common import error_line, user_path
+
+LONG = "n" * 300  # longer than any filesystem's name limit (255 bytes)
+
+
+def _one_line(capsys, code: int) -> str:
+    captured = capsys.readouterr()
+    assert code == 2, captured.err
+    err = captured.err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("pocoloco: error: "), err
+    assert "Traceback" not in captured.err and not captured.out.strip(), captured.out
+    return err
+
+
+def test_hidden_temporary_files_are_reported_by_the_users_name():
+    assert user_path("/a/b/.model.ply.0123456789ab.tmp") == "/a/b/model.ply"
+    assert user_path("/a/b/.hidden.ply") == "/a/b/.hidden.ply"
+    e = PermissionError(errno.EACCES, "Permission denied", "/a/b/.x.npz.0123456789ab.tmp")
+    assert error_line(e) == "/a/b/x.npz: permission denied"
+    e = OSError(errno.ENAMETOOLONG, "File name too long", "/a/" + LONG)
+    line = error_line(e)
+    assert "longer than the filesystem allows" in line and len(line) < 240
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["sample", "--joints", "demo:skirt", "--num", "1", "--points", "16", "--no-render", "--out", LONG],
+     "longer than the filesystem allows"),
+    (["train", "--data", "DATA", "--steps", "1", "--out", f"{LONG}/run"], "longer than the filesystem allows"),
+    (["train", "--data", "DATA", "--steps", "1", "--out", "FILE"], "FILE: exists and is not a folder"),
+    (["data", "export", "DATA", "--out", "FILE"], "FILE: already exists and is a file"),
+    (["mesh", "CLOUD", "--out", f"{LONG}.ply"], "longer than the filesystem allows"),
+    (["animate", "--motion", "GARBAGE", "--outfit", "skirt_a", "--out", "OUT"], "GARBAGE: not a NumPy .npy / .npz file"),
+    (["complete", "--partial", "FOLDER", "--joints", "demo:skirt", "--out", "OUT"], "FOLDER: is a folder, not a file"),
+    (["bench", "quality", "--data", "DATA", "--split", "heldout", "--ckpt-pocoloco", "default", "--out", "OUT"],
+     "no frames in split 'heldout'"),
+])  # fmt: skip
+def test_paths_the_os_refuses_are_one_line(tiny_dataset, tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "FILE").write_text("not a folder")
+    (tmp_path / "GARBAGE").write_bytes(os.urandom(300))
+    (tmp_path / "FOLDER").mkdir()
+    pts = np.random.default_rng(0).normal(size=(500, 3)) * 0.1
+    np.save(tmp_path / "cloud.npy", pts)
+    from pocoloco.data.published import write_ply
+
+    write_ply(tmp_path / "CLOUD", pts.astype(np.float32))
+    before = sorted(os.listdir(tmp_path))
+    argv = [str(tiny_dataset) if a == "DATA" else a for a in argv]
+    err = _one_line(capsys, main(argv))
+    assert message in err
+    assert sorted(os.listdir(tmp_path)) == before  # nothing written
