@@ -272,10 +272,14 @@ def test_fit_starts_from_the_nearest_trained_outfit(runs, test_frame, tmp_path, 
 
 
 @pytest.mark.parametrize("kind, message", [("few", "fitting needs at least 256"), ("nonormals", "has no normals"),
-                                           ("exists", "already holds a checkpoint")])  # fmt: skip
+                                           ("exists", "already holds a checkpoint"),
+                                           ("millimetres", "not in metres?")])  # fmt: skip
 def test_fit_cli_bad_scans(runs, test_frame, tmp_path, capsys, kind, message):
     spec, _, path = test_frame
     scan = _scan_of(path, tmp_path, n=100 if kind == "few" else None, normals=kind != "nonormals")
+    if kind == "millimetres":  # the same scan in mm: refused, as completion refuses it, before any fit
+        fr = read_frame(path)
+        write_ply(scan, fr.points * 1000.0, normals=fr.normals)
     out = tmp_path / "fitted"
     if kind == "exists":
         ckpt_io.save_checkpoint(out / "checkpoints", 1, model_kind="pop", preset="tiny", config={},

@@ -377,6 +377,8 @@ def test_bf16_sampling_stays_close_to_float32():
     (lambda j: j * 1e6, "from the root (a body spans ~1 m)"),
     (lambda j: np.zeros_like(j), "all joints lie within"),
     (lambda j: np.where(np.arange(24)[:, None] == 4, j + (j[4] - j[1]) * 4, j), "impossible bone length"),
+    (lambda j: j[:, [0, 2, 1]], "the head is not above the pelvis"),  # y and z swapped: a body lying down
+    (lambda j: j * [1, 1, -1], "runs along -z"),  # upside down
 ])  # fmt: skip
 def test_implausible_skeletons_are_refused_unless_asked(tmp_path, capsys, make, message):
     """Joints far outside any body the model saw give one line naming the problem and the override,

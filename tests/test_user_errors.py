@@ -61,3 +61,19 @@ def test_paths_the_os_refuses_are_one_line(tiny_dataset, tmp_path, capsys, monke
     err = _one_line(capsys, main(argv))
     assert message in err
     assert sorted(os.listdir(tmp_path)) == before  # nothing written
+
+
+def test_sampling_more_points_than_memory_holds_is_refused_or_split(tmp_path, capsys, monkeypatch):
+    """A request whose one cloud cannot fit in free memory: one line naming the most points that fit,
+    nothing written; one that fits one cloud at a time: denoised one at a time, with a warning."""
+    from pocoloco.cli import common
+
+    per_point = 4 * (64 * (4 + 2) + 64)  # the shipped latent_small's estimate
+    monkeypatch.setattr(common, "available_memory_bytes", lambda device: int(1000 * per_point / common.MEMORY_SHARE))
+    argv = ["sample", "--joints", "demo:skirt", "--steps", "2", "--no-render"]
+    err = _one_line(capsys, main([*argv, "--points", "5000", "--out", str(tmp_path / "a")]))
+    assert "--points 5,000: one cloud needs" in err and "at most ~1,000 points fit" in err
+    assert not (tmp_path / "a").exists()
+    assert main([*argv, "--points", "600", "--num", "3", "--out", str(tmp_path / "b")]) == 0
+    captured = capsys.readouterr()
+    assert "denoising 1 of the 3 clouds at a time" in captured.err and len(list((tmp_path / "b").glob("*.ply"))) == 3

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pocoloco.apps.common import check_scan
 from pocoloco.data.format import read_card, read_frame
 from pocoloco.data.poses import dataset_frame_path
 from pocoloco.data.published import read_ply
@@ -114,6 +115,7 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
         subject = frame_spec.rpartition(":")[2].strip("/").split("/")[0]
         pose = loaded.pose_from_frame(dataset_frame_path(frame_spec), subject,
                                       frame=read_frame(dataset_frame_path(frame_spec)))  # fmt: skip
+        check_scan(os.fspath(path), scan, pose.joints)  # units and frame, as completion checks them
         fit_scans.append((scan[sel], None if scan_n is None else scan_n[sel], pose))
         poses.append(pose)
     trained_names = loaded.outfit_names()

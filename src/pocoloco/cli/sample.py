@@ -13,6 +13,7 @@ from pocoloco.cli.common import (
     add_bf16_argument,
     add_device_argument,
     add_threads_argument,
+    fit_to_memory,
     load_method_from_args,
     pick_outfit,
     resolve_bf16,
@@ -56,6 +57,7 @@ def cmd_sample(args: argparse.Namespace) -> None:
     outfit = pick_outfit(method, args.outfit, spec)
     pose = method.load_pose(spec, outfit, args.frame_id, any_pose=args.any_pose)
     method.check_options(options)
+    options = fit_to_memory(method, args.points, num, options)
     seeds = [args.seed + k for k in range(num)]
 
     t0 = time.perf_counter()

@@ -107,6 +107,9 @@ def check_joints(src: str, joints: Any, num_joints: int) -> np.ndarray:
 MAX_JOINT_REACH_M = 2.5
 #: all joints within this distance (metres) of the root: not a body
 MIN_JOINT_SPREAD_M = 0.1
+#: the pelvis-to-head direction may lean this far from +z (the up axis); the training motions of
+#: ``medium`` lean at most ~54 deg (400 random frames), a body lying down or upside down is refused
+MAX_SPINE_TILT_DEG = 75.0
 ANY_POSE_HINT = "pass --any-pose (library: any_pose=True) to use it anyway"
 
 
@@ -114,7 +117,8 @@ def check_skeleton(src: str, joints: np.ndarray) -> np.ndarray:
     """A one-line ValueError naming the problem unless ``joints`` (24, 3) look like a human skeleton
     in metres: every joint within ``MAX_JOINT_REACH_M`` of the root and not all of them on one spot,
     every bone no shorter than half and no longer than twice the range of anny's bodies (a young child
-    to a tall adult, ``BONE_LENGTH_RANGE_M``), left and right bones within a factor 1.5 of each other.
+    to a tall adult, ``BONE_LENGTH_RANGE_M``), left and right bones within a factor 1.5 of each other,
+    and upright: the pelvis-to-head direction within ``MAX_SPINE_TILT_DEG`` of +z (swapped axes fail here).
     A model trained on human poses turns anything else into a cloud that is meaningless (or hundreds
     of km wide); returns the joints."""
     j = np.asarray(joints, np.float64)
@@ -141,6 +145,13 @@ def check_skeleton(src: str, joints: np.ndarray) -> np.ndarray:
         if max(a, b) > 1.5 * min(a, b):
             raise ValueError(f"{src}: left and right differ: {JOINT_NAMES[left]} {100 * a:.1f} cm vs "
                              f"{JOINT_NAMES[right]} {100 * b:.1f} cm from their parents; {ANY_POSE_HINT}")  # fmt: skip
+    spine = j[JOINT_NAMES.index("head")] - j[0]
+    tilt = float(np.degrees(np.arccos(np.clip(spine[2] / max(np.linalg.norm(spine), 1e-12), -1.0, 1.0))))
+    if tilt > MAX_SPINE_TILT_DEG:
+        axis = "xyz"[int(np.argmax(np.abs(spine)))]
+        raise ValueError(f"{src}: the head is not above the pelvis: the pelvis-to-head direction is {tilt:.0f} deg from +z "
+                         f"(it runs along {'-' if spine['xyz'.index(axis)] < 0 else '+'}{axis}): pocoloco's joints are z-up "
+                         f"(axes swapped or flipped?); {ANY_POSE_HINT}")  # fmt: skip
     return joints
 
 

@@ -206,6 +206,12 @@ class Method(ABC):
     def check_options(self, options: SamplerOptions) -> None:
         """One-line ValueError if ``options`` cannot be used with this model (before any work)."""
 
+    def bytes_per_point(self) -> int:
+        """A conservative estimate of the working memory one output point of one cloud takes in
+        :meth:`predict` (float32 activations of the widest per-point layers); 4 KiB unless a method
+        knows better. Used to refuse or split requests that cannot fit before any work."""
+        return 4096
+
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         """Method-specific entries of ``sample.json``."""
         return {}
