@@ -277,3 +277,64 @@ def test_killed_shard_resumes_and_finalize_only_waits_for_the_others(capsys, tmp
     assert read_card(out)["status"] == "incomplete"
     with pytest.raises(ValueError, match="different configuration"):  # a shard of another run is refused
         synthesize_shard(SYNTH_PRESETS["small"], out, 2, 2)
+
+
+# ------------------------------------------------------------------------------- repair on resume
+def _frame_digests(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("frames/*.npz"))}
+
+
+def _card_without_run_facts(root: Path) -> dict:
+    card = read_card(root)
+    for key in ("generation", "created"):
+        card.pop(key, None)
+    return card
+
+
+def test_resume_repairs_damaged_frames_byte_for_byte_and_a_failed_finalize_keeps_the_card(tiny_dataset, tmp_path, capsys):
+    """A truncated, a missing and a corrupt (one flipped byte) frame file: ``data synth`` over the
+    dataset generates exactly those again (one warning per sequence), with the same bytes as the
+    undamaged run and the same card; ``--finalize-only`` over a damaged dataset fails in one line and
+    leaves ``card.json`` byte for byte as it was."""
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    layout = DatasetLayout(data)
+    frames = [p for _, _, p in layout.iter_frames("train")] + [p for _, _, p in layout.iter_frames("test")]
+    truncated, missing, corrupt = frames[0], frames[len(frames) // 2], frames[-1]
+    truncated.write_bytes(truncated.read_bytes()[:1000])
+    missing.unlink()
+    raw = bytearray(corrupt.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    corrupt.write_bytes(bytes(raw))
+
+    card_bytes = layout.card_path.read_bytes()
+    code, err = _cli(capsys, "data", "synth", "--preset", "tiny", "--out", str(data), "--finalize-only")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and layout.card_path.read_bytes() == card_bytes, err
+
+    code, err = _cli(capsys, "data", "synth", "--preset", "tiny", "--out", str(data))
+    assert code == 0, err
+    assert err.count("damaged frame file(s)") == len({truncated.parent, missing.parent, corrupt.parent}), err
+    assert _frame_digests(data) == _frame_digests(tiny_dataset)
+    assert _card_without_run_facts(data) == _card_without_run_facts(tiny_dataset)
+
+
+def test_one_writer_per_dataset_shards_share_it(tmp_path, capsys):
+    """A dataset being written is locked: a second ``data synth`` (or ``--finalize-only``) into it is
+    one line naming the holder; shards hold the dataset shared (they run side by side) and their own
+    shard exclusively."""
+    from pocoloco.utils.atomic import exclusive_lock
+
+    out = tmp_path / "data"
+    with exclusive_lock(out, "pocoloco data synth"):
+        for extra in ([], ["--finalize-only"], ["--shard", "1/2"]):
+            code, err = _cli(capsys, "data", "synth", "--preset", "tiny", "--out", str(out), *extra)
+            assert code == 2 and "in use by pocoloco data synth (pid" in err and len(err.strip().splitlines()) == 1, err
+    with exclusive_lock(out, "shard 1/2", shared=True), exclusive_lock(out, "shard 1/2", name=".lock-shard-1-of-2"):
+        with exclusive_lock(out, "shard 2/2", shared=True):  # another shard shares the dataset
+            pass
+        with pytest.raises(ValueError, match="in use by shard 1/2"):
+            with exclusive_lock(out, "shard 1/2 again", name=".lock-shard-1-of-2"):
+                pass
+        with pytest.raises(ValueError, match="in use by"):
+            with exclusive_lock(out, "pocoloco data synth"):
+                pass

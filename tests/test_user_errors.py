@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import errno
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,7 +40,7 @@ def test_hidden_temporary_files_are_reported_by_the_users_name():
      "longer than the filesystem allows"),
     (["train", "--data", "DATA", "--steps", "1", "--out", f"{LONG}/run"], "longer than the filesystem allows"),
     (["train", "--data", "DATA", "--steps", "1", "--out", "FILE"], "FILE: exists and is not a folder"),
-    (["data", "export", "DATA", "--out", "FILE"], "FILE: already exists and is a file"),
+    (["data", "export", "DATA", "--out", "FILE"], "FILE: exists and is not a folder"),
     (["mesh", "CLOUD", "--out", f"{LONG}.ply"], "longer than the filesystem allows"),
     (["animate", "--motion", "GARBAGE", "--outfit", "skirt_a", "--out", "OUT"], "GARBAGE: not a NumPy .npy / .npz file"),
     (["complete", "--partial", "FOLDER", "--joints", "demo:skirt", "--out", "OUT"], "FOLDER: is a folder, not a file"),
@@ -77,3 +78,26 @@ def test_sampling_more_points_than_memory_holds_is_refused_or_split(tmp_path, ca
     assert main([*argv, "--points", "600", "--num", "3", "--out", str(tmp_path / "b")]) == 0
     captured = capsys.readouterr()
     assert "denoising 1 of the 3 clouds at a time" in captured.err and len(list((tmp_path / "b").glob("*.ply"))) == 3
+
+
+def test_a_train_that_fails_before_its_first_checkpoint_leaves_no_folder(tiny_dataset, tmp_path, capsys, monkeypatch):
+    """A frame that turns out corrupt mid-run (or any user error inside the loop) before the first
+    checkpoint: one line, and the run folder it had begun (config.json, metrics.jsonl) is gone; a
+    folder that held something before is left as it was."""
+    from pocoloco.cli import train as train_cli
+
+    def failing_run(task, data, out, **kw):
+        (Path(out) / "config.json").write_text("{}")
+        (Path(out) / "metrics.jsonl").write_text("")
+        raise ValueError(f"{data}/subjects/skirt/train/x.npz: CRC-32 mismatch (corrupt)")
+
+    monkeypatch.setattr(train_cli, "run_training", failing_run)
+    argv = ["train", "--data", str(tiny_dataset), "--preset", "tiny", "--steps", "1", "--out"]
+    assert main([*argv, str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err  # the banner (the run had begun), then the one-line error
+    assert "CRC-32 mismatch" in err.strip().splitlines()[-1] and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    assert main([*argv, str(tmp_path / "mine")]) == 2  # refused as not a run folder, or the run fails
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"

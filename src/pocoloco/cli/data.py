@@ -4,11 +4,16 @@ pipeline and the dataset tools."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import os
 import re
+import shutil
+import tempfile
 from pathlib import Path
 
 from pocoloco.cli.common import console, progress_bar
+from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.data.config import SYNTH_PRESETS, synth_preset
 from pocoloco.data.distributed import BACKENDS, LaunchSettings, launch_synth
 from pocoloco.data.format import (
@@ -16,6 +21,7 @@ from pocoloco.data.format import (
     SPLITS,
     DatasetLayout,
     FrameReport,
+    check_frames,
     read_card,
     scan_frames,
     verify_dataset,
@@ -94,7 +100,9 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
     workers = args.workers or 1
     con = console()
     if args.finalize_only:
-        print_card(finalize_dataset(config, out), out)
+        with exclusive_lock(out, "pocoloco data synth --finalize-only"):  # no shard may still be writing
+            card = finalize_dataset(config, out)
+        print_card(card, out)
         return
     launch = None
     if args.launch:
@@ -117,8 +125,15 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
             return synthesize_shard(config, out, *shard, workers=workers, progress=progress)
         return synthesize(config, out, workers=workers, progress=progress)
 
-    with progress_bar("shards done" if launch else "frames", transient=False) as update:
-        result = run(update)
+    with contextlib.ExitStack() as locks:  # one writer per dataset; shards share it, one writer per shard
+        if shard:
+            locks.enter_context(exclusive_lock(out, f"pocoloco data synth --shard {shard[0]}/{shard[1]}", shared=True))
+            locks.enter_context(exclusive_lock(out, f"pocoloco data synth --shard {shard[0]}/{shard[1]}",
+                                               name=f".lock-shard-{shard[0]}-of-{shard[1]}"))  # fmt: skip
+        elif not launch:  # a launcher's shards lock for themselves
+            locks.enter_context(exclusive_lock(out, "pocoloco data synth"))
+        with progress_bar("shards done" if launch else "frames", transient=False) as update:
+            result = run(update)
     if shard:
         left = len(missing_jobs(config, out))
         frames = sum(r["num_stored"] for r in result)
@@ -137,7 +152,9 @@ def cmd_data_heldout(args: argparse.Namespace) -> None:
 
     con = console()
     con.print(f"[bold]pocoloco data heldout[/] {args.path}: {args.sequences} sequence(s) per subject")
-    with progress_bar("frames", transient=False) as update:
+    is_dataset = (Path(args.path) / "card.json").is_file()  # else add_heldout's one line, and no lock file left
+    lock = exclusive_lock(args.path, "pocoloco data heldout") if is_dataset else contextlib.nullcontext()
+    with lock, progress_bar("frames", transient=False) as update:
         card = add_heldout(args.path, args.sequences, args.workers, update)
     print_card(card, Path(args.path))
 
@@ -253,8 +270,19 @@ def cmd_data_verify(args: argparse.Namespace) -> None:
         con.print(f"card.json records no sizes or checksums: `pocoloco data verify {root} --record` adds them")
 
 
+def _check_split_frames(root: Path, split: str, subjects: list[str] | None) -> None:
+    """Unknown subjects, or a missing / truncated / unreadable frame of the split: one line, before
+    anything is written."""
+    card = read_card(root)
+    unknown = [s for s in subjects or [] if s not in card["subjects"]]
+    if unknown:
+        raise ValueError(f"{root}: no subject {', '.join(map(repr, unknown))}; it has {', '.join(sorted(card['subjects']))}")
+    check_frames(root, splits=[split], subjects=subjects, card=card)
+
+
 def cmd_data_preview(args: argparse.Namespace) -> None:
     subjects = [s.strip() for s in args.subject.split(",")] if args.subject else None
+    _check_split_frames(Path(args.path), args.split, subjects)
     views = ("front",) if args.front_only else ("front", "side")
     path = preview_dataset(Path(args.path), out=args.out, num=args.num, split=args.split, seed=args.seed,
                            subjects=subjects, views=views)  # fmt: skip
@@ -262,19 +290,27 @@ def cmd_data_preview(args: argparse.Namespace) -> None:
 
 
 def cmd_data_export(args: argparse.Namespace) -> None:
+    """All or nothing: the frames are checked first, written into a hidden folder beside ``--out``
+    and moved into place at the end (``--out`` must not exist yet, or be empty)."""
     root = Path(args.path)
-    read_card(root)
-    frames = DatasetLayout(root).iter_frames(args.split)
-    if args.subject:
-        frames = [f for f in frames if f[0] == args.subject]
-    if not frames:
-        raise ValueError(f"{root}: no frames for split {args.split!r}" + (f" and subject {args.subject!r}" if args.subject else ""))
     if args.limit < 0:
         raise ValueError(f"--limit must be >= 0, got {args.limit}")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    for subject, sequence, frame_path in frames[: args.limit or None]:
-        export_frame(frame_path, out / f"{subject}_{sequence}_{Path(frame_path).stem}.{args.format}", args.format)
+    _check_split_frames(root, args.split, [args.subject] if args.subject else None)
+    frames = DatasetLayout(root).iter_frames(args.split, [args.subject] if args.subject else None)
+    if not frames:
+        raise ValueError(f"{root}: no frames for split {args.split!r}" + (f" and subject {args.subject!r}" if args.subject else ""))
+    out = output_folder(args.out)
+    if out.is_dir() and any(out.iterdir()):
+        raise ValueError(f"{out}: already exists and is not empty; choose a new --out")
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    try:
+        for subject, sequence, frame_path in frames[: args.limit or None]:
+            export_frame(frame_path, stage / f"{subject}_{sequence}_{Path(frame_path).stem}.{args.format}", args.format)
+        if out.is_dir():
+            out.rmdir()
+        os.replace(stage, out)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
     print(f"wrote {min(len(frames), args.limit or len(frames))} {args.format} files to {out}")
 
 

@@ -5,8 +5,10 @@ Every run ends with a sampling-only copy of its last checkpoint in ``RUN/model``
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
+import shutil
 from pathlib import Path
 
 import torch
@@ -18,6 +20,7 @@ from pocoloco.data.pack import is_pack, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
 from pocoloco.engine.trainer import LR_SCALING_RULES, check_run_folder, dist_info, init_distributed, scaled_lr
 from pocoloco.engine.trainer import train as run_training
+from pocoloco.engine.checkpoint import latest_checkpoint
 from pocoloco.methods import METHODS, method_class
 from pocoloco.methods.pocoloco.config import SCHEDULE_KINDS
 from pocoloco.methods.registry import config_from_checkpoint
@@ -101,9 +104,25 @@ def cmd_train(args: argparse.Namespace) -> None:
         return
     output_folder(args.out)
     check_run_folder(args.out, args.resume)
-    with exclusive_lock(args.out, "pocoloco train"):  # a second train into the same folder is refused
-        check_run_folder(args.out, args.resume)  # again under the lock: another run may have just written one
-        _train(args, config, task)
+    out, failed_fresh = Path(args.out), False
+    try:
+        with exclusive_lock(out, "pocoloco train") as lock:  # a second train into the same folder is refused
+            check_run_folder(out, args.resume)  # again under the lock: another run may have just written one
+            fresh = all(p == lock for p in out.iterdir())
+            try:
+                _train(args, config, task)
+            except Exception:  # a run that fails before its first checkpoint leaves no half-made folder
+                failed_fresh = fresh and latest_checkpoint(out / "checkpoints") is None
+                if failed_fresh:
+                    for p in out.iterdir():
+                        if p != lock:
+                            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+                raise
+    finally:
+        if failed_fresh:
+            with contextlib.suppress(OSError):
+                (out / ".lock").unlink()
+                out.rmdir()
 
 
 def _train(args: argparse.Namespace, config, task) -> None:

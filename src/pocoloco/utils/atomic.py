@@ -145,16 +145,18 @@ def jsonable(x: Any) -> Any:
 
 
 @contextlib.contextmanager
-def exclusive_lock(folder: str | os.PathLike, what: str) -> Iterator[Path]:
-    """Hold an exclusive lock on ``folder`` (created if missing) for the block: ``folder/.lock``,
-    locked with ``flock``, so the lock dies with its process (``kill -9`` included) and a later
-    run never finds a stale one. A second holder gets a one-line ValueError naming the holder
-    (``what``: the kind of work, for the message). Where ``fcntl`` does not exist (Windows) the
-    block runs unlocked."""
+def exclusive_lock(folder: str | os.PathLike, what: str, name: str = ".lock", shared: bool = False) -> Iterator[Path]:
+    """Hold an exclusive lock on ``folder`` (created if missing) for the block: ``folder/NAME``
+    (default ``.lock``), locked with ``flock``, so the lock dies with its process (``kill -9``
+    included) and a later run never finds a stale one. A second holder gets a one-line ValueError
+    naming the holder (``what``: the kind of work, for the message). ``shared``: a shared lock
+    instead, which any number of shared holders may hold at once but no exclusive one (the shards
+    of one dataset; each also locks its own shard exclusively). Where ``fcntl`` does not exist
+    (Windows) the block runs unlocked."""
     folder = Path(folder)
     created = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / ".lock"
+    path = folder / name
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX
@@ -164,19 +166,20 @@ def exclusive_lock(folder: str | os.PathLike, what: str) -> Iterator[Path]:
     locked = False
     try:
         try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(f.fileno(), (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except BlockingIOError:
             f.seek(0)
             holder = f.read().strip() or "another process"
             raise ValueError(f"{folder}: in use by {holder}; wait for it to end or choose another folder") from None
         locked = True
-        f.seek(0)
-        f.truncate()
-        f.write(f"{what} (pid {os.getpid()} on {os.uname().nodename})\n")
-        f.flush()
+        if not shared:  # the holder, for a refused second writer's message
+            f.seek(0)
+            f.truncate()
+            f.write(f"{what} (pid {os.getpid()} on {os.uname().nodename})\n")
+            f.flush()
         yield path
     finally:
-        if locked and created and [p.name for p in folder.iterdir()] == [".lock"]:
+        if locked and created and [p.name for p in folder.iterdir()] == [name]:
             path.unlink()  # a run that failed before writing anything leaves no folder behind
             with contextlib.suppress(OSError):
                 folder.rmdir()
