@@ -242,12 +242,12 @@ def test_subject_motion_sequence_files_round_trip(tmp_path):
     np.testing.assert_array_equal(back.template, subj.template)
     np.testing.assert_array_equal(back.uv_faces, subj.uv_faces)
 
-    m = fmt.Motion(rng.normal(size=(5, 24, 3)).astype(np.float32), rng.normal(size=(5, 3)).astype(np.float32))
+    m = fmt.StoredMotion(rng.normal(size=(5, 24, 3)).astype(np.float32), rng.normal(size=(5, 3)).astype(np.float32))
     fmt.write_motion(lay.motion_path("s", "train", "q"), m)
     mb = fmt.read_motion(lay.motion_path("s", "train", "q"))
     np.testing.assert_array_equal(mb.joint_rotvecs, m.joint_rotvecs)
     with pytest.raises(ValueError, match="joint_rotvecs must have shape"):
-        fmt.write_motion(tmp_path / "bad.npz", fmt.Motion(np.zeros((5, 23, 3)), np.zeros((5, 3))))
+        fmt.write_motion(tmp_path / "bad.npz", fmt.StoredMotion(np.zeros((5, 23, 3)), np.zeros((5, 3))))
 
     meta = {"num_frames": 5, "fps": 30, "motion": [{"name": "walk", "seed": 1, "kind": "walk", "start": 0, "stop": 5}],
             "rejected_frames": [{"frame": 2, "reason": "cloth exploded"}]}  # fmt: skip

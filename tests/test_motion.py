@@ -202,7 +202,7 @@ def test_save_load_roundtrip_and_errors(tmp_path, mixed):
     [
         (dict(kinds=("walk", "moonwalk")), "unknown motion kinds"),
         (dict(kinds=()), "kinds must not be empty"),
-        (dict(split="val"), "unknown split"),
+        (dict(split="val"), "unknown motion style"),
         (dict(num_frames=0), "num_frames"),
         (dict(num_frames=-5), "num_frames"),
         (dict(seed=-1), "seed"),

@@ -113,7 +113,7 @@ def test_shapes_and_unit_normals(surface, mesh):
 def test_paper_preset_parameter_count(surface, mesh):
     model = POP(POPConfig(), surface, 1, len(mesh[0]))
     n = model.num_network_parameters()
-    assert 11.0e6 < n < 11.6e6  # paper/REFERENCE: about 11.3M
+    assert 11.0e6 < n < 11.6e6  # the paper's POP: about 11.3M
     assert model.geom.shape == (1, 64, 128, 128)
 
 

@@ -7,7 +7,7 @@ Query points therefore come either from the pixels of a UV map (POP, Ma et al. 2
 Sec. 3.1-3.2) or from area-uniform samples on the template (CloSET, Zhang et al. 2023,
 Sec. 3.1), and can be reused across all frames of a subject.
 
-Conventions (REFERENCE.md, "POP"): for a UV map of resolution R, pixel (i, j) (row i,
+Conventions (ours; POP's public maps follow the same): for a UV map of resolution R, pixel (i, j) (row i,
 column j) samples UV (u, v) = ((j + 0.5) / R, 1 - (i + 0.5) / R), so row 0 is the top
 of the texture (v close to 1). Valid pixels are listed in row-major order.
 

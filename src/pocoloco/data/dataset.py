@@ -1,6 +1,6 @@
 """PyTorch dataset over a pocoloco dataset folder, with PocoLoco's normalisation.
 
-Normalisation (as in the PocoLoco code, see ``/work/shared/REFERENCE.md``):
+Normalisation (as in the PocoLoco paper's public code):
 points and joints are centred on the root joint of their frame, then the
 dataset-wide per-axis mean is subtracted and the result divided by one scalar
 std; both statistics are computed on the training split and stored in

@@ -65,7 +65,7 @@ __all__ = [
     "OPTIONAL_FRAME_KEYS", "FRAME_STORAGES", "COMPACT_MAX_ERROR", "Frame", "write_frame", "read_frame",
     "encode_compact", "frame_storage", "DatasetLayout", "make_card",
     "read_card", "write_card", "compute_normalisation", "refresh_card", "card_from_disk", "pose_coverage",
-    "SubjectAsset", "write_subject", "read_subject", "Motion", "write_motion", "read_motion",
+    "SubjectAsset", "write_subject", "read_subject", "StoredMotion", "write_motion", "read_motion",
     "write_sequence_meta", "read_sequence_meta",
     "PROBLEM_KINDS", "FrameProblem", "FrameReport", "file_crc32", "frame_record", "scan_frames", "check_frames",
     "verify_dataset",
@@ -444,14 +444,14 @@ def read_subject(path: str | os.PathLike) -> SubjectAsset:
 
 
 @dataclass
-class Motion:
+class StoredMotion:
     """``motion.npz``: joint_rotvecs (T, 24, 3) axis-angle (anny local-ref axes), root_translation (T, 3) metres."""
 
     joint_rotvecs: np.ndarray
     root_translation: np.ndarray
 
 
-def write_motion(path: str | os.PathLike, motion: Motion) -> None:
+def write_motion(path: str | os.PathLike, motion: StoredMotion) -> None:
     """Write ``motion.npz`` atomically after checking shapes."""
     src = os.fspath(path)
     r = np.asarray(motion.joint_rotvecs, np.float32)
@@ -463,7 +463,7 @@ def write_motion(path: str | os.PathLike, motion: Motion) -> None:
     save_npz_atomic(path, joint_rotvecs=r, root_translation=t)
 
 
-def read_motion(path: str | os.PathLike) -> Motion:
+def read_motion(path: str | os.PathLike) -> StoredMotion:
     """Read ``motion.npz`` with the same checks as :func:`write_motion`."""
     src = os.fspath(path)
     names, raw = load_npz(src, ("joint_rotvecs", "root_translation"))
@@ -473,7 +473,7 @@ def read_motion(path: str | os.PathLike) -> Motion:
     r, t = raw["joint_rotvecs"], raw["root_translation"]
     if r.ndim != 3 or r.shape[1:] != (NUM_JOINTS, 3) or t.shape != (r.shape[0], 3):
         raise ValueError(f"{src}: bad shapes joint_rotvecs {r.shape}, root_translation {t.shape}")
-    return Motion(r, t)
+    return StoredMotion(r, t)
 
 
 def _read_json(path: str, what: str) -> Any:

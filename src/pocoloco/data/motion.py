@@ -59,7 +59,8 @@ CLASSIC_KINDS: tuple[str, ...] = ("walk", "turn", "dance", "arm_swing", "squat",
 #: Every motion kind: the classic ones plus reaching / arms held forward, crouching and sitting-like
 #: poses, jumps (with flight), running, bending over, and turning in place on the spot.
 MOTION_KINDS: tuple[str, ...] = CLASSIC_KINDS + ("reach", "crouch", "jump", "run", "bend", "turn_in_place")
-SPLITS: tuple[str, ...] = ("train", "test")
+#: the two motion styles: training motions, and test-style ones (a dataset's test and held-out splits)
+MOTION_STYLES: tuple[str, ...] = ("train", "test")
 
 #: Seconds of the smoothstep cross-fade between consecutive segments.
 TRANSITION_SECONDS = 0.5
@@ -752,8 +753,8 @@ def generate_motion(
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     if isinstance(num_frames, bool) or not isinstance(num_frames, (int, np.integer)) or num_frames <= 0:
         raise ValueError(f"num_frames must be a positive integer, got {num_frames!r}")
-    if split not in SPLITS:
-        raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
+    if split not in MOTION_STYLES:
+        raise ValueError(f"unknown motion style {split!r}; expected one of {MOTION_STYLES}")
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be positive, got {fps!r}")
     kinds = tuple(CLASSIC_KINDS if kinds is None else kinds)
@@ -763,7 +764,7 @@ def generate_motion(
     if unknown:
         raise ValueError(f"unknown motion kinds {unknown}; expected some of {MOTION_KINDS}")
 
-    rng = np.random.default_rng([int(seed), SPLITS.index(split)])
+    rng = np.random.default_rng([int(seed), MOTION_STYLES.index(split)])
     params = _Params(rng, split)
     fade = max(2, int(round(TRANSITION_SECONDS * fps)))
     plan = _plan_segments(rng, int(num_frames), float(fps), kinds, fade)

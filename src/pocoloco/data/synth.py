@@ -24,6 +24,14 @@ e.g. one shard per cluster job on a shared filesystem; any number of shards may
 start at once. It leaves the card "incomplete"; ``finalize_dataset`` writes it
 once every sequence is done (``data.distributed`` launches the shards). A frame is
 the same bytes whichever shard or worker generates it.
+
+Repair: a resume first checks every finished sequence byte for byte against the card
+(:func:`repair_sequences`); damaged frames are generated again, to the same bytes.
+
+Why this module is long: the pipeline of one sequence and the run around it (job list,
+shards, resume, repair, the card written once at the end) share one contract, that a
+frame is the same bytes however and whenever it is made; the issue that moves the
+pipeline into its own package (``synth/``) splits it along that contract.
 """
 
 from __future__ import annotations
@@ -49,6 +57,7 @@ from .format import (
     FRAME_STORAGES,
     DatasetLayout,
     Frame,
+    StoredMotion,
     SubjectAsset,
     make_card,
     read_frame,
@@ -61,10 +70,8 @@ from .format import (
     write_motion,
     write_sequence_meta,
 )
-from .format import Motion as StoredMotion
 from .format import write_subject as format_write_subject
 
-SPLITS = ("train", "test", "heldout")
 
 
 @dataclass(frozen=True)

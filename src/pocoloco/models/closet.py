@@ -24,7 +24,7 @@ Per subject (one body template, V vertices, faces F):
 Widths, radii and loss weights are not in the paper (they are in its unavailable
 Supp. Mat.): the ``paper`` preset follows the paper's statements (L = 6, encoders of
 POP's size, 50K query points at evaluation) with our choices documented in
-``CLOSET_PRESETS``. The loss (its weights default to POP's, REFERENCE.md "POP"), batches and
+``CLOSET_PRESETS``. The loss (its weights default to POP's), batches and
 training step are the method's: :mod:`pocoloco.methods.closet`.
 
 Shapes: B frames, V vertices, F faces, P query points, N ground-truth points.

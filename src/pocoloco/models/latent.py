@@ -84,6 +84,7 @@ from pocoloco.models.layers import (
     POSENC_KINDS,
     MultiHeadAttention,
     TimestepEmbedder,
+    check_finite_inputs,
     positional_encoding,
     positional_encoding_dim,
 )
@@ -345,12 +346,7 @@ class LatentDenoiser(nn.Module):
             t = t.expand(B)
         if t.shape != (B,):
             raise ValueError(f"t must have shape ({B},) or be a scalar, got {tuple(t.shape)}")
-        if not torch.isfinite(x).all():
-            raise ValueError("x contains NaN or infinite values")
-        if not torch.isfinite(joints).all():
-            raise ValueError("joints contain NaN or infinite values")
-        if t.is_floating_point() and not torch.isfinite(t).all():
-            raise ValueError("t contains NaN or infinite values")
+        check_finite_inputs(x, joints, t)
         return t
 
     def _check_body(self, body: torch.Tensor | None, B: int) -> torch.Tensor | None:

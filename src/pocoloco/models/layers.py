@@ -31,6 +31,21 @@ POSENC_KINDS = ("nerf", "transformer")
 # ---------------------------------------------------------------------------
 
 
+def check_finite_inputs(x: torch.Tensor, joints: torch.Tensor, t: torch.Tensor) -> None:
+    """A denoiser's inputs (points (B, N, C), joints (B, J, 3), timesteps (B,)) hold no NaN / inf
+    (one-line ValueError). CPU tensors only: on a GPU each check would wait for the device on every
+    call; inputs are checked where they enter (poses, frames, packs), and the trainer checks its
+    logged loss."""
+    if x.device.type != "cpu":
+        return
+    if not torch.isfinite(x).all():
+        raise ValueError("x contains NaN or infinite values")
+    if not torch.isfinite(joints).all():
+        raise ValueError("joints contain NaN or infinite values")
+    if t.is_floating_point() and not torch.isfinite(t).all():
+        raise ValueError("t contains NaN or infinite values")
+
+
 def nerf_encoding(x: torch.Tensor, num_freqs: int, include_input: bool = False) -> torch.Tensor:
     """NeRF-style encoding, PocoLoco paper Sec. 3.2 (the equation after Eq. 3).
 

@@ -38,6 +38,7 @@ from pocoloco.models.layers import (
     DenoiserBlock,
     MultiHeadAttention,
     TimestepEmbedder,
+    check_finite_inputs,
     positional_encoding,
     positional_encoding_dim,
 )
@@ -206,13 +207,13 @@ class PocoLocoDenoiser(nn.Module):
             t = t.expand(B)
         if t.shape != (B,):
             raise ValueError(f"t must have shape ({B},) or be a scalar, got {tuple(t.shape)}")
-        if not torch.isfinite(x).all():
-            raise ValueError("x contains NaN or infinite values")
-        if not torch.isfinite(joints).all():
-            raise ValueError("joints contain NaN or infinite values")
-        if t.is_floating_point() and not torch.isfinite(t).all():
-            raise ValueError("t contains NaN or infinite values")
+        check_finite_inputs(x, joints, t)
         return t
+
+    @property
+    def prediction_type(self) -> str:
+        """What the output means (read by the samplers when they are not told)."""
+        return self.config.prediction_type
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | PoseCondition) -> torch.Tensor:
         """Predict the noise (or whatever ``config.prediction_type`` says) for every point.

@@ -1,5 +1,5 @@
 """POP: the Power of Points (Ma et al. 2021, "The Power of Points for Modeling Humans in
-Clothing", ICCV), re-implemented from the paper and REFERENCE.md ("POP").
+Clothing", ICCV), re-implemented from the paper and its supplementary material.
 
 Pipeline (paper Fig. 2, Sec. 3.1-3.2, SupMat A.1):
 
@@ -17,8 +17,8 @@ Pipeline (paper Fig. 2, Sec. 3.1-3.2, SupMat A.1):
    (width 256, input skip into layer 4 as DeepSDF, Softplus(beta=20) + BatchNorm on
    all but the last layer), branching after layer 5 into a displacement head and a
    normal head.
-5. Eq. (2): x_i = T_i (s r_i) + p_i with s = 0.02 (the scaling of the public code,
-   REFERENCE.md); n_i = normalize(T_i n~_i).
+5. Eq. (2): x_i = T_i (s r_i) + p_i with s = 0.02 (the scaling of the public
+   code); n_i = normalize(T_i n~_i).
 
 Decoder implementations (same weights, same outputs at the valid query pixels):
 
@@ -71,7 +71,7 @@ DECODER_IMPLS = ("linear_valid", "conv1d_all_pixels")
 
 @dataclass(frozen=True)
 class POPConfig:
-    """POP hyper-parameters (paper SupMat A.1-A.2; REFERENCE.md "POP").
+    """POP hyper-parameters (paper SupMat A.1-A.2).
 
     unet_channels: output channels of the stride-2 down convolutions (their number is
         the UNet depth; ``input_resolution`` must be divisible by 2**depth).

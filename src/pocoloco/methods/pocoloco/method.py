@@ -3,7 +3,6 @@ pose-conditioned point-cloud diffusion model, p(X | K) with K the 24 joints only
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -146,8 +145,9 @@ class PocoLocoMethod(Method):
             model.load_state_dict(ck.ema_state if ema else ck.model_state)
         except RuntimeError as e:
             raise ValueError(f"{ck.path}: weights do not match the stored config ({one_line(e)})") from None
-        with contextlib.suppress(AttributeError):
-            model.prediction_type = config.prediction_type
+        if model.config.prediction_type != config.prediction_type:  # the config keeps them in sync
+            raise ValueError(f"{ck.path}: the network predicts {model.config.prediction_type!r} but the training "
+                             f"config says {config.prediction_type!r}")  # fmt: skip
         weights = "ema" if use_ema else "raw"
         return cls(model.to(device).eval(), config, ck.normalisation, ck.path, ck.step, ck.meta, weights=weights)
 

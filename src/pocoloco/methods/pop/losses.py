@@ -1,4 +1,4 @@
-"""POP's training loss (paper Eq. 3-6, weights from REFERENCE.md): scan-to-model and point-to-plane
+"""POP's training loss (paper Eq. 3-6; the weights are those of POP's public training configuration): scan-to-model and point-to-plane
 model-to-scan Chamfer terms, the normal term (switched on after the shape settles), and the
 displacement and feature regularisers; with a slow reference implementation.
 
