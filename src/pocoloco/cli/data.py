@@ -430,11 +430,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", required=True, help="pack file to write (e.g. medium.pack)")
     s.add_argument("--splits", nargs="+", default=["train"], choices=SPLITS,
                    help="splits to pack (default train; test / heldout give training previews and validation)")  # fmt: skip
-    s.add_argument("--every", type=int, default=3, help="keep every K-th frame of each train sequence (default 3)")
+    s.add_argument("--every", type=int, default=1, help="keep every K-th frame of each train sequence (default 1: all; "
+                                                        "frames matter more than points, BENCHMARKS.md)")  # fmt: skip
     s.add_argument("--eval-every", type=int, default=20,
                    help="keep every K-th frame of each test / heldout sequence (default 20)")  # fmt: skip
-    s.add_argument("--points", type=int, default=1536,
-                   help="points per frame, drawn uniformly without replacement (default 1536)")  # fmt: skip
+    s.add_argument("--points", type=int, default=512,
+                   help="points per frame, drawn uniformly without replacement (default 512, the training clouds' "
+                        "size; a recipe with more points per cloud needs at least that many)")  # fmt: skip
     s.add_argument("--resolution-mm", type=float, default=1.0, help="position quantisation step in mm (default 1)")
     s.add_argument("--subjects", help="only these subjects, comma-separated (default: all)")
     s.add_argument("--velocity", action="store_true", help="also store joint velocities (for --joint-velocity models)")
