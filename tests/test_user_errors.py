@@ -101,3 +101,69 @@ def test_a_train_that_fails_before_its_first_checkpoint_leaves_no_folder(tiny_da
     (tmp_path / "mine" / "notes.txt").write_text("keep")
     assert main([*argv, str(tmp_path / "mine")]) == 2  # refused as not a run folder, or the run fails
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
+
+
+# ------------------------------------------------------------------ the corpus of malformed inputs
+def _write_corpus(d: Path) -> None:
+    """Malformed joints, clouds and checkpoints, each named for what is wrong with it."""
+    from pocoloco.data.poses import load_joints
+
+    good = load_joints("demo:skirt")
+    np.save(d / "j_23.npy", good[:23])
+    np.save(d / "j_24x2.npy", good[:, :2])
+    bad = good.copy()
+    bad[3, 1] = np.nan
+    np.save(d / "j_nan.npy", bad)
+    np.save(d / "j_str.npy", np.array([["a"] * 3] * 24))
+    (d / "j_empty.npy").write_bytes(b"")
+    (d / "j_trunc.npy").write_bytes((d / "j_23.npy").read_bytes()[:100])
+    np.savez(d / "j_twokeys.npz", a=good, b=good)
+    (d / "j_count.txt").write_text("0 1 2 3\n")
+    (d / "j_nan.txt").write_text("0 " + " ".join(["nan"] * 72) + "\n")
+    np.save(d / "j_mm.npy", good * 1000.0)
+    header = "ply\nformat ascii 1.0\nelement vertex {n}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    (d / "c_empty.ply").write_text(header.format(n=0))
+    (d / "c_short.ply").write_text(header.format(n=10) + "0 0 0\n1 1 1\n")
+    (d / "c_nan.ply").write_text(header.format(n=3) + "0 0 0\nnan 0 0\n0 1 0\n")
+    (d / "c_text.ply").write_text("this is not a ply file\n")
+    (d / "c_words.ply").write_text(header.format(n=2) + "a b c\nd e f\n")
+    (d / "ck_empty").mkdir()
+    (d / "ck_garbage").mkdir()
+    (d / "ck_garbage" / "meta.json").write_text("{not json")
+    (d / "ck_wrongformat").mkdir()
+    (d / "ck_wrongformat" / "meta.json").write_text('{"format": "something-else", "version": 1}')
+
+
+SAMPLE = ["sample", "--num", "1", "--steps", "2", "--points", "16", "--no-render", "--out", "OUT"]
+CORPUS = [
+    *[([*SAMPLE, "--joints", f"{{d}}/{name}"], what) for name, what in [
+        ("j_23.npy", "expected joints of shape (24, 3)"), ("j_24x2.npy", "expected joints of shape (24, 3)"),
+        ("j_nan.npy", "NaN"), ("j_str.npy", "numeric"), ("j_empty.npy", "j_empty.npy"), ("j_trunc.npy", "j_trunc.npy"),
+        ("j_twokeys.npz", "no 'joints' array"), ("j_count.txt", "values"), ("j_nan.txt", "j_nan.txt"),
+        ("j_mm.npy", "not metres"), ("nonexistent.npy", "no such"),
+    ]],
+    *[(["complete", "--partial", f"{{d}}/{name}", "--joints", "demo:skirt", "--steps", "2", "--points", "64",
+        "--out", "OUT"], name) for name in ["c_empty.ply", "c_short.ply", "c_nan.ply", "c_text.ply", "c_words.ply"]],
+    *[(["mesh", f"{{d}}/{name}", "--out", "OUT.ply"], name) for name in ["c_empty.ply", "c_short.ply", "c_nan.ply",
+                                                                          "c_text.ply"]],
+    *[([*SAMPLE, "--joints", "demo:skirt", "--ckpt", f"{{d}}/{name}"], name) for name in ["ck_empty", "ck_garbage",
+                                                                                             "ck_wrongformat"]],
+    ([*SAMPLE, "--joints", "demo:skirt", "--sampler", "bogus"], "unknown sampler"),
+    ([*SAMPLE[:-2], "--joints", "demo:skirt", "--steps", "0", "--out", "OUT"], "--steps must be >= 1"),
+    ([*SAMPLE, "--joints", "demo:skirt", "--outfit", "nobody"], "nobody"),
+    (["animate", "--motion", "{d}/j_23.npy", "--outfit", "skirt_a", "--out", "OUT"], "j_23.npy"),
+    (["edit", "--source", "{d}/c_nan.ply", "--joints", "demo:skirt", "--source-joints", "demo:skirt", "--outfit",
+      "skirt_a", "--out", "OUT"], "c_nan.ply"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("argv, message", CORPUS, ids=[f"{a[0]}-{m[:24]}" for a, m in CORPUS])
+def test_the_corpus_of_malformed_inputs_is_one_line_each(tmp_path, capsys, monkeypatch, argv, message):
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    _write_corpus(corpus)
+    monkeypatch.chdir(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    err = _one_line(capsys, main([a.format(d=corpus) for a in argv]))
+    assert message in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written

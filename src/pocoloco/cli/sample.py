@@ -54,8 +54,12 @@ def cmd_sample(args: argparse.Namespace) -> None:
         raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
     if method.needs_body:
         pose_spec_kind(spec)  # bare joints: the one-line error first
-    outfit = pick_outfit(method, args.outfit, spec)
-    pose = method.load_pose(spec, outfit, args.frame_id, any_pose=args.any_pose)
+    if method.needs_body:  # the body is posed with the outfit's phenotype
+        outfit = pick_outfit(method, args.outfit, spec)
+        pose = method.load_pose(spec, outfit, args.frame_id, any_pose=args.any_pose)
+    else:  # a bad joints file is named before a missing --outfit
+        pose = method.load_pose(spec, None, args.frame_id, any_pose=args.any_pose)
+        outfit = pick_outfit(method, args.outfit, spec)
     method.check_options(options)
     options = fit_to_memory(method, args.points, num, options)
     seeds = [args.seed + k for k in range(num)]
