@@ -67,10 +67,10 @@ def test_paths_the_os_refuses_are_one_line(tiny_dataset, tmp_path, capsys, monke
 def test_sampling_more_points_than_memory_holds_is_refused_or_split(tmp_path, capsys, monkeypatch):
     """A request whose one cloud cannot fit in free memory: one line naming the most points that fit,
     nothing written; one that fits one cloud at a time: denoised one at a time, with a warning."""
-    from pocoloco.cli import common
+    from pocoloco.methods import base
 
     per_point = 4 * (64 * (4 + 2) + 64)  # the shipped latent_small's estimate
-    monkeypatch.setattr(common, "available_memory_bytes", lambda device: int(1000 * per_point / common.MEMORY_SHARE))
+    monkeypatch.setattr(base, "available_memory_bytes", lambda device: int(1000 * per_point / base.MEMORY_SHARE))
     argv = ["sample", "--joints", "demo:skirt", "--steps", "2", "--no-render"]
     err = _one_line(capsys, main([*argv, "--points", "5000", "--out", str(tmp_path / "a")]))
     assert "--points 5,000: one cloud needs" in err and "at most ~1,000 points fit" in err
@@ -78,6 +78,16 @@ def test_sampling_more_points_than_memory_holds_is_refused_or_split(tmp_path, ca
     assert main([*argv, "--points", "600", "--num", "3", "--out", str(tmp_path / "b")]) == 0
     captured = capsys.readouterr()
     assert "denoising 1 of the 3 clouds at a time" in captured.err and len(list((tmp_path / "b").glob("*.ply"))) == 3
+
+
+def test_eval_checks_memory_before_the_first_sample(tiny_dataset, tiny_run, tmp_path, capsys, monkeypatch):
+    from pocoloco.methods import base
+
+    monkeypatch.setattr(base, "available_memory_bytes", lambda device: 10_000)
+    argv = ["eval", "--ckpt", str(tiny_run), "--data", str(tiny_dataset), "--frames", "1", "--points", "5000",
+            "--seeds", "0", "--no-baselines", "--out", str(tmp_path / "e")]  # fmt: skip
+    err = _one_line(capsys, main(argv))
+    assert "--points 5,000: one cloud needs" in err and not (tmp_path / "e").exists()
 
 
 def test_a_train_that_fails_before_its_first_checkpoint_leaves_no_folder(tiny_dataset, tmp_path, capsys, monkeypatch):

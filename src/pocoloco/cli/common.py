@@ -4,7 +4,6 @@ model from ``--ckpt``, progress bars and the options of the apps."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import errno
 import os
 import re
@@ -18,9 +17,9 @@ import torch
 from pocoloco.data.poses import demo_pose_outfit, subject_of_spec
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.engine.shipped import resolve_ckpt_arg
-from pocoloco.methods import Method, SamplerOptions, load_method
+from pocoloco.methods import Method, load_method
 from pocoloco.utils.atomic import output_folder
-from pocoloco.utils.hardware import available_memory_bytes, bf16_is_fast
+from pocoloco.utils.hardware import bf16_is_fast
 
 __all__ = ["EXIT_USER_ERROR", "MAX_SEED", "USER_ERRORS", "add_any_pose_argument", "check_seeds", "add_bf16_argument", "resolve_bf16", "add_app_arguments", "add_device_argument", "add_threads_argument",
            "apply_threads", "check_app_args", "choose_device", "pick_outfit", "steps_defaults", "console", "load_method_from_args", "progress_bar",
@@ -185,32 +184,6 @@ def pick_outfit(method: Method, outfit: str | None, spec: str | None) -> int | N
     if name is None or (outfit is None and name not in names):
         raise ValueError(f"--outfit is required (this {method.kind} checkpoint has outfits {', '.join(names)})")
     return method.outfit_id(name)
-
-
-#: share of the free memory one request may plan to use
-MEMORY_SHARE = 0.8
-
-
-def fit_to_memory(method: Method, num_points: int, num_clouds: int, options: SamplerOptions) -> SamplerOptions:
-    """``options`` with a batch size (clouds denoised together) that fits in the free memory of the
-    model's device (a one-line warning when it had to be lowered); a one-line error naming the most
-    points that fit when even one cloud does not."""
-    free = available_memory_bytes(method.device)
-    if free is None:
-        return options
-    budget = MEMORY_SHARE * free
-    per_cloud = num_points * method.bytes_per_point()
-    if per_cloud > budget:
-        most = int(budget // method.bytes_per_point())
-        raise ValueError(f"--points {num_points:,}: one cloud needs ~{per_cloud / 2**30:.1f} GiB and "
-                         f"{free / 2**30:.1f} GiB are free; at most ~{most:,} points fit (draw several clouds "
-                         "with other seeds and merge them)")  # fmt: skip
-    fits = max(1, int(budget // per_cloud))
-    batch = min(options.batch_size, num_clouds)
-    if fits < batch:
-        warnings.warn(f"denoising {fits} of the {num_clouds} clouds at a time to fit in {free / 2**30:.1f} GiB of free memory")
-        return dataclasses.replace(options, batch_size=fits)
-    return options
 
 
 def load_method_from_args(args: argparse.Namespace, expect: str | tuple[str, ...] | None = None) -> Method:

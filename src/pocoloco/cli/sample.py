@@ -13,7 +13,6 @@ from pocoloco.cli.common import (
     add_bf16_argument,
     add_device_argument,
     add_threads_argument,
-    fit_to_memory,
     load_method_from_args,
     pick_outfit,
     resolve_bf16,
@@ -21,7 +20,7 @@ from pocoloco.cli.common import (
 )
 from pocoloco.data.poses import pose_spec_kind
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
-from pocoloco.methods import SamplerOptions
+from pocoloco.methods import SamplerOptions, fit_to_memory
 from pocoloco.methods.outputs import write_samples
 from pocoloco.methods.pocoloco.sampling import DEFAULT_CLIP
 from pocoloco.utils.atomic import output_folder

@@ -53,7 +53,7 @@ from pocoloco.evaluation.baselines import (
     subset,
 )
 from pocoloco.evaluation.metrics import diversity_cm, evaluate_frame, nearest, summarise, summarise_samples
-from pocoloco.methods import SamplerOptions, load_method
+from pocoloco.methods import SamplerOptions, fit_to_memory, load_method
 from pocoloco.utils.atomic import (
     jsonable,
     output_folder,
@@ -216,6 +216,8 @@ def evaluate(
     options = SamplerOptions(sampler=settings.sampler, steps=settings.steps, clip=settings.clip, bf16=settings.bf16,
                              batch_size=settings.batch_size)  # fmt: skip
     methods = _load_methods(ckpt, data, card, sorted({s for s, _, _ in chosen}), settings, options, device, info)
+    if methods:  # a request larger than free memory: fewer clouds at a time, or one line
+        options = fit_to_memory(next(iter(methods.values())), settings.num_points, len(settings.seeds), options)
     method = next(iter(methods.values()), None)  # the one model (or the first of the per-subject ones)
     seeds = list(settings.seeds[:1]) if method is not None and method.deterministic else list(settings.seeds)
     nearest_frame = (NearestFrameBaseline(data, subjects, align=settings.nearest_align)

@@ -20,6 +20,7 @@ Adding a method = one folder under ``methods/`` with a :class:`Method` subclass,
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -33,8 +34,9 @@ from pocoloco.data.dataset import Normalisation
 from pocoloco.data.poses import MeanShapeCache, Pose
 from pocoloco.engine.checkpoint import Checkpoint, save_checkpoint
 from pocoloco.engine.trainer import TrainingTask
+from pocoloco.utils.hardware import available_memory_bytes
 
-__all__ = ["Method", "SampledClouds", "SamplerOptions"]
+__all__ = ["MEMORY_SHARE", "Method", "SampledClouds", "SamplerOptions", "fit_to_memory"]
 
 #: meta.json entries that ``save_checkpoint`` writes itself
 _META_OWN = frozenset({"format", "version", "model_kind", "preset", "step", "config", "normalisation", "has_ema",
@@ -215,3 +217,29 @@ class Method(ABC):
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         """Method-specific entries of ``sample.json``."""
         return {}
+
+
+#: share of the free memory one request may plan to use
+MEMORY_SHARE = 0.8
+
+
+def fit_to_memory(method: Method, num_points: int, num_clouds: int, options: SamplerOptions) -> SamplerOptions:
+    """``options`` with a batch size (clouds denoised together) that fits in the free memory of the
+    model's device (a one-line warning when it had to be lowered); a one-line error naming the most
+    points that fit when even one cloud does not."""
+    free = available_memory_bytes(method.device)
+    if free is None:
+        return options
+    budget = MEMORY_SHARE * free
+    per_cloud = num_points * method.bytes_per_point()
+    if per_cloud > budget:
+        most = int(budget // method.bytes_per_point())
+        raise ValueError(f"--points {num_points:,}: one cloud needs ~{per_cloud / 2**30:.1f} GiB and "
+                         f"{free / 2**30:.1f} GiB are free; at most ~{most:,} points fit (draw several clouds "
+                         "with other seeds and merge them)")  # fmt: skip
+    fits = max(1, int(budget // per_cloud))
+    batch = min(options.batch_size, num_clouds)
+    if fits < batch:
+        warnings.warn(f"denoising {fits} of the {num_clouds} clouds at a time to fit in {free / 2**30:.1f} GiB of free memory")
+        return dataclasses.replace(options, batch_size=fits)
+    return options
