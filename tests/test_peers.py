@@ -439,19 +439,19 @@ def test_train_on_a_subset_of_subjects(tiny_dataset, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("model", ["pop", "closet"])
-def test_shipped_peer_samples_a_dataset_frame(test_frame, tmp_path, capsys, model):
-    """``--ckpt default:pop`` / ``default:closet``: the shipped small peers load and dress a test
-    frame's body; an unknown ``default:`` name is a one-line error."""
-    spec, subject, path = test_frame
+def test_shipped_peer_samples_a_demo_pose(tmp_path, capsys, model):
+    """``--ckpt default:pop`` / ``default:closet``: the shipped peers load and dress the README's demo
+    pose (its anny pose, posed with the outfit's body) near that body; an unknown ``default:`` name is a
+    one-line error."""
     out = tmp_path / model
-    argv = ["sample", "--ckpt", f"default:{model}", "--joints", spec, "--outfit", subject, "--points", "500",
-            "--out", str(out)]  # fmt: skip
+    argv = ["sample", "--ckpt", f"default:{model}", "--joints", "demo:skirt", "--points", "500", "--out", str(out)]
     assert main(argv) == 0, capsys.readouterr().err
     meta = json.loads((out / "sample.json").read_text())
-    assert meta["model_kind"] == model and meta["outfit"] == subject
+    assert meta["model_kind"] == model and meta["outfit"].startswith("skirt")
     ply = read_ply(out / "sample_000.ply")
     assert ply.points.shape == (500, 3) and np.isfinite(ply.points).all()
-    pose = pose_from_frame(path, subject, load_method(meta["checkpoint"]).needs_mean_shape)
+    method = load_method(meta["checkpoint"])
+    pose = method.load_pose("demo:skirt", method.outfit_id(meta["outfit"]))
     from scipy.spatial import cKDTree
 
     dist = cKDTree(pose.body_vertices).query(ply.points)[0]  # metres to the nearest posed-body vertex
@@ -463,7 +463,7 @@ def test_shipped_peer_samples_a_dataset_frame(test_frame, tmp_path, capsys, mode
 def test_describe_checkpoint_names_shipped_and_relative_paths(tmp_path, monkeypatch):
     from pocoloco.engine.shipped import ASSETS_DIR, describe_checkpoint
 
-    assert describe_checkpoint(ASSETS_DIR / "pop_small") == "default:pop"
+    assert describe_checkpoint(ASSETS_DIR / "pop_medium") == "default:pop"
     assert describe_checkpoint(ASSETS_DIR / "pocoloco_medium") == "default"
     (tmp_path / "runs" / "a").mkdir(parents=True)
     monkeypatch.chdir(tmp_path)
