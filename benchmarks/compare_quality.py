@@ -18,7 +18,7 @@ import json
 import math
 from pathlib import Path
 
-METRICS = ("chamfer_cm", "s2m_cm", "m2s_cm", "best_of_k_chamfer_cm", "energy_score_cm", "s2m_garment_cm",
+METRICS = ("chamfer_cm", "s2m_cm", "m2s_cm", "best_of_k_chamfer_cm", "energy_score_cm", "energy_score_adj_cm", "s2m_garment_cm",
            "m2s_garment_cm", "fscore_2cm_pct", "loose_pred_pct", "loose_gt_pct", "outlier_10cm_pct")
 
 

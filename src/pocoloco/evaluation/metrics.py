@@ -56,10 +56,12 @@ Metrics fair to a generative model (PocoLoco convention, cm):
   not a proven proper score. **Caveat, measured (BENCHMARKS.md, "PocoLoco on a GPU"):** between
   two finite point sets, Chamfer also counts the point resampling (two 2,048-point resamples of
   one scan are 2.82 cm apart), so the spread term of a sampler includes about half that noise
-  floor, which a deterministic row (scored once, K = 1) never subtracts: as computed here, ES
-  favours the sampler by up to ~1.4 cm at 2,048 points and does not yet rank it fairly against
-  POP / CloSET. A resampling-free distance, or the deterministic rows scored over K resamples,
-  is needed first.
+  floor, which a deterministic row (scored once, K = 1) never subtracts: raw ES favours the
+  sampler by up to ~1.4 cm at 2,048 points. ``energy_score_adj_cm`` adds half of each frame's
+  noise floor (its Chamfer between two resamples of the scan, the GT-resample row) back to a
+  sampler's ES (:func:`energy_score_adjusted`); that is the column that ranks a sampler against
+  POP / CloSET. It assumes the resampling noise adds to the pairwise Chamfer, which holds to first
+  order (tested: two samplers of the same surface get the deterministic Chamfer back within noise).
 """
 
 from __future__ import annotations
@@ -504,14 +506,30 @@ def summarise(frames: Iterable[Mapping[str, float]]) -> dict[str, float]:
     return out
 
 
-def summarise_samples(scores: Sequence[Mapping[str, float]], pairwise_mean_cm: float | None = None) -> dict[str, float]:
+def energy_score_adjusted(energy_score: float, num_samples: int, noise_floor_cm: float | None) -> float:
+    """The energy score with the point-resampling noise taken out of its pairwise term, in cm.
+
+    Between finite point sets, Chamfer carries a floor: two independent N-point resamples of one
+    surface are ``noise_floor_cm`` apart (the GT-resample row). The pairwise term of ES counts that
+    floor as the model's spread and subtracts half of it, which flatters any sampler against a
+    deterministic model; this adds it back: ES + floor / 2 for K >= 2 samples, ES (= Chamfer) for K = 1.
+    """
+    if num_samples < 2 or noise_floor_cm is None:
+        return float(energy_score)
+    return float(energy_score + 0.5 * noise_floor_cm)
+
+
+def summarise_samples(scores: Sequence[Mapping[str, float]], pairwise_mean_cm: float | None = None,
+                      noise_floor_cm: float | None = None) -> dict[str, float]:  # fmt: skip
     """One frame's metrics from the ``evaluate_frame`` dicts of its K >= 1 clouds (one per seed).
 
     Every key is the mean over the K clouds (NaN skipped, ``summarise``; K = 1: the cloud's own
     dict), plus best_of_k_chamfer_cm (min ``chamfer_cm`` over the K), energy_score_cm
     (``energy_score_from_chamfers``; pairwise_mean_cm = ``diversity_cm`` of the K clouds, needed for
-    K >= 2) and num_samples = K. The seed-level counts (num_frames, ``FRAME_COUNTS``) are dropped,
-    so a summary over frames counts frames.
+    K >= 2), energy_score_adj_cm (``energy_score_adjusted`` with ``noise_floor_cm``, the frame's
+    Chamfer between two resamples of the scan; = energy_score_cm without it) and num_samples = K.
+    The seed-level counts (num_frames, ``FRAME_COUNTS``) are dropped, so a summary over frames counts
+    frames.
     """
     if not scores:
         raise ValueError("summarise_samples needs at least one sample")
@@ -524,5 +542,6 @@ def summarise_samples(scores: Sequence[Mapping[str, float]], pairwise_mean_cm: f
             out.pop(k, None)
     out["best_of_k_chamfer_cm"] = float(min(to_gt))
     out["energy_score_cm"] = energy_score_from_chamfers(to_gt, pairwise_mean_cm)
+    out["energy_score_adj_cm"] = energy_score_adjusted(out["energy_score_cm"], len(scores), noise_floor_cm)
     out["num_samples"] = float(len(scores))
     return out
