@@ -29,7 +29,7 @@ from pocoloco.apps.animation import animate, evaluate_animation
 from pocoloco.data import format as fmt
 from pocoloco.engine.checkpoint import resolve_checkpoint
 from pocoloco.engine.shipped import resolve_ckpt_arg
-from pocoloco.methods.pocoloco import load_denoiser
+from pocoloco.methods import load_method
 from pocoloco.utils.atomic import jsonable, write_json_atomic
 
 METHODS = ("independent", "shared-noise", "chain", "chain-world")
@@ -60,7 +60,12 @@ def main(argv: list[str] | None = None) -> dict:
         p.error(f"methods from {', '.join(METHODS)}; --length >= 2; --stride >= 1")
 
     ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
-    model, norm, config = load_denoiser(ckpt)
+    loaded = load_method(ckpt, expect="pocoloco")
+    norm, config = loaded.normalisation, loaded.config
+
+    def model_for(subject: str):  # a model that knows who wears what draws the subject's own outfit
+        return loaded.denoiser_for(loaded.outfit_id(subject) if loaded.outfit_names() else None)
+
     layout = fmt.DatasetLayout(args.data)
     seqs = [(s, q) for s in layout.subjects() for q in layout.sequences(s, args.split)]
     if args.sequences:
@@ -76,7 +81,7 @@ def main(argv: list[str] | None = None) -> dict:
         gt_row = None
         for method in args.methods:
             ts = time.perf_counter()
-            anim = animate(model, norm, config, joints, args.points, method=method.replace("-world", ""), t=args.t,
+            anim = animate(model_for(subject), norm, config, joints, args.points, method=method.replace("-world", ""), t=args.t,
                            sampler=args.sampler, steps=args.steps, seed=args.seed,
                            anchor="world" if method == "chain-world" else "root")  # fmt: skip
             sec = (time.perf_counter() - ts) / len(idx)

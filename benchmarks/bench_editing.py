@@ -31,7 +31,7 @@ from pocoloco.data import format as fmt
 from pocoloco.engine.checkpoint import resolve_checkpoint
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.evaluation.baselines import select_frames
-from pocoloco.methods.pocoloco import load_denoiser
+from pocoloco.methods import load_method
 from pocoloco.utils.atomic import jsonable, write_json_atomic
 
 KEYS = ("unchanged_chamfer_cm", "target_chamfer_cm", "moved_joints", "static_share")
@@ -59,7 +59,12 @@ def main(argv: list[str] | None = None) -> dict:
         p.error("--k must be >= 1")
 
     ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
-    model, norm, config = load_denoiser(ckpt)
+    loaded = load_method(ckpt, expect="pocoloco")
+    norm, config = loaded.normalisation, loaded.config
+
+    def model_for(subject: str):  # a model that knows who wears what draws the subject's own outfit
+        return loaded.denoiser_for(loaded.outfit_id(subject) if loaded.outfit_names() else None)
+
     layout = fmt.DatasetLayout(args.data)
     candidates = []  # (subject, sequence, source index, target index)
     for subject in layout.subjects():
@@ -75,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
         src = fmt.read_frame(layout.frame_path(subject, args.split, sequence, i), ["points", "joints"])
         tgt = fmt.read_frame(layout.frame_path(subject, args.split, sequence, j), ["points", "joints"])
         for seed in args.seeds:
-            res = evaluate_edit(model, norm, config, src.points, src.joints, tgt.points, tgt.joints, args.points,
+            res = evaluate_edit(model_for(subject), norm, config, src.points, src.joints, tgt.points, tgt.joints, args.points,
                                 seed=seed, sampler=args.sampler, steps=args.steps, renoise_ts=args.ts,
                                 threshold=args.threshold)  # fmt: skip
             for method, m in res.items():
