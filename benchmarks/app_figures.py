@@ -14,7 +14,7 @@ Fixed seeds, the benchmarks' sampler (ddpm, 50 strided steps). Writes to ``--out
   ``--body`` PLYs when given, skipped otherwise);
 * ``app_turntable.gif``: turntable of a generated cloud (``--cloud``, skipped if not given).
 
-    python benchmarks/app_figures.py --threads 1 --cloud out/issue5/sample_skirt/sample_000.ply \\
+    python benchmarks/app_figures.py --data data/medium --threads 1 --cloud out/issue5/sample_skirt/sample_000.ply \\
         --mesh out/issue5/sample_mesh.ply --refined out/issue5/sample_refined.ply \\
         --body out/issue5/sample_refined_body.ply
 """
@@ -35,7 +35,7 @@ from pocoloco.apps.editing import edit
 from pocoloco.data import format as fmt
 from pocoloco.engine.checkpoint import resolve_checkpoint
 from pocoloco.engine.shipped import resolve_ckpt_arg
-from pocoloco.methods.pocoloco import load_denoiser
+from pocoloco.methods import load_method
 from pocoloco.viz.render import (
     LABEL_COLORS,
     render_gif,
@@ -48,8 +48,8 @@ from pocoloco.viz.render import (
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ckpt", default="default")
-    p.add_argument("--data", default="data/small")
-    p.add_argument("--sequence", default="skirt/test_0000", help="subject/sequence of the test split")
+    p.add_argument("--data", default="data/medium")
+    p.add_argument("--sequence", default="skirt_a/test_0000", help="subject/sequence of the test split")
     p.add_argument("--points", type=int, default=2048)
     p.add_argument("--anim-points", type=int, default=1024)
     p.add_argument("--anim-frames", type=int, default=8)
@@ -67,9 +67,12 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    model, norm, config = load_denoiser(resolve_checkpoint(resolve_ckpt_arg(args.ckpt)))
+    loaded = load_method(resolve_checkpoint(resolve_ckpt_arg(args.ckpt)), expect="pocoloco")
+    norm, config = loaded.normalisation, loaded.config
     layout = fmt.DatasetLayout(args.data)
     subject, sequence = args.sequence.split("/")
+    # a model that knows who wears what draws the sequence's own outfit
+    model = loaded.denoiser_for(loaded.outfit_id(subject) if loaded.outfit_names() else None)
     idx = layout.frame_indices(subject, "test", sequence)
 
     def frame(i: int):
