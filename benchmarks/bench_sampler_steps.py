@@ -48,7 +48,7 @@ from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.evaluation.baselines import select_frames
 from pocoloco.evaluation.baselines import subset as _subset
 from pocoloco.evaluation.metrics import chamfer_cm
-from pocoloco.methods.pocoloco import load_denoiser
+from pocoloco.methods import load_method
 from pocoloco.utils.atomic import write_json_atomic
 from pocoloco.viz.render import plot_curves
 
@@ -188,14 +188,17 @@ def main(argv: list[str] | None = None) -> dict:
         torch.set_num_threads(args.threads)
 
     ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
-    model, norm, config = load_denoiser(ckpt)
+    loaded = load_method(ckpt, expect="pocoloco")
+    norm, config = loaded.normalisation, loaded.config
     layout = fmt.DatasetLayout(args.data)
     frames = layout.iter_frames(args.split, layout.subjects())
     chosen = [frames[i] for i in select_frames(frames, args.frames)]
     gts = []
-    for n, (_, _, path) in enumerate(chosen):
+    for n, (subject, _, path) in enumerate(chosen):
         fr = fmt.read_frame(path, ["points", "joints"])
-        gts.append((fr.joints, fr.points[_subset(fr.num_points, args.points, (0, n))]))
+        # a model that knows who wears what draws the frame's own outfit
+        model = loaded.denoiser_for(loaded.outfit_id(subject) if loaded.outfit_names() else None)
+        gts.append((fr.joints, fr.points[_subset(fr.num_points, args.points, (0, n))], model))
 
     cache: dict[str, dict] = {}
     want = {"frames": len(gts), "seeds": args.seeds, "points": args.points, "clip": args.clip or None,
@@ -217,7 +220,7 @@ def main(argv: list[str] | None = None) -> dict:
             continue
         t0 = time.perf_counter()
         cds, nfe = [], 0
-        for joints, gt in gts:
+        for joints, gt, model in gts:
             clouds, nfe = draw(model, norm, config, joints, args.seeds, args.points, kind, steps, args.clip or None, extra)
             cds += [chamfer_cm(c, gt) for c in clouds]
         sec = (time.perf_counter() - t0) / (len(gts) * len(args.seeds))
