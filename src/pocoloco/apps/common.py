@@ -37,7 +37,7 @@ from pocoloco.diffusion.samplers import (
     sample,
 )
 from pocoloco.diffusion.schedules import NoiseSchedule
-from pocoloco.utils.atomic import atomic_write, output_folder
+from pocoloco.utils.atomic import atomic_write, no_file_reason, output_folder
 
 #: a scan whose bounding box is larger than this (metres) is taken to be in the wrong unit
 MAX_EXTENT_M = 5.0
@@ -239,7 +239,7 @@ def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
 
     src = os.fspath(path)
     if not os.path.isfile(src):
-        raise ValueError(f"{src}: " + ("is a folder, not a file" if os.path.isdir(src) else "no such file"))
+        raise ValueError(f"{src}: {no_file_reason(src)}")
     if src.endswith(".npz"):
 
         fr = read_frame(src, ["points", "normals"], allow_missing=True)

@@ -41,7 +41,7 @@ from pocoloco.data.poses import load_joints
 from pocoloco.data.published import write_ply
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.methods import checkpoint_kind
-from pocoloco.utils.atomic import jsonable, write_json_atomic
+from pocoloco.utils.atomic import jsonable, no_file_reason, write_json_atomic
 from pocoloco.viz.render import render_gif, render_grid
 
 __all__ = ["register"]
@@ -437,7 +437,7 @@ def _cmd_refine(args: argparse.Namespace, src: Path, out: Path) -> None:
     if body_out.resolve() in (src.resolve(), out.resolve()):
         raise ValueError(f"--body-out {body_out}: would overwrite the input or the mesh")
     if not src.is_file():
-        raise ValueError(f"{src}: " + ("is a folder, not a file" if os.path.isdir(src) else "no such file"))
+        raise ValueError(f"{src}: {no_file_reason(src)}")
     joints = load_joints(args.joints, args.frame_id)
     with progress_bar("fitting the body", total=2 * args.fit_steps) as update:
         r = refine_body_ply(src, out, joints, body_out, depth=args.depth, density_quantile=args.density_quantile,

@@ -92,12 +92,11 @@ def error_line(e: BaseException) -> str:
     in words (``out/x: already exists``), never a hidden temporary file."""
     if isinstance(e, OSError) and e.errno is not None and e.filename is not None:
         path = user_path(e.filename)
-        if len(path) > 120:
-            path = f"{path[:60]}...{path[-40:]}"
         reason = _OS_ERRORS.get(e.errno, e.strerror or type(e).__name__)
-        if e.errno == errno.EEXIST and os.path.isfile(user_path(e.filename)):
+        if e.errno == errno.EEXIST and os.path.isfile(path):
             reason = "already exists and is a file (name a folder that does not exist yet)"
-        return f"{path}: {reason}"
+        shown = f"{path[:60]}...{path[-40:]}" if len(path) > 120 else path
+        return f"{shown}: {reason}"
     msg = str(e).splitlines()[0] if str(e) else type(e).__name__
     return msg
 

@@ -51,9 +51,8 @@ def cmd_sample(args: argparse.Namespace) -> None:
                              batch_size=args.batch_size)  # fmt: skip
     if not method.deterministic and args.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
-    if method.needs_body:
-        pose_spec_kind(spec)  # bare joints: the one-line error first
     if method.needs_body:  # the body is posed with the outfit's phenotype
+        pose_spec_kind(spec)  # bare joints: the one-line error first
         outfit = pick_outfit(method, args.outfit, spec)
         pose = method.load_pose(spec, outfit, args.frame_id, any_pose=args.any_pose)
     else:  # a bad joints file is named before a missing --outfit

@@ -5,7 +5,6 @@ Every run ends with a sampling-only copy of its last checkpoint in ``RUN/model``
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import os
 import shutil
@@ -104,25 +103,22 @@ def cmd_train(args: argparse.Namespace) -> None:
         return
     output_folder(args.out)
     check_run_folder(args.out, args.resume)
-    out, failed_fresh = Path(args.out), False
-    try:
-        with exclusive_lock(out, "pocoloco train") as lock:  # a second train into the same folder is refused
-            check_run_folder(out, args.resume)  # again under the lock: another run may have just written one
-            fresh = all(p == lock for p in out.iterdir())
-            try:
-                _train(args, config, task)
-            except Exception:  # a run that fails before its first checkpoint leaves no half-made folder
-                failed_fresh = fresh and latest_checkpoint(out / "checkpoints") is None
-                if failed_fresh:
-                    for p in out.iterdir():
-                        if p != lock:
-                            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
-                raise
-    finally:
-        if failed_fresh:
-            with contextlib.suppress(OSError):
-                (out / ".lock").unlink()
-                out.rmdir()
+    out = Path(args.out)
+    with exclusive_lock(out, "pocoloco train") as lock:  # a second train into the same folder is refused
+        check_run_folder(out, args.resume)  # again under the lock: another run may have just written one
+        fresh = all(p == lock for p in out.iterdir())
+        try:
+            _train(args, config, task)
+        except Exception:  # a run that fails before its first checkpoint leaves only the lock, which
+            if fresh and latest_checkpoint(out / "checkpoints") is None:  # takes a folder it made with it
+                for p in out.iterdir():
+                    if p == lock:
+                        continue
+                    if p.is_dir() and not p.is_symlink():
+                        shutil.rmtree(p)
+                    else:
+                        p.unlink()
+            raise
 
 
 def _train(args: argparse.Namespace, config, task) -> None:

@@ -58,7 +58,7 @@ import numpy as np
 
 from .. import __version__
 from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS, NUM_JOINTS
-from ..utils.atomic import save_npz_atomic, write_json_atomic
+from ..utils.atomic import no_file_reason, save_npz_atomic, write_json_atomic
 
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "SPLITS", "LABEL_UNKNOWN", "FRAME_KEYS", "REQUIRED_FRAME_KEYS",
@@ -322,7 +322,7 @@ def frame_storage(path: str | os.PathLike) -> str:
 def load_npz(path: str, keys: Iterable[str] | None) -> tuple[set[str], dict[str, np.ndarray]]:
     """Read ``keys`` (all if None; missing ones skipped) from an npz; errors become one-line ValueErrors."""
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"{path}: " + ("is a folder, not a file" if os.path.isdir(path) else "no such file"))
+        raise FileNotFoundError(f"{path}: {no_file_reason(path)}")
     try:
         with np.load(path, allow_pickle=False) as z:
             if not hasattr(z, "files"):

@@ -73,21 +73,22 @@ def demo_pose_names() -> list[str]:
 def demo_pose_path(name: str) -> Path:
     """The .npz of demo pose ``name``, or of the first outfit ``name_*`` (``skirt`` -> ``skirt_a``);
     a one-line error naming the known ones otherwise."""
-    path = DEMO_POSES_DIR / f"{name}.npz"
-    if name and "/" not in name and path.is_file():
-        return path
-    kinds = [n for n in demo_pose_names() if n.startswith(f"{name}_")]
-    if name and "/" not in name and kinds:
-        return DEMO_POSES_DIR / f"{kinds[0]}.npz"
     names = demo_pose_names()
+    if name and "/" not in name:
+        if name in names:
+            return DEMO_POSES_DIR / f"{name}.npz"
+        kinds = [n for n in names if n.startswith(f"{name}_")]
+        if kinds:
+            return DEMO_POSES_DIR / f"{kinds[0]}.npz"
     aliases = sorted({n.rsplit("_", 1)[0] for n in names if "_" in n})
     raise ValueError(f"demo:{name}: no such demo pose; choose one of: {', '.join(aliases + names)}")
 
 
 def demo_pose_outfit(name: str) -> str:
     """The outfit demo pose ``name`` was captured on (``skirt`` -> ``skirt_a``)."""
-    with np.load(demo_pose_path(name), allow_pickle=False) as z:
-        return str(z["outfit"]) if "outfit" in z.files else Path(demo_pose_path(name)).stem
+    path = demo_pose_path(name)
+    with np.load(path, allow_pickle=False) as z:
+        return str(z["outfit"]) if "outfit" in z.files else path.stem
 
 
 # ------------------------------------------------------------------------------------ joints

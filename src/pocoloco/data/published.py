@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from ..body.skeleton import NUM_JOINTS
-from ..utils.atomic import atomic_write, save_npz_atomic
+from ..utils.atomic import atomic_write, no_file_reason, save_npz_atomic
 from . import format as fmt
 from .format import read_frame
 
@@ -251,7 +251,7 @@ def read_ply(path: str | os.PathLike, require_normals: bool = False) -> PlyData:
     """
     src = os.fspath(path)
     if not os.path.isfile(src):
-        raise FileNotFoundError(f"{src}: " + ("is a folder, not a file" if os.path.isdir(src) else "no such file"))
+        raise FileNotFoundError(f"{src}: {no_file_reason(src)}")
     with open(src, "rb") as f:
         fmt_name, elements = _parse_ply_header(src, f)
         body = f.read()
@@ -382,7 +382,7 @@ def read_joints_txt(path: str | os.PathLike, num_joints: int = NUM_JOINTS) -> tu
     """
     src = os.fspath(path)
     if not os.path.isfile(src):
-        raise FileNotFoundError(f"{src}: " + ("is a folder, not a file" if os.path.isdir(src) else "no such file"))
+        raise FileNotFoundError(f"{src}: {no_file_reason(src)}")
     want = 1 + 3 * num_joints
     ids: list[int] = []
     rows: list[np.ndarray] = []

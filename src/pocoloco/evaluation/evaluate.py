@@ -238,6 +238,7 @@ def evaluate(
         gt_lab = None if fr.labels is None else fr.labels[gsel]
         row: dict[str, Any] = {"key": key, "subject": subject}
         clouds: dict[str, Any] = {"gt": (gt, gt_lab)}
+        resample = subset(fr.num_points, settings.num_points, (2, n_done))  # the noise floor's second GT subset
 
         def score(points, normals):
             return evaluate_frame(points, normals, gt, gt_n, gt_lab)
@@ -262,7 +263,7 @@ def evaluate(
                     m["diversity_garment_cm"] = m["diversity_body_cm"] = 0.0
             else:
                 div = diversity_cm(pred.points) if len(seeds) >= 2 else None
-                floor = chamfer_cm(fr.points[subset(fr.num_points, settings.num_points, (2, n_done))], gt)
+                floor = chamfer_cm(fr.points[resample], gt)
                 m = summarise_samples([score(pred.points[k], normals[k]) for k in range(len(seeds))], div, floor)
                 m["seconds_per_sample"] = per_sample
                 if div is not None:
@@ -287,8 +288,7 @@ def evaluate(
             row["posed_body"] = single(pred["points"], pred["normals"])
             clouds["posed_body"] = (pred["points"], np.zeros(settings.num_points, np.uint8))
         if "gt_resample" in settings.baselines:
-            other = subset(fr.num_points, settings.num_points, (2, n_done))
-            row["gt_resample"] = single(fr.points[other], fr.normals[other])
+            row["gt_resample"] = single(fr.points[resample], fr.normals[resample])
         result.frames.append(row)
         if n_done in example_ids:
             examples.append({"key": key, **clouds})

@@ -31,7 +31,7 @@ import numpy as np
 from torch import nn
 
 from pocoloco.data.dataset import Normalisation
-from pocoloco.data.poses import MeanShapeCache, Pose
+from pocoloco.data.poses import MeanShapeCache, Pose, outfit_of_spec
 from pocoloco.engine.checkpoint import Checkpoint, save_checkpoint
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.utils.hardware import available_memory_bytes
@@ -177,6 +177,15 @@ class Method(ABC):
         if pose.subject is None or pose.subject not in names:
             raise ValueError(f"--outfit is required (this {self.kind} checkpoint has outfits {', '.join(names)})")
         return names.index(pose.subject)
+
+    def outfit_of_pose_spec(self, spec: str, outfit: int | None) -> int | None:
+        """``outfit`` if given, else the outfit a pose spec belongs to (a ``DATASET:...`` frame's
+        subject, a ``demo:NAME`` pose's outfit) when this model has it, else None: the body a spec
+        is posed with when no outfit is named."""
+        if outfit is not None:
+            return outfit
+        name = outfit_of_spec(spec)
+        return self.outfit_names().index(name) if name in self.outfit_names() else None
 
     # -------------------------------------------------------------------------------- poses
     @abstractmethod

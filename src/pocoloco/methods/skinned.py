@@ -46,7 +46,7 @@ from pocoloco.data.format import (
     read_frame,
     read_subject,
 )
-from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, outfit_of_spec, pose_from_frame
+from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, pose_from_frame
 from pocoloco.data.step_batches import StepBatches
 from pocoloco.engine.checkpoint import Checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
@@ -392,8 +392,7 @@ class SkinnedMethod(Method):
         phenotype of ``outfit``'s subject); bare joints are a one-line error (they need the body)."""
         if frame_id is not None:
             raise ValueError(f"{spec}: --frame-id only applies to PocoLoco checkpoints")
-        if outfit is None and outfit_of_spec(spec) in self.outfit_names():  # demo:NAME: posed as its outfit
-            outfit = self.outfit_names().index(outfit_of_spec(spec))
+        outfit = self.outfit_of_pose_spec(spec, outfit)  # demo:NAME: posed as its outfit
         pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
         return load_body_pose(spec, pheno, self.needs_mean_shape)
 

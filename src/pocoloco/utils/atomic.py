@@ -19,8 +19,8 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "atomic_open", "exclusive_lock", "jsonable", "output_folder", "save_npz_atomic", "write_json_atomic",
-           "write_text_atomic"]
+__all__ = ["atomic_write", "atomic_open", "exclusive_lock", "jsonable", "no_file_reason", "output_folder", "save_npz_atomic",
+           "write_json_atomic", "write_text_atomic"]
 
 
 def _fsync_dir(folder: str) -> None:
@@ -121,6 +121,11 @@ def output_folder(path: str | os.PathLike) -> Path:
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: exists and is not a folder")
     return out
+
+
+def no_file_reason(path: str | os.PathLike) -> str:
+    """Why ``path`` is not a readable file, in words: a folder, or nothing there."""
+    return "is a folder, not a file" if os.path.isdir(path) else "no such file"
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:

@@ -180,8 +180,7 @@ class PocoLocoMethod(Method):
         if self.needs_body:  # the posed body, as POP and CloSET take it
             if frame_id is not None:
                 raise ValueError(f"{spec}: --frame-id does not apply to a model that needs the posed body")
-            if outfit is None and outfit_of_spec(spec) in self.outfit_names():  # demo:NAME: posed as its outfit
-                outfit = self.outfit_names().index(outfit_of_spec(spec))
+            outfit = self.outfit_of_pose_spec(spec, outfit)  # demo:NAME: posed as its outfit
             pheno = self.outfits[outfit].get("phenotype", {}) if outfit is not None else {}
             return load_body_pose(spec, pheno, False)
         joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
