@@ -55,9 +55,10 @@ EOF
 
 LEFT=$(( TOTAL - $(elapsed) - 45 ))  # start-up, final checkpoint, export and packing
 [ "$LEFT" -lt 30 ] && LEFT=30
-# steps that fit (the search's steps/s, 5 % margin), the last fifth a linear cool-down (wsd); without a
-# measured rate: a constant learning rate until the time budget
-SCHEDULE=$($PY -c "s=$SPS; n=max(200, int(s * $LEFT * 0.95)); print(f'--steps {n} --lr-schedule wsd --decay-steps {n // 5}' if s > 0 else '--steps 1000000 --lr-schedule constant')")
+# wsd with its cool-down over the last fifth, on the step count that fits at the searched rate (20 %
+# headroom) and on the clock (--time-budget), whichever comes first: a machine slower than the search's
+# still ends cooled down; without a measured rate the clock alone decides
+SCHEDULE=$($PY -c "s=$SPS; n=max(200, int(s * $LEFT * 1.2)) if s > 0 else 1000000; print(f'--steps {n} --lr-schedule wsd --decay-steps {n // 5}')")
 MINUTES=$($PY -c "print(round($LEFT / 60, 3))")
 echo "== train $PRESET B=$BATCH: $SCHEDULE, budget $MINUTES min ($(elapsed) s)"
 # shellcheck disable=SC2086

@@ -58,6 +58,17 @@ def test_lr_wsd_is_constant_then_linear_to_zero():
         train_preset("tiny", steps=10, lr_schedule="wsd", decay_steps=11)
 
 
+def test_lr_wsd_on_the_clock_takes_the_lower_of_steps_and_time():
+    c = train_preset("tiny", steps=100, warmup_steps=0, lr=1.0, lr_schedule="wsd", decay_steps=20)
+    assert lr_at(c, 10, 0.0) == lr_at(c, 10) == 1.0  # stable on both clocks
+    assert lr_at(c, 10, 0.8) == pytest.approx(1.0) and lr_at(c, 10, 0.7) == 1.0  # the last fifth of the budget starts the decay
+    assert lr_at(c, 10, 0.9) == pytest.approx(0.5)  # slower machine than planned: the clock decides
+    assert lr_at(c, 10, 1.0) == 0.0 and lr_at(c, 10, 1.5) == 0.0
+    assert lr_at(c, 90, 0.1) == pytest.approx(0.5)  # faster machine: the step count decides
+    const = c.replace(lr_schedule="constant")
+    assert lr_at(const, 10, 0.99) == 1.0  # only wsd runs on the clock
+
+
 def test_ema_decay_warmup():
     assert ema_decay_at(0.999, 0) == pytest.approx(0.1)
     assert ema_decay_at(0.999, 10) == pytest.approx(11 / 20)

@@ -220,8 +220,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "(Adam's rule), linearly, or not at all (default sqrt)")  # fmt: skip
     parser.add_argument("--time-budget", type=float, metavar="MINUTES",
                         help="stop after this many minutes of training (a leased machine): the last step's checkpoint "
-                             "is written and the model exported as usual; the LR schedule still runs to --steps "
-                             "(default: none)")  # fmt: skip
+                             "is written and the model exported as usual; with --lr-schedule wsd the decay also runs on "
+                             "this clock (the last decay-steps/steps share of the budget), so the run ends cooled down "
+                             "on a slower machine too; other schedules run to --steps (default: none)")  # fmt: skip
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile the forward pass (GPU; single process; default off)")  # fmt: skip
     parser.add_argument("--device", default=None, help="cuda, cuda:1, cpu (default: cuda if available, else cpu)")

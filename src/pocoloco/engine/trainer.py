@@ -97,10 +97,14 @@ def frozen(model: nn.Module):
 
 
 # ---------------------------------------------------------------------------- pure schedules
-def lr_at(config: Any, step: int) -> float:
+def lr_at(config: Any, step: int, time_share: float | None = None) -> float:
     """Learning rate of optimiser step ``step`` (0-based): linear warm-up over ``warmup_steps``,
     then constant, cosine (to 0 at ``steps``) or ``wsd``: constant, then linear to 0 over the
-    last ``decay_steps`` (warm-up / stable / decay, Hu et al. 2024, MiniCPM)."""
+    last ``decay_steps`` (warm-up / stable / decay, Hu et al. 2024, MiniCPM).
+
+    ``time_share`` (share of a time budget used so far, wsd only): the decay also runs on the
+    clock, over the same share of the budget as ``decay_steps`` is of ``steps``, and the lower of
+    the two rates is taken, so a run on a machine slower than planned still ends cooled down."""
     warmup = getattr(config, "warmup_steps", 0)
     if warmup and step < warmup:
         return config.lr * (step + 1) / warmup
@@ -110,9 +114,13 @@ def lr_at(config: Any, step: int) -> float:
         progress = min(max(step - warmup, 0) / span, 1.0)
         return config.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
     if schedule == "wsd":
+        lr = config.lr
         start = config.steps - config.decay_steps
         if step >= start:
-            return config.lr * max(config.steps - step, 0) / config.decay_steps
+            lr = config.lr * max(config.steps - step, 0) / config.decay_steps
+        if time_share is not None:
+            lr = min(lr, config.lr * min(1.0, max(1.0 - time_share, 0.0) * config.steps / config.decay_steps))
+        return lr
     return config.lr
 
 
@@ -426,8 +434,10 @@ def train(
             matmuls and convolutions run in TF32 and the logged floats are read from the device
             only at log steps (no host synchronisation per step).
         time_budget_s: stop after the first step that ends this many seconds after the loop
-            started (model building and data loading excluded), with the usual final checkpoint;
-            the learning-rate schedule still runs to ``config.steps`` (choose ``steps`` to fit).
+            started (model building and data loading excluded), with the usual final checkpoint.
+            With the ``wsd`` schedule the decay also runs on this clock (:func:`lr_at`), so the
+            run ends cooled down whether the machine is faster or slower than ``steps`` assumed;
+            other schedules run to ``config.steps`` (choose ``steps`` to fit).
         compile_model: run the forward pass through ``torch.compile`` (single process only).
         export_to: after training, write a sampling-only copy of the last checkpoint there
             (:func:`pocoloco.engine.checkpoint.export_for_sampling`, replacing an older copy).
@@ -520,10 +530,12 @@ def train(
     bar = ProgressBar(progress and rank == 0, start_step, config.steps)
     last_ckpt, saved_step, loss_val, t0, step = None, None, float("nan"), time.perf_counter(), start_step
     stopped_by_budget = False
+    clock_decay = time_budget_s is not None and getattr(config, "lr_schedule", "constant") == "wsd"
+    time_share = 0.0 if clock_decay else None
     model.train()
     try:
         for step, batch in zip(range(start_step, config.steps), loader, strict=True):
-            lr = lr_at(config, step)
+            lr = lr_at(config, step, time_share)
             for group, base in zip(optimizer.param_groups, base_lrs, strict=True):
                 group["lr"] = lr if base == config.lr else base * (lr / config.lr)
             batch = _to_device(batch, device)
@@ -537,11 +549,14 @@ def train(
             decay_now = ema.update(model, step) if ema is not None else None
             done = step + 1
             if time_budget_s is not None and not stopped_by_budget:
-                over = torch.tensor(float(time.perf_counter() - t0 >= time_budget_s))
-                if world > 1:  # every rank stops at the same step
-                    over = over.to(device)
-                    dist.all_reduce(over, op=dist.ReduceOp.MAX)
-                stopped_by_budget = bool(over)
+                spent = torch.tensor(time.perf_counter() - t0, dtype=torch.float64)
+                if world > 1:  # every rank stops at the same step, with the same learning rate
+                    spent = spent.to(device)
+                    dist.all_reduce(spent, op=dist.ReduceOp.MAX)
+                spent = float(spent)
+                stopped_by_budget = spent >= time_budget_s
+                if clock_decay:
+                    time_share = spent / time_budget_s
             log_now = done % config.log_every == 0 or done == config.steps or stopped_by_budget
             if log_now or not torch.is_tensor(logs["loss"]):  # tensors (a GPU task): read at log steps only
                 logs = {k: float(v) for k, v in logs.items()}
