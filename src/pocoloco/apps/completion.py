@@ -27,7 +27,8 @@ Of the N output points, ``n_known`` are taken from the partial scan and held fix
      (:func:`pocoloco.apps.common.repaint_resampling`; off by default).
 
   Network calls per output: K x steps (the candidates) + min(steps, t) x resample (the chain);
-  the default (dpm++sde, 10 steps, K = 4, t = 100) is 50.
+  the default (dpm++sde, 25 steps, K = 4, t = 100) is 125 (the measured app numbers in
+  BENCHMARKS.md used 10 steps: 50).
 * ``"noise"`` (plain RePaint): the generated points start from pure noise (``t`` = T) and only
   the known-point replacement steers them; c comes from a quick probe sample (``probe_steps``
   dpm++ steps) with the same hole test. With the shipped model the generated points land

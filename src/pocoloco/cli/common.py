@@ -218,7 +218,7 @@ def progress_bar(label: str, total: int | None = None, loss: bool = False, trans
 
 # ------------------------------------------------------------------------------------- the apps
 def steps_defaults() -> str:
-    """``dpm++sde 10, ddpm 100, ...``: every sampler's default step count, for help texts."""
+    """``dpm++sde 25, ddpm 100, ...``: every sampler's default step count, for help texts."""
     return ", ".join(f"{k} {v}" for k, v in SAMPLER_STEPS.items())
 
 

@@ -63,13 +63,14 @@ SamplerKind = Literal["ddpm", "ddim", "dpm++", "dpm++sde", "dpm++3m", "dpm++3msd
 
 #: sampler names accepted by :func:`sample` (and ``pocoloco sample --sampler``) -> default number of
 #: steps. ddpm is the ancestral sampler strided to 100 steps (``steps=1000`` is the paper's DDPM).
-#: The default, dpm++sde (SDE-DPM-Solver++ 2M) at 10 steps (10 network calls), is +2.3 % +- 1.4 %
-#: above DDPM-1000's Chamfer for the shipped model (72 held-out clouds; 25 steps: -1.3 %), at ~75x
-#: less time; the deterministic DDIM / DPM++ are ~24 % worse (BENCHMARKS.md, "Few-step sampling"). The deterministic higher-order solvers (unipc: UniPC-2 bh2; dpm++3m)
-#: reach their ODE's answer in ~10 steps, but that answer stays ~6-14 % above DDPM-1000 for the
-#: shipped model; dpm++3msde (SDE-DPM-Solver++ 3M) is no better than dpm++sde at <= 10 steps
-#: (BENCHMARKS.md, "Few-step samplers, <= 10 network calls").
-SAMPLER_STEPS: dict[str, int] = {"dpm++": 20, "dpm++sde": 10, "ddim": 50, "ddpm": 100, "unipc": 10, "dpm++3m": 15,
+#: The default, dpm++sde (SDE-DPM-Solver++ 2M), takes 25 steps (25 network calls): for the shipped
+#: `medium` model 10 steps are +13.7 % above DDPM-1000's Chamfer and 25 match it (+0.1 %) at ~75x
+#: less time (BENCHMARKS.md, "Sampler steps for the shipped default"); ``--steps 10`` is the fast
+#: setting. The deterministic DDIM / DPM++ are ~24 % worse (BENCHMARKS.md, "Few-step sampling"). The
+#: deterministic higher-order solvers (unipc: UniPC-2 bh2; dpm++3m) reach their ODE's answer in ~10
+#: steps, but that answer stays ~6-14 % above DDPM-1000; dpm++3msde (SDE-DPM-Solver++ 3M) is no
+#: better than dpm++sde at <= 10 steps (BENCHMARKS.md, "Few-step samplers, <= 10 network calls").
+SAMPLER_STEPS: dict[str, int] = {"dpm++": 20, "dpm++sde": 25, "ddim": 50, "ddpm": 100, "unipc": 10, "dpm++3m": 15,
                                  "dpm++3msde": 25}  # fmt: skip
 
 
