@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from pocoloco.body import AnnyBody
-from pocoloco.data.capture import (
+from pocoloco.synth.capture import (
     LABEL_BODY,
     LABEL_GARMENT,
     CaptureMesh,

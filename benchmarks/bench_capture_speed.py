@@ -31,12 +31,12 @@ import numpy as np
 def frames(every: int = 6, count: int = 4):
     """(subject, list of CaptureMesh lists) for the skirt, shirt and tight subjects."""
     from pocoloco.body import AnnyBody
-    from pocoloco.data import capture as cap
-    from pocoloco.data.cloth_sim import ClothSimSettings, simulate_garment
-    from pocoloco.data.config import synth_preset
-    from pocoloco.data.garments import make_garment
-    from pocoloco.data.motion import generate_motion, rest_to_motion
-    from pocoloco.data.synth import job_seed, list_jobs
+    from pocoloco.synth import capture as cap
+    from pocoloco.synth.cloth_sim import ClothSimSettings, simulate_garment
+    from pocoloco.synth.config import synth_preset
+    from pocoloco.synth.garments import make_garment
+    from pocoloco.synth.motion import generate_motion, rest_to_motion
+    from pocoloco.synth.pipeline import job_seed, list_jobs
 
     config = synth_preset("small")
     out = []
@@ -64,7 +64,7 @@ def frames(every: int = 6, count: int = 4):
 
 def lost_visible(meshes, settings, candidates: int = 100_000) -> float:
     """Share of the visible surface on faces ``possibly_visible_faces`` drops."""
-    from pocoloco.data import capture as cap
+    from pocoloco.synth import capture as cap
 
     surface = cap._Surface(meshes)
     import open3d as o3d
@@ -90,7 +90,7 @@ def main() -> None:
     ap.add_argument("--out", default="benchmarks/results/capture_speed.json")
     args = ap.parse_args()
 
-    from pocoloco.data import capture as cap
+    from pocoloco.synth import capture as cap
 
     base = cap.CaptureSettings(num_points=40_000, num_cameras=24)
 

@@ -20,9 +20,9 @@ import time
 import numpy as np
 
 from pocoloco.body.anny_body import AnnyBody
-from pocoloco.data.config import DEFAULT_SUBJECTS
-from pocoloco.data.cloth_sim import ClothSimSettings, simulate_garment
-from pocoloco.data.garments import make_garment
+from pocoloco.synth.config import DEFAULT_SUBJECTS
+from pocoloco.synth.cloth_sim import ClothSimSettings, simulate_garment
+from pocoloco.synth.garments import make_garment
 
 #: (name, garment kind, settings overrides)
 SETUPS: tuple[tuple[str, str, dict], ...] = (
@@ -38,7 +38,7 @@ SETUPS: tuple[tuple[str, str, dict], ...] = (
 def make_motion_rotvecs(body: AnnyBody, frames: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(T, 24, 3) rotations and (T, 3) translations: 10 frames from rest, then walk/spin."""
     try:
-        from pocoloco.data.motion import generate_motion, rest_to_motion
+        from pocoloco.synth.motion import generate_motion, rest_to_motion
 
         m = rest_to_motion(generate_motion(seed, frames - 10, "train", kinds=("spin", "walk"), body=body), 10, body)
         return m.joint_rotvecs, m.root_translation

@@ -29,7 +29,7 @@ import numpy as np
 
 
 def parse_variant(text: str):
-    from pocoloco.data.cloth_sim import ClothSimSettings
+    from pocoloco.synth.cloth_sim import ClothSimSettings
 
     parts = text.split()
     sub, it = (int(x) for x in parts[0].split("x"))
@@ -50,9 +50,9 @@ def sequences(config, subject, count: int, names: list[str] | None = None):
     """Body, garments {tessellation: Garment} and (name, posed body, first stored frame, motion
     kinds) for the first ``count`` jobs of a subject (or the jobs named in ``names``)."""
     from pocoloco.body import AnnyBody
-    from pocoloco.data.garments import make_garment
-    from pocoloco.data.motion import generate_motion, rest_to_motion
-    from pocoloco.data.synth import job_seed, list_jobs
+    from pocoloco.synth.garments import make_garment
+    from pocoloco.synth.motion import generate_motion, rest_to_motion
+    from pocoloco.synth.pipeline import job_seed, list_jobs
 
     body = AnnyBody(subject.phenotype)
     tess = ("grid", "isotropic") if subject.garment in ("skirt", "long_shirt") else ("isotropic",)
@@ -83,9 +83,9 @@ def main() -> None:
     ap.add_argument("--out", default="benchmarks/results/cloth_settings.json")
     args = ap.parse_args()
 
-    from pocoloco.data.cloth_sim import simulate_garment
-    from pocoloco.data.config import synth_preset
-    from pocoloco.data.garments import self_intersections
+    from pocoloco.synth.cloth_sim import simulate_garment
+    from pocoloco.synth.config import synth_preset
+    from pocoloco.synth.garments import self_intersections
 
     config = dataclasses.replace(synth_preset(args.preset), frames_per_sequence=args.frames)
     subjects = [s for s in config.subjects if s.garment != "tight" and (not args.subjects or s.name in args.subjects)]

@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from pocoloco.body import AnnyBody
-from pocoloco.data.cloth_sim import simulate_garment
-from pocoloco.data.config import DEFAULT_SUBJECTS
-from pocoloco.data.garments import make_garment
-from pocoloco.data.motion import generate_motion, rest_to_motion
+from pocoloco.synth.cloth_sim import simulate_garment
+from pocoloco.synth.config import DEFAULT_SUBJECTS
+from pocoloco.synth.garments import make_garment
+from pocoloco.synth.motion import generate_motion, rest_to_motion
 
 
 def history_then_rest(body, kind: str, seed: int, frames: int, blend: int, hold: int):

@@ -200,9 +200,9 @@ def pilot(args) -> dict:
     """Train ``latent small`` and PocoLoco ``small`` on the same batches; see the module docstring."""
     import tempfile
 
-    from pocoloco.data.config import synth_preset
+    from pocoloco.synth.config import synth_preset
     from pocoloco.data.dataset import PointCloudDataset
-    from pocoloco.data.synth import synthesize
+    from pocoloco.synth.pipeline import synthesize
 
     names = ("pocoloco tiny", "latent tiny") if args.quick else ("pocoloco small", "latent small")
     steps, batch, points, eval_points = (10, 2, 128, 512) if args.quick else (args.pilot_steps, 8, 512, 4000)

@@ -19,8 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from pocoloco.data.config import synth_preset
-from pocoloco.data.synth import synthesize
+from pocoloco.synth.config import synth_preset
+from pocoloco.synth.pipeline import synthesize
 
 
 def main() -> None:

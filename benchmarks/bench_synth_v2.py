@@ -54,7 +54,7 @@ def self_intersection_stats(root: Path, every: int = 10) -> dict:
     import numpy as np
 
     from pocoloco.data.format import DatasetLayout, read_frame, read_subject
-    from pocoloco.data.garments import self_intersections
+    from pocoloco.synth.garments import self_intersections
 
     layout = DatasetLayout(root)
     out = {}
@@ -95,8 +95,8 @@ def summarise(card: dict, wall: float, inter: dict) -> dict:
 
 _DRIVER = """
 import dataclasses, json, sys, time
-from pocoloco.data.config import synth_preset
-from pocoloco.data.synth import synthesize
+from pocoloco.synth.config import synth_preset
+from pocoloco.synth.pipeline import synthesize
 a = json.loads(sys.argv[1])
 config = dataclasses.replace(synth_preset(a["preset"]), frames_per_sequence=a["frames"],
                              train_sequences=a["train"], test_sequences=a["test"], **a["overrides"])
@@ -134,8 +134,8 @@ def main() -> None:
     ap.add_argument("--before-src", help="src folder of an older pocoloco checkout, timed as 'before'")
     args = ap.parse_args()
 
-    from pocoloco.data.config import SYNTH_V1, synth_preset
-    from pocoloco.data.synth import synthesize
+    from pocoloco.synth.config import SYNTH_V1, synth_preset
+    from pocoloco.synth.pipeline import synthesize
 
     base = dataclasses.replace(synth_preset(args.preset), frames_per_sequence=args.frames,
                                train_sequences=args.train_sequences, test_sequences=args.test_sequences)  # fmt: skip

@@ -39,12 +39,12 @@ def main() -> None:
     args = ap.parse_args()
 
     from pocoloco.body import AnnyBody
-    from pocoloco.data.capture import LABEL_BODY, LABEL_GARMENT, CaptureMesh, CaptureSettings, capture_frame
-    from pocoloco.data.cloth_sim import simulate_garment
-    from pocoloco.data.config import synth_preset
-    from pocoloco.data.synth import cloth_settings
-    from pocoloco.data.garments import make_garment
-    from pocoloco.data.motion import generate_motion, rest_to_motion
+    from pocoloco.synth.capture import LABEL_BODY, LABEL_GARMENT, CaptureMesh, CaptureSettings, capture_frame
+    from pocoloco.synth.cloth_sim import simulate_garment
+    from pocoloco.synth.config import synth_preset
+    from pocoloco.synth.pipeline import cloth_settings
+    from pocoloco.synth.garments import make_garment
+    from pocoloco.synth.motion import generate_motion, rest_to_motion
     from pocoloco.render import render_grid
 
     lead = 12

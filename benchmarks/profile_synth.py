@@ -77,7 +77,8 @@ class Timers:
 def instrument(t: Timers) -> None:
     """Wrap the pipeline's stages (module attributes, looked up at call time)."""
     from pocoloco.body.anny_body import AnnyBody, quiet_warp
-    from pocoloco.data import capture, cloth_sim, motion, synth
+    from pocoloco.synth import capture, cloth_sim, motion
+    from pocoloco.synth import pipeline as synth
 
     quiet_warp()
     import open3d as o3d
@@ -195,10 +196,10 @@ def main() -> None:
 
     import ast
 
-    from pocoloco.data import synth
-    from pocoloco.data.config import synth_preset
+    from pocoloco.synth import pipeline as synth
+    from pocoloco.synth.config import synth_preset
 
-    from pocoloco.data.config import SYNTH_V1
+    from pocoloco.synth.config import SYNTH_V1
 
     over = {**(SYNTH_V1 if args.v1 else {}), **{k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}}
     config = dataclasses.replace(synth_preset(args.preset), frames_per_sequence=args.frames, train_sequences=1,

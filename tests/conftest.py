@@ -22,8 +22,8 @@ def torch_single_thread():
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory) -> Path:
     """A dataset generated once per test session with the ``tiny`` preset."""
-    from pocoloco.data.config import synth_preset
-    from pocoloco.data.synth import synthesize
+    from pocoloco.synth.config import synth_preset
+    from pocoloco.synth.pipeline import synthesize
 
     out = tmp_path_factory.mktemp("tiny") / "data"
     synthesize(synth_preset("tiny"), out)

@@ -24,8 +24,8 @@ SRC = ROOT / "src" / "pocoloco"
 #: the only pocoloco modules another module may import inside a function: those of the optional
 #: ``synth`` extra (newton, warp, open3d at import time: the rest runs without it) and the anny
 #: adapter (``import pocoloco.body`` stays instant; anny parses its assets on first use)
-OPTIONAL_EXTRA_MODULES = {"pocoloco.data.synth", "pocoloco.data.cloth_sim", "pocoloco.data.capture",
-                          "pocoloco.data.sdf", "pocoloco.data.garments", "pocoloco.data.motion",
+OPTIONAL_EXTRA_MODULES = {"pocoloco.synth.pipeline", "pocoloco.synth.cloth_sim", "pocoloco.synth.capture",
+                          "pocoloco.synth.sdf", "pocoloco.synth.garments", "pocoloco.synth.motion",
                           "pocoloco.body.anny_body", "pocoloco.body"}  # fmt: skip
 MAX_LINES = 650
 REASON_MARK = "Why this module is long:"

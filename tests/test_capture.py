@@ -1,4 +1,4 @@
-"""Tests of the virtual multi-view capture (pocoloco.data.capture)."""
+"""Tests of the virtual multi-view capture (pocoloco.synth.capture)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pocoloco.data.capture import (
+from pocoloco.synth.capture import (
     LABEL_BODY,
     LABEL_GARMENT,
     CaptureMesh,
@@ -284,7 +284,7 @@ def test_fast_visibility_matches_the_reference():
 def test_capture_stops_early_with_the_same_points(monkeypatch):
     """Testing candidates chunk by chunk and stopping once enough are seen keeps the
     first N visible in draw order: the same frame as testing whole batches."""
-    import pocoloco.data.capture as cap
+    import pocoloco.synth.capture as cap
 
     meshes = list(_cylinder_and_tube())
     settings = CaptureSettings(num_points=3000, num_cameras=12, seed=5)

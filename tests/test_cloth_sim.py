@@ -7,8 +7,8 @@ import pytest
 import trimesh
 
 from pocoloco.body.anny_body import AnnyBody
-from pocoloco.data.capsules import fit_capsules
-from pocoloco.data.cloth_sim import (
+from pocoloco.synth.capsules import fit_capsules
+from pocoloco.synth.cloth_sim import (
     ClothSimSettings,
     frame_stats,
     mesh_edges,
@@ -16,7 +16,7 @@ from pocoloco.data.cloth_sim import (
     signed_distance,
     simulate_garment,
 )
-from pocoloco.data.garments import make_garment
+from pocoloco.synth.garments import make_garment
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +151,7 @@ def test_a_settled_state_is_reused_with_the_same_result(body, skirt):
 def test_self_contact_keeps_the_cloth_from_crossing_itself(body):
     """A wide maxi skirt folds while it settles; without self-contact its folds pass
     through each other, with it (almost) none do, and the cloth stays off the body."""
-    from pocoloco.data.garments import self_intersections
+    from pocoloco.synth.garments import self_intersections
 
     g = make_garment("maxi_skirt", body, resolution=0.4, flare=0.5)
     posed = body.pose(np.zeros((2, 24, 3), np.float32))

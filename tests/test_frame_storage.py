@@ -18,7 +18,7 @@ import torch
 
 from pocoloco.cli import main
 from pocoloco.data import format as fmt
-from pocoloco.data.config import synth_preset
+from pocoloco.synth.config import synth_preset
 from pocoloco.data.dataset import PointCloudDataset
 from pocoloco.data.published import export_frame, read_ply, read_pop_npz
 from pocoloco.utils import save_npz_atomic
@@ -166,7 +166,7 @@ def test_write_frame_refuses_an_unknown_storage(tmp_path):
 
 
 def test_resume_checks_frame_storage_and_older_cards_still_resume(tmp_path):
-    from pocoloco.data.synth import prepare_output
+    from pocoloco.synth.pipeline import prepare_output
 
     config = synth_preset("tiny")
     prepare_output(config, tmp_path / "d")
@@ -185,7 +185,7 @@ def test_resume_checks_frame_storage_and_older_cards_still_resume(tmp_path):
 @pytest.fixture(scope="module")
 def compact_dataset(tmp_path_factory):
     """The tiny preset's skirt subject generated with compact frames."""
-    from pocoloco.data.synth import synthesize
+    from pocoloco.synth.pipeline import synthesize
 
     tiny = synth_preset("tiny")
     config = dataclasses.replace(tiny, subjects=tiny.subjects[:1], frame_storage="compact")

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from pocoloco.body.anny_body import AnnyBody, PosedBody
-from pocoloco.data.cloth_sim import ClothSimSettings, mesh_edges, signed_distance, simulate_garment, skin_garment
-from pocoloco.data.config import DEFAULT_SUBJECTS
-from pocoloco.data.garments import (
+from pocoloco.synth.cloth_sim import ClothSimSettings, mesh_edges, signed_distance, simulate_garment, skin_garment
+from pocoloco.synth.config import DEFAULT_SUBJECTS
+from pocoloco.synth.garments import (
     GARMENT_KINDS,
     TUBE_KINDS,
     garment_parameters,
@@ -241,8 +241,8 @@ def test_sleeves_are_placed_on_a_first_frame_without_tearing_at_the_arm_hole():
     """The first frame of a sequence (anny's zero pose blending into a motion) differs from the
     A-pose the garment is built in: skinning must not stretch the arm-hole seam (it did, up to 5-6x:
     every frame of the `medium` sleeved shirts was rejected as an explosion)."""
-    from pocoloco.data.config import MEDIUM_SUBJECTS
-    from pocoloco.data.motion import generate_motion, rest_to_motion
+    from pocoloco.synth.config import MEDIUM_SUBJECTS
+    from pocoloco.synth.motion import generate_motion, rest_to_motion
 
     for spec in [s for s in MEDIUM_SUBJECTS if s.garment == "sleeved_shirt"]:
         b = AnnyBody(spec.phenotype)

@@ -1,4 +1,4 @@
-"""Tests for procedural motions (pocoloco.data.motion)."""
+"""Tests for procedural motions (pocoloco.synth.motion)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from pocoloco.body.skeleton import JOINT_NAMES, MIRROR_PAIRS
-from pocoloco.data import motion as M
-from pocoloco.data.motion import (
+from pocoloco.synth import motion as M
+from pocoloco.synth.motion import (
     JOINT_LIMITS,
     MOTION_KINDS,
     Motion,

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from pocoloco.data.config import SYNTH_PRESETS, synth_preset
+from pocoloco.synth.config import SYNTH_PRESETS, synth_preset
 from pocoloco.data.format import DatasetLayout, read_card, read_frame
-from pocoloco.data.synth import list_jobs, prepare_output
+from pocoloco.synth.pipeline import list_jobs, prepare_output
 
 
 def test_tiny_dataset_card_and_frames(tiny_dataset):
@@ -182,9 +182,9 @@ def test_killed_run_resumes_without_rewriting_frames(tmp_path):
 def test_v1_settings_and_garment_parameters_round_trip(tmp_path):
     """SYNTH_V1 restores the first pipeline; a subject's garment parameters reach its
     garment and the dataset card (with the kind's defaults filled in)."""
-    from pocoloco.data.config import SYNTH_V1, SubjectSpec, SynthConfig
-    from pocoloco.data.garments import garment_parameters
-    from pocoloco.data.synth import _subject_assets
+    from pocoloco.synth.config import SYNTH_V1, SubjectSpec, SynthConfig
+    from pocoloco.synth.garments import garment_parameters
+    from pocoloco.synth.pipeline import _subject_assets
 
     v1 = dataclasses.replace(synth_preset("tiny"), **SYNTH_V1)
     assert v1.garment_tessellation == "grid" and not v1.cloth_self_contact and not v1.capture_cull_hidden_faces
@@ -241,9 +241,9 @@ def test_heldout_split_draws_test_style_motions_from_its_own_seeds(tiny_dataset,
 
 
 def test_medium_preset_covers_garments_bodies_and_motions():
-    from pocoloco.data.config import ALL_MOTION_KINDS, CLASSIC_MOTION_KINDS
-    from pocoloco.data.garments import GARMENT_KINDS
-    from pocoloco.data.motion import CLASSIC_KINDS, MOTION_KINDS
+    from pocoloco.synth.config import ALL_MOTION_KINDS, CLASSIC_MOTION_KINDS
+    from pocoloco.synth.garments import GARMENT_KINDS
+    from pocoloco.synth.motion import CLASSIC_KINDS, MOTION_KINDS
 
     assert CLASSIC_MOTION_KINDS == CLASSIC_KINDS and ALL_MOTION_KINDS == MOTION_KINDS
     assert synth_preset("small").motion_kinds == CLASSIC_KINDS
@@ -258,7 +258,7 @@ def test_medium_preset_covers_garments_bodies_and_motions():
     assert set(bodies) == set(GARMENT_KINDS) | {"tight"}
     assert all(len(b) >= 2 for b in bodies.values()), bodies  # every kind on two bodies at least
     # a card written before these settings existed reads as the values its run used
-    from pocoloco.data.config import FIELDS_ADDED_LATER, config_of_card
+    from pocoloco.synth.config import FIELDS_ADDED_LATER, config_of_card
 
     old = {k: v for k, v in synth_preset("small").to_dict().items() if k not in FIELDS_ADDED_LATER}
     assert config_of_card(old) == dataclasses.replace(synth_preset("small"), **FIELDS_ADDED_LATER)
@@ -272,7 +272,7 @@ def test_frames_do_not_depend_on_the_callers_torch_threads(tmp_path):
     thread count); the caller's setting is restored."""
     import torch
 
-    from pocoloco.data.synth import run_sequence, write_subject
+    from pocoloco.synth.pipeline import run_sequence, write_subject
 
     tight = next(s for s in synth_preset("tiny").subjects if s.garment == "tight")
     config = dataclasses.replace(synth_preset("tiny"), subjects=(tight,))

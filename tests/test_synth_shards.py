@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 
 from pocoloco.cli import main
-from pocoloco.data.config import SYNTH_PRESETS, synth_preset
+from pocoloco.synth.config import SYNTH_PRESETS, synth_preset
 from pocoloco.data.format import DatasetLayout, read_card, read_frame, write_card
-from pocoloco.data.synth import (
+from pocoloco.synth.pipeline import (
     CLOTH_COST,
     finalize_dataset,
     job_cost,
@@ -145,7 +145,7 @@ def test_submitit_local_launch_gives_the_same_bytes(tiny_dataset, tmp_path):
     """(b) ``launch_synth`` with submitit's LocalExecutor: 2 shards as real subprocesses, then the
     card; the same bytes as the one-process run. A second launch has nothing left to submit."""
     pytest.importorskip("submitit")
-    from pocoloco.data.distributed import LaunchSettings, launch_synth
+    from pocoloco.synth.distributed import LaunchSettings, launch_synth
 
     config = synth_preset("tiny")
     out = tmp_path / "d"
@@ -166,7 +166,7 @@ def test_failed_shards_are_one_line_naming_the_shard_and_its_log(tmp_path):
     """A shard that raises (here: a file where its first sequence's folder goes) fails the launch
     with one line: how many shards failed, the first one's error and its log."""
     pytest.importorskip("submitit")
-    from pocoloco.data.distributed import LaunchSettings, launch_synth
+    from pocoloco.synth.distributed import LaunchSettings, launch_synth
 
     config = synth_preset("tiny")
     out = tmp_path / "d"
@@ -188,7 +188,7 @@ def test_a_timed_out_shard_job_is_requeued_with_the_same_call():
     """submitit calls ``checkpoint`` when a job reaches its time limit or is preempted; the job is
     resubmitted with what it returns (the shard then resumes from its files)."""
     pytest.importorskip("submitit")
-    from pocoloco.data.distributed import ShardJob
+    from pocoloco.synth.distributed import ShardJob
 
     job = ShardJob()
     again = job.checkpoint({"seed": 0}, "/data/d", 3, 8, workers=2)

@@ -14,8 +14,8 @@ from pathlib import Path
 
 from pocoloco.cli.common import console, progress_bar
 from pocoloco.utils.atomic import exclusive_lock, output_folder
-from pocoloco.data.config import SYNTH_PRESETS, synth_preset
-from pocoloco.data.distributed import BACKENDS, LaunchSettings, launch_synth
+from pocoloco.synth.config import SYNTH_PRESETS, synth_preset
+from pocoloco.synth.distributed import BACKENDS, LaunchSettings, launch_synth
 from pocoloco.data.format import (
     FRAME_STORAGES,
     SPLITS,
@@ -65,7 +65,7 @@ def _check_synth_modes(args: argparse.Namespace) -> None:
 
 def cmd_data_synth(args: argparse.Namespace) -> None:
     # lazy: the synth extra (newton, warp, open3d) is only needed to generate data
-    from pocoloco.data.synth import (
+    from pocoloco.synth.pipeline import (
         finalize_dataset,
         missing_jobs,
         synthesize,
@@ -148,7 +148,7 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
 
 def cmd_data_heldout(args: argparse.Namespace) -> None:
     # lazy: the synth extra (newton, warp, open3d) is only needed to generate data
-    from pocoloco.data.synth import add_heldout
+    from pocoloco.synth.pipeline import add_heldout
 
     con = console()
     con.print(f"[bold]pocoloco data heldout[/] {args.path}: {args.sequences} sequence(s) per subject")

@@ -61,7 +61,7 @@ from ..body.skeleton import JOINT_NAMES, JOINT_PARENTS, NUM_JOINTS
 from ..utils.atomic import no_file_reason, save_npz_atomic, write_json_atomic
 
 __all__ = [
-    "FORMAT_NAME", "FORMAT_VERSION", "SPLITS", "LABEL_UNKNOWN", "FRAME_KEYS", "REQUIRED_FRAME_KEYS",
+    "FORMAT_NAME", "FORMAT_VERSION", "SPLITS", "LABEL_BODY", "LABEL_GARMENT", "LABEL_NAMES", "LABEL_UNKNOWN", "FRAME_KEYS", "REQUIRED_FRAME_KEYS",
     "OPTIONAL_FRAME_KEYS", "FRAME_STORAGES", "COMPACT_MAX_ERROR", "Frame", "write_frame", "read_frame",
     "encode_compact", "frame_storage", "DatasetLayout", "make_card",
     "read_card", "write_card", "compute_normalisation", "refresh_card", "card_from_disk", "pose_coverage",
@@ -77,7 +77,11 @@ FORMAT_VERSION = 1
 #: absent from most datasets (its folders are simply missing)
 SPLITS: tuple[str, ...] = ("train", "test", "heldout")
 
-#: Label value for points whose class is unknown (imported data has no labels).
+#: Point labels: body, loose garment; unknown for points whose class is unknown (imported data
+#: has no labels).
+LABEL_BODY: int = 0
+LABEL_GARMENT: int = 1
+LABEL_NAMES: tuple[str, ...] = ("body", "garment")
 LABEL_UNKNOWN = 255
 
 #: Frame npz keys and their on-disk dtypes.
@@ -125,7 +129,7 @@ class Frame:
     joints:           (J=24, 3) float32 skeleton joints (``skeleton.JOINT_NAMES``).
     frame_index:      int, index of the frame in its sequence (``motion.npz`` row).
     labels:           (N,) uint8 point class, or None (imported data). Synthetic
-                      data: 0 body, 1 garment (``capture.LABEL_NAMES``); 255 = unknown.
+                      data: 0 body, 1 garment (``LABEL_NAMES``); 255 = unknown.
     parts:            (N,) int8 body part (skeleton joint index) per point, -1 = none; or None.
     body_vertices:    (V, 3) float32 posed body, or None (imported data).
     vtransf:          (V, 3, 3) float32 per-vertex skinning transform, or None.

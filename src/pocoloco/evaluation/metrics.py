@@ -2,7 +2,7 @@
 
 Inputs are unbatched numpy clouds in metres: ``pred`` (N, 3) predicted / generated
 points, ``gt`` (M, 3) ground-truth scan points with unit normals ``gt_normals`` (M, 3)
-and labels ``gt_labels`` (M,) (0 body, 1 garment, 255 unknown: ``data.capture``).
+and labels ``gt_labels`` (M,) (0 body, 1 garment, 255 unknown: ``data.format``).
 Nearest neighbours use scipy's cKDTree (``ops.knn_numpy``).
 
 Two conventions, never mixed; every key of ``evaluate_frame`` names its unit.
@@ -72,7 +72,7 @@ from itertools import combinations
 
 import numpy as np
 
-from pocoloco.data.capture import LABEL_GARMENT
+from pocoloco.data.format import LABEL_GARMENT
 from pocoloco.ops.knn import knn_numpy
 
 #: Default F-score threshold in metres (1 cm).

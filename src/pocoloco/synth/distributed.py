@@ -2,9 +2,9 @@
 
 ``launch_synth(config, out, LaunchSettings(backend="slurm", shards=50))`` submits one job per
 shard (a slurm job array; ``backend="local"``: one subprocess per shard on this machine, all at
-once), each running :func:`run_shard` -- ``data.synth.synthesize_shard`` for its share of the
+once), each running :func:`run_shard` -- ``synth.pipeline.synthesize_shard`` for its share of the
 sequences -- into ``out`` (a folder every job sees: a shared filesystem). It waits, reporting
-shards done, then writes the dataset card (``data.synth.finalize_dataset``).
+shards done, then writes the dataset card (``synth.pipeline.finalize_dataset``).
 
 Rerunning the same launch resumes: only shards with sequences still missing are submitted, and
 those skip their finished sequences. A job stopped at its time limit (or preempted) is requeued
@@ -36,7 +36,7 @@ class LaunchSettings:
 
     backend: ``"slurm"`` (one job array of ``shards`` tasks) or ``"local"`` (``shards``
         subprocesses on this machine, all at once; submitit's LocalExecutor).
-    shards: number of shards N (jobs); shard K runs ``data.synth.shard_assignment(config, N)[K-1]``.
+    shards: number of shards N (jobs); shard K runs ``synth.pipeline.shard_assignment(config, N)[K-1]``.
     cpus_per_shard: CPUs each job asks for; its sequences run in as many worker processes.
     time_minutes: each job's time limit (slurm ``--time``; local jobs are stopped after it too).
     partition: slurm partition (default: the cluster's default).
@@ -67,7 +67,7 @@ def run_shard(config_dict: dict, out: str, shard: int, num_shards: int, workers:
     """What each submitted job runs: shard ``shard`` of ``num_shards`` of ``config_dict``'s dataset
     into ``out``. Prints a line per finished sequence (the job's log). Returns
     ``{"shard", "sequences", "frames_stored"}``."""
-    from .synth import synthesize_shard  # lazy: the synth extra (newton, warp, open3d)
+    from .pipeline import synthesize_shard  # lazy: the synth extra (newton, warp, open3d)
 
     config = SynthConfig.from_dict(config_dict)
     per = config.frames_per_sequence
@@ -124,7 +124,7 @@ def launch_synth(
     the jobs cannot be submitted or a shard fails (naming it and its log; rerun to resume). An
     interrupt (Ctrl-C) cancels the jobs still running.
     """
-    from .synth import (
+    from .pipeline import (
         finalize_dataset,
         list_jobs,
         missing_jobs,

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 class SubjectSpec:
     """One synthetic subject: a body shape and what it wears.
 
-    garment: a kind of ``data.garments.GARMENT_KINDS`` (``"skirt"``: LOOSE subject
+    garment: a kind of ``synth.garments.GARMENT_KINDS`` (``"skirt"``: LOOSE subject
     2, ``"long_shirt"``: LOOSE subject 1, ``"maxi_skirt"``, ``"dress"``,
     ``"sleeved_shirt"``, ``"wide_trousers"``) or ``"tight"`` (no simulated
     garment: the body surface stands for tight clothing, the control subject).
@@ -37,9 +37,9 @@ DEFAULT_SUBJECTS: tuple[SubjectSpec, ...] = (
 )
 
 
-#: the motion kinds of ``tiny`` / ``small`` (``data.motion.CLASSIC_KINDS``; tested equal)
+#: the motion kinds of ``tiny`` / ``small`` (``synth.motion.CLASSIC_KINDS``; tested equal)
 CLASSIC_MOTION_KINDS: tuple[str, ...] = ("walk", "turn", "dance", "arm_swing", "squat", "kick", "spin")
-#: every kind ``data.motion`` draws (``data.motion.MOTION_KINDS``; tested equal)
+#: every kind ``synth.motion`` draws (``synth.motion.MOTION_KINDS``; tested equal)
 ALL_MOTION_KINDS: tuple[str, ...] = CLASSIC_MOTION_KINDS + ("reach", "crouch", "jump", "run", "bend", "turn_in_place")
 
 
@@ -47,7 +47,7 @@ ALL_MOTION_KINDS: tuple[str, ...] = CLASSIC_MOTION_KINDS + ("reach", "crouch", "
 class SynthConfig:
     """Settings of a synthetic capture run (``pocoloco data synth``).
 
-    Sequences: each is one procedural motion (``data.motion``) of
+    Sequences: each is one procedural motion (``synth.motion``) of
     ``frames_per_sequence`` stored frames, preceded by ``blend_frames`` that
     move the body from the rest pose into the motion and ``warmup_frames``
     of motion that let the cloth pick up momentum; neither is stored.
@@ -69,7 +69,7 @@ class SynthConfig:
         pairs) on every this-many-th stored frame for the dataset card; 0 = never.
 
     Motions and splits:
-    motion_kinds: the motion kinds sequences draw from (``data.motion.MOTION_KINDS``);
+    motion_kinds: the motion kinds sequences draw from (``synth.motion.MOTION_KINDS``);
         the default is the classic seven of ``tiny`` / ``small``.
     heldout_sequences: sequences per subject of a third split, ``heldout``: test-style
         motions (test parameter bands, mixed upper bodies) drawn from other seeds than

@@ -1,7 +1,7 @@
 """The capsule collider of the cloth simulation (``ClothSimSettings.collider="capsules"``):
 16 capsules fitted to the rest body's parts and skinned to it, so they follow the posed body.
 Analytic and cheap, but inscribed in the body, so cloth can sink into concave regions (the
-exact deforming mesh is the default collider; ``data.cloth_sim``)."""
+exact deforming mesh is the default collider; ``synth.cloth_sim``)."""
 
 from __future__ import annotations
 

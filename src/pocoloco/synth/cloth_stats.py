@@ -1,5 +1,5 @@
 """Cloth statistics of a synthetic dataset's card: per sequence (from the simulated frames) and
-per subject (from its sequences). Pure numpy; the simulation itself is ``data.cloth_sim``."""
+per subject (from its sequences). Pure numpy; the simulation itself is ``synth.cloth_sim``."""
 
 from __future__ import annotations
 

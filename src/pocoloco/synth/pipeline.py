@@ -4,11 +4,11 @@
 ``docs/dataset_format.md``. The unit of work is one *sequence* (a subject
 performing one procedural motion):
 
-1. generate the motion (``data.motion``), prepend a blend from the rest pose;
+1. generate the motion (``synth.motion``), prepend a blend from the rest pose;
 2. pose the anny body for every frame (``body.AnnyBody``);
-3. simulate the loose garment on it (``data.cloth_sim``, newton VBD) — the
+3. simulate the loose garment on it (``synth.cloth_sim``, newton VBD) — the
    result is cached in ``cloth.npz`` so a kill during step 4 does not redo it;
-4. capture every stored frame as a scanner would (``data.capture``) and write
+4. capture every stored frame as a scanner would (``synth.capture``) and write
    one ``frames/NNNNNN.npz`` per frame, atomically; frames whose cloth state was
    flagged bad (explosion, penetration) are rejected and logged, not stored;
 5. write ``sequence.json`` last: its presence marks the sequence done.
@@ -22,7 +22,7 @@ Shards: ``synthesize_shard(config, out, k, n)`` runs only shard k of n (a fixed,
 cost-balanced share of the jobs, :func:`shard_assignment`) into the same folder,
 e.g. one shard per cluster job on a shared filesystem; any number of shards may
 start at once. It leaves the card "incomplete"; ``finalize_dataset`` writes it
-once every sequence is done (``data.distributed`` launches the shards). A frame is
+once every sequence is done (``synth.distributed`` launches the shards). A frame is
 the same bytes whichever shard or worker generates it.
 
 Repair: a resume first checks every finished sequence byte for byte against the card
@@ -54,7 +54,7 @@ from ..utils.seeding import torch_threads
 from .capture import LABEL_GARMENT, LABEL_NAMES
 from .cloth_stats import merge_cloth_stats, summarise_cloth_stats
 from .config import SubjectSpec, SynthConfig, config_of_card
-from .format import (
+from ..data.format import (
     FRAME_STORAGES,
     DatasetLayout,
     Frame,
@@ -71,7 +71,7 @@ from .format import (
     write_motion,
     write_sequence_meta,
 )
-from .format import write_subject as format_write_subject
+from ..data.format import write_subject as format_write_subject
 
 
 

@@ -47,10 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Point labels.
-LABEL_BODY: int = 0
-LABEL_GARMENT: int = 1
-LABEL_NAMES: tuple[str, ...] = ("body", "garment")
+from ..data.format import LABEL_BODY, LABEL_GARMENT, LABEL_NAMES  # noqa: F401  (re-exported)
 
 
 @dataclass
