@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+from pocoloco.data import frame as frame_module
 from pocoloco.cli import main
 from pocoloco.data import format as fmt
 from pocoloco.synth.config import synth_preset
@@ -69,7 +70,7 @@ def test_float32_storage_writes_the_same_bytes_as_before(tmp_path, frozen_zip_cl
     default, explicit, direct = tmp_path / "a.npz", tmp_path / "b.npz", tmp_path / "c.npz"
     fmt.write_frame(default, fixed_frame())
     fmt.write_frame(explicit, fixed_frame(), storage="float32")
-    save_npz_atomic(direct, **fmt._validate_frame_arrays("x", fixed_frame().to_arrays()))  # the unchanged path
+    save_npz_atomic(direct, **frame_module._validate_frame_arrays("x", fixed_frame().to_arrays()))  # the unchanged path
     assert hashlib.sha256(default.read_bytes()).hexdigest() == FLOAT32_SHA256
     assert default.read_bytes() == explicit.read_bytes() == direct.read_bytes()
     assert fmt.frame_storage(default) == "float32"
@@ -150,7 +151,7 @@ def test_truncated_compact_frame_is_a_one_line_error(tmp_path, keep):
     ],
 )
 def test_malformed_compact_frame_is_a_one_line_error(tmp_path, change, message):
-    arrays = fmt.encode_compact(fmt._validate_frame_arrays("x", captured_frame(np.random.default_rng(4)).to_arrays()))
+    arrays = fmt.encode_compact(frame_module._validate_frame_arrays("x", captured_frame(np.random.default_rng(4)).to_arrays()))
     change(arrays)
     p = tmp_path / "bad.npz"
     np.savez_compressed(p, **arrays)
