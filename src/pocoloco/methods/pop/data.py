@@ -112,7 +112,7 @@ def collate_pop(samples: Sequence[POPSample]) -> POPBatch:
 
 
 class POPDataset(torch.utils.data.Dataset):
-    """POP samples from a pocoloco dataset folder (``data/format.py``).
+    """POP samples from a pocoloco dataset folder (``pocoloco.data.format``).
 
     Every subject is one outfit (ids in sorted subject order, or ``outfits`` given);
     frames need body_vertices and vtransf. With ``pose_input="mean_shape"`` the pose
