@@ -327,18 +327,26 @@ def _turn(t: np.ndarray, p: _Params, duration: float) -> _Segment:
     (a 1/4 to 3/4 turn)."""
     if p.rng.random() < 0.5:
         return _gait(t, p, np.full(len(t), p.sign() * p(0.5, 1.2)))
+    return _step_around(t, p, duration, lift=(0.25, 0.5), cadence=(0.8, 1.2), arm_swing=0.25, arm_out=0.2, elbow=0.4)
+
+
+def _step_around(t: np.ndarray, p: _Params, duration: float, *, lift: tuple[float, float],
+                 cadence: tuple[float, float], arm_swing: float, arm_out: float, elbow: float) -> _Segment:  # fmt: skip
+    """Step around on the spot through a quarter to three quarters of a turn (short segments turn
+    less): the feet lift in turn (``lift`` rad of hip flexion, ``cadence`` Hz), the arms swing
+    ``arm_swing`` rad with ``arm_out`` rad of abduction and ``elbow`` rad of flexion."""
     local = np.zeros((len(t), NUM_JOINTS, 3))
-    angle = p.sign() * p(0.5 * _PI, 1.5 * _PI) * min(1.0, duration / 2.5)  # short cut segments turn less
-    lift, cadence = p(0.25, 0.5), p(0.8, 1.2)
-    phi = 2 * _PI * cadence * t + p.phase()
+    angle = p.sign() * p(0.5 * _PI, 1.5 * _PI) * min(1.0, duration / 2.5)
+    lift_amp, rate = p(*lift), p(*cadence)
+    phi = 2 * _PI * rate * t + p.phase()
     swings = []
     for side, ph in ((1, phi), (-1, phi + _PI)):
-        lift_t = lift * _bump(ph)
+        lift_t = lift_amp * _bump(ph)
         swings.append(_bump(ph))
         _side(local, side, "hip", x=-lift_t)
         _side(local, side, "knee", x=0.05 + 1.8 * lift_t)
-        _side(local, side, "shoulder", x=-0.25 * np.sin(ph + _PI), y=0.2)
-        _elbow(local, side, 0.4)
+        _side(local, side, "shoulder", x=-arm_swing * np.sin(ph + _PI), y=arm_out)
+        _elbow(local, side, elbow)
     _flat_feet(local, 1 - swings[0], 1 - swings[1])
     return local, angle * _envelope(t, duration) / (duration / 2)
 
@@ -592,20 +600,8 @@ def _turn_in_place(t: np.ndarray, p: _Params, duration: float) -> _Segment:
     """Step around on the spot through a quarter to three quarters of a turn, or pivot on both feet
     with the trunk leading (a look over the shoulder turning into a turn)."""
     if p.rng.random() < 0.6:
-        local = np.zeros((len(t), NUM_JOINTS, 3))
-        angle = p.sign() * p(0.5 * _PI, 1.5 * _PI) * min(1.0, duration / 2.5)
-        lift, cadence = p(0.2, 0.45), p(0.9, 1.4)
-        phi = 2 * _PI * cadence * t + p.phase()
-        swings = []
-        for side, ph in ((1, phi), (-1, phi + _PI)):
-            lift_t = lift * _bump(ph)
-            swings.append(_bump(ph))
-            _side(local, side, "hip", x=-lift_t)
-            _side(local, side, "knee", x=0.05 + 1.8 * lift_t)
-            _side(local, side, "shoulder", x=-0.15 * np.sin(ph + _PI), y=0.15)
-            _elbow(local, side, 0.5)
-        _flat_feet(local, 1 - swings[0], 1 - swings[1])
-        return local, angle * _envelope(t, duration) / (duration / 2)
+        return _step_around(t, p, duration, lift=(0.2, 0.45), cadence=(0.9, 1.4), arm_swing=0.15, arm_out=0.15,
+                            elbow=0.5)  # fmt: skip
     local = np.zeros((len(t), NUM_JOINTS, 3))
     angle = p.sign() * p(0.3 * _PI, 0.7 * _PI)
     env = _envelope(t, duration)
