@@ -912,14 +912,12 @@ def _make_maxi_skirt(
     return _lofted_skirt("maxi_skirt", body, resolution, hem, flare, clearance, waist_clearance)
 
 
-def _lofted_long_shirt(
-    body: AnnyBody, resolution: float, hem: float = 0.5, flare: float = 0.12, clearance: float = 0.03,
-    armhole_depth: float = 0.13,
-) -> Garment:
-    """The ``long_shirt`` shape (see ``_make_long_shirt``) as isotropic rings: a top edge
-    at shoulder height in front and behind dipping ``armhole_depth`` at the sides,
-    pinned; a hanging tube to ``hem`` (0 hip .. 1 knee)."""
-    params = {"hem": hem, "flare": flare, "clearance": clearance, "armhole_depth": armhole_depth}
+def _shirt_torso(body: AnnyBody, resolution: float, hem: float, armhole_depth: float):
+    """What the long shirts share: the edge length ``e``, the top edge's heights (``z_sh`` 2 cm
+    above the shoulder joints, ``z_arm`` ``armhole_depth`` below them at the sides), the hem
+    (``hem``: 0 hip .. 1 knee), the torso's centre (x, y) and its radius profiles ``below`` /
+    ``above`` (the widest torso section below / above a height: the cloth clears the hips and
+    drapes from the chest)."""
     m, e = _measurements(body), _edge_length(resolution)
     j = body.template_joints
     z_sh = m["shoulder"] + 0.02
@@ -930,16 +928,39 @@ def _lofted_long_shirt(
     prof = _Profiles(_torso_shape(body), center, np.linspace(z_hem - 0.02, z_sh + 0.03, 120))
     below = prof.transform(lambda t: np.maximum.accumulate(t[::-1], axis=0)[::-1])
     above = prof.transform(lambda t: np.maximum.accumulate(t, axis=0))
+    return e, z_sh, z_arm, z_hem, center, below, above
+
+
+def _shirt_radius(below: Callable, above: Callable, z_top: Callable, clearance: float, *, ease_span: float,
+                  flare: float, flare_from: float | None = None) -> Callable:  # fmt: skip
+    """A long shirt's radius at (z, theta): the torso profile (at most 5 cm beyond the widest part
+    above), 1 cm of ease at the top edge growing to ``clearance`` over ``ease_span`` m below it, and
+    ``flare`` m per metre below the top edge (or below ``flare_from``)."""
+
+    def radius(z, th):
+        base = np.minimum(below(z, th), above(z, th) + 0.05)
+        below_edge = np.clip(z_top(th) - z, 0.0, None)
+        ease = 0.01 + (clearance - 0.01) * np.clip(below_edge / ease_span, 0.0, 1.0)
+        return base + ease + flare * (below_edge if flare_from is None else np.clip(flare_from - z, 0.0, None))
+
+    return radius
+
+
+def _lofted_long_shirt(
+    body: AnnyBody, resolution: float, hem: float = 0.5, flare: float = 0.12, clearance: float = 0.03,
+    armhole_depth: float = 0.13,
+) -> Garment:
+    """The ``long_shirt`` shape (see ``_make_long_shirt``) as isotropic rings: a top edge
+    at shoulder height in front and behind dipping ``armhole_depth`` at the sides,
+    pinned; a hanging tube to ``hem`` (0 hip .. 1 knee)."""
+    params = {"hem": hem, "flare": flare, "clearance": clearance, "armhole_depth": armhole_depth}
+    e, z_sh, z_arm, z_hem, center, below, above = _shirt_torso(body, resolution, hem, armhole_depth)
 
     def z_top(theta):
         s_ = np.clip((np.abs(np.sin(theta)) - 0.45) / 0.4, 0.0, 1.0)
         return z_arm + (z_sh - z_arm) * s_ * s_ * (3 - 2 * s_)
 
-    def radius(z, th):
-        base = np.minimum(below(z, th), above(z, th) + 0.05)
-        below_edge = np.clip(z_top(th) - z, 0.0, None)
-        ease = 0.01 + (clearance - 0.01) * np.clip(below_edge / e, 0.0, 1.0)
-        return base + ease + flare * below_edge
+    radius = _shirt_radius(below, above, z_top, clearance, ease_span=e, flare=flare)
 
     mb = _MeshBuilder()
     rows_idx, _ = _upper_body(mb, e, z_top=z_top, z_bottom=z_hem, radius=radius, center=center)
@@ -1002,26 +1023,11 @@ def _make_sleeved_shirt(
     neckline and shoulder pieces are pinned; the sleeves follow the arms when placed."""
     params = {"hem": hem, "flare": flare, "clearance": clearance, "armhole_depth": armhole_depth, "sleeve": sleeve,
               "sleeve_ease": sleeve_ease, "sleeve_flare": sleeve_flare}  # fmt: skip
-    m, e = _measurements(body), _edge_length(resolution)
-    j = body.template_joints
-    z_sh = m["shoulder"] + 0.02
-    z_arm = m["shoulder"] - armhole_depth
-    hip = j[joint_index("left_hip"), 2]
-    z_hem = hip + hem * (j[joint_index("left_knee"), 2] - hip)
-    center = np.array([0.0, j[joint_index("spine3"), 1] * 0.5])
-    levels = np.linspace(z_hem - 0.02, z_sh + 0.03, 120)
-    prof = _Profiles(_torso_shape(body), center, levels)
-    below = prof.transform(lambda t: np.maximum.accumulate(t[::-1], axis=0)[::-1])  # widest part below
-    above = prof.transform(lambda t: np.maximum.accumulate(t, axis=0))  # widest part above (drapes)
+    e, z_sh, z_arm, z_hem, center, below, above = _shirt_torso(body, resolution, hem, armhole_depth)
     half = _armhole_half_angle(body, center)
     z_top = _armhole_top_edge(z_sh, z_arm, half)
-
-    def radius(z, th):
-        base = np.minimum(below(z, th), above(z, th) + 0.05)
-        below_edge = np.clip(z_top(th) - z, 0.0, None)
-        # close-fitting at the top edge (the sleeves' roots sit just outside), loose lower down
-        ease = 0.01 + (clearance - 0.01) * np.clip(below_edge / 0.1, 0.0, 1.0)
-        return base + ease + flare * np.clip(z_sh - z, 0.0, None)
+    # close-fitting at the top edge (the sleeves' roots sit just outside), loose lower down
+    radius = _shirt_radius(below, above, z_top, clearance, ease_span=0.1, flare=flare, flare_from=z_sh)
 
     mb = _MeshBuilder()
     rows_idx, rows_th = _upper_body(mb, e, z_top=z_top, z_bottom=z_hem, radius=radius, center=center)
