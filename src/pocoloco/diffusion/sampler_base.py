@@ -173,6 +173,12 @@ def _sigma_spaced(alphas_cumprod: torch.Tensor | np.ndarray, steps: int, spacing
     return [int(t) for t in ts]
 
 
+def half_log_snr(alpha_bar: float) -> float:
+    """lambda = log(alpha / sigma) = 0.5 log(abar / (1 - abar)), the time variable of the
+    DPM-Solver and UniPC updates (Lu et al. 2022, eq. 3); ``alpha_bar`` in (0, 1)."""
+    return 0.5 * float(np.log(alpha_bar / (1.0 - alpha_bar)))
+
+
 def make_timesteps(
     num_train_timesteps: int,
     steps: int,
@@ -262,7 +268,7 @@ class SamplerRun:
         # abar per step and the "previous" abar (1 after the last step), kept away from 0
         ab = [schedule.alpha_bar(t) or ALPHA_BAR_MIN for t in timesteps]
         self.ab, self.ab_prev = ab, [*ab[1:], 1.0]
-        self.lam = [0.5 * float(np.log(a / (1.0 - a))) for a in ab]
+        self.lam = [half_log_snr(a) for a in ab]
         self.mask = self.x0_known = None
         if known is not None:
             mask, x0k = known

@@ -46,6 +46,7 @@ from pocoloco.diffusion.sampler_base import (
     PerSampleRNG,
     ProgressFn,
     SamplerRun,
+    half_log_snr,
     Spacing,
     StepInfo,
     make_noise,
@@ -282,7 +283,7 @@ def sample_dpmpp(
             x = x0
         else:
             a_s, s_s, s_t = ab_s**0.5, (1.0 - ab_s) ** 0.5, (1.0 - run.ab[i]) ** 0.5
-            h = 0.5 * float(np.log(ab_s / (1.0 - ab_s))) - lam[i]
+            h = half_log_snr(ab_s) - lam[i]
             p = min(order, len(hist), 2 if (i == n - 2 and n < LOWER_ORDER_BELOW) else order)
             A, c0, c1, c2 = dpmpp_coefficients(h, eta, d2)
             if p == 1:

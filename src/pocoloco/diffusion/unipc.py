@@ -19,6 +19,7 @@ from pocoloco.diffusion.sampler_base import (
     PerSampleRNG,
     ProgressFn,
     SamplerRun,
+    half_log_snr,
     Spacing,
     resolve_timesteps,
 )
@@ -146,8 +147,7 @@ def sample_unipc(
         if ab_s >= 1.0:  # final step to sigma = 0
             x = m_t
         else:
-            lam_s = 0.5 * float(np.log(ab_s / (1.0 - ab_s)))
-            x = _unipc_update(x, ms, run.lam[: i + 1], lam_s, ab_s, run.ab[i], p, variant)
+            x = _unipc_update(x, ms, run.lam[: i + 1], half_log_snr(ab_s), ab_s, run.ab[i], p, variant)
         x = run.impose_known(x, ab_s)
         run.report(i, x, m_t)
     return x.to(run.dtype)
