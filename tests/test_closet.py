@@ -327,7 +327,7 @@ def test_bad_inputs_raise_one_line_value_errors(mesh, tiny_model):
     _one_line_error(lambda: m(v, tf4, o, fi, bc), r"POP's 4x4 vtransf")
     _one_line_error(lambda: m(v, tf, o, torch.full_like(fi, 10**6), bc), "face_idx outside")
     _one_line_error(lambda: closet_preset("huge"), "unknown CloSET preset 'huge'")
-    _one_line_error(lambda: closet_preset("tiny", widht=3), "unknown CloSET config field")
+    _one_line_error(lambda: closet_preset("tiny", widht=3), "unknown CloSETConfig field")
     _one_line_error(lambda: CloSET(mesh[0], mesh[1], 0, closet_preset("tiny")), "num_outfits")
     _one_line_error(lambda: CloSET(mesh[0][:, :2], mesh[1], 1, closet_preset("tiny")), "template must have shape")
     q = m.sample_query_points(10)

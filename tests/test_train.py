@@ -599,3 +599,26 @@ def test_joint_velocity_from_neighbouring_frames_trains_and_samples(tiny_dataset
     jt = torch.zeros(1, 24, 3)
     with pytest.raises(ValueError, match="no joint velocities"):
         plain(torch.zeros(1, 8, 3), torch.zeros(1), PoseCondition(jt, velocity=torch.zeros(1, 24, 3)))
+
+
+def test_the_config_base_round_trips_every_preset_and_names_unknown_fields():
+    """One Config base (utils.config) for every typed config: to_dict is plain JSON, from_dict restores
+    tuples and nested configs exactly, replace and from_dict refuse unknown fields in one line."""
+    import json
+
+    from pocoloco.methods.pocoloco.config import TRAIN_PRESETS
+    from pocoloco.methods.skinned import SKINNED_PRESETS
+    from pocoloco.models.closet import CLOSET_PRESETS
+    from pocoloco.models.latent import LATENT_PRESETS
+    from pocoloco.models.pop import POP_PRESETS
+    from pocoloco.synth.config import SYNTH_PRESETS
+
+    for presets in (TRAIN_PRESETS, SKINNED_PRESETS, CLOSET_PRESETS, LATENT_PRESETS, POP_PRESETS, SYNTH_PRESETS):
+        for config in presets.values():
+            d = config.to_dict()
+            assert json.loads(json.dumps(d)) == d  # plain JSON types
+            assert type(config).from_dict(d) == config
+            with pytest.raises(ValueError, match=f"unknown {type(config).__name__} field\\(s\\): bogus$"):
+                config.replace(bogus=1)
+            with pytest.raises(ValueError, match=f"unknown {type(config).__name__} field\\(s\\): bogus$"):
+                type(config).from_dict({**d, "bogus": 1})

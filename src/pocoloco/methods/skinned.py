@@ -54,6 +54,7 @@ from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.models.closet import CLOSET_PRESETS, CloSETConfig, CloSETLossWeights
 from pocoloco.models.pop import POP_PRESETS, POPConfig
 from pocoloco.viz.render import render_grid
+from pocoloco.utils.config import Config
 
 __all__ = ["NORMAL_START_FRACTION", "SKINNED_PRESETS", "SkinnedMethod", "SkinnedTask", "SkinnedTrainConfig",
            "read_subjects", "skinned_preset"]  # fmt: skip
@@ -67,7 +68,7 @@ NORMAL_START_FRACTION = 250 / 400
 
 # ------------------------------------------------------------------------------------- config
 @dataclass(frozen=True)
-class SkinnedTrainConfig:
+class SkinnedTrainConfig(Config):
     """A POP or CloSET training run (the data folder and the device excepted).
 
     model: "pop" or "closet". preset: the preset name. net: the network config as a dict
@@ -147,21 +148,6 @@ class SkinnedTrainConfig:
         """The ``POPConfig`` or ``CloSETConfig``."""
         return POPConfig.from_dict(self.net) if self.model == "pop" else CloSETConfig.from_dict(self.net)
 
-    def replace(self, **changes) -> SkinnedTrainConfig:
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict[str, Any]:
-        return json.loads(json.dumps(dataclasses.asdict(self)))
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> SkinnedTrainConfig:
-        """Inverse of :meth:`to_dict`; unknown keys raise; missing keys take their defaults
-        (checkpoints written before ``ema_decay`` / ``grad_clip`` / ``bf16`` existed)."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"unknown SkinnedTrainConfig fields {unknown}")
-        return cls(**d)
 
 
 def _pop_net(name: str, **kw) -> dict[str, Any]:

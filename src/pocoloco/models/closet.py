@@ -32,7 +32,6 @@ Shapes: B frames, V vertices, F faces, P query points, N ground-truth points.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +47,7 @@ from pocoloco.body.surface import (
     sample_surface_points,
 )
 from pocoloco.models.pointnet2 import PointNet2Config, PointNet2Encoder
+from pocoloco.utils.config import Config
 
 __all__ = ["CLOSET_PRESETS", "CloSET", "CloSETConfig", "CloSETLossWeights", "CloSETOutput", "closet_preset"]
 
@@ -58,7 +58,7 @@ __all__ = ["CLOSET_PRESETS", "CloSET", "CloSETConfig", "CloSETLossWeights", "Clo
 
 
 @dataclass(frozen=True)
-class CloSETConfig:
+class CloSETConfig(Config):
     """Architecture of :class:`CloSET`.
 
     pose / garment: the two PointNet++ encoders (radii in metres on the template).
@@ -84,23 +84,6 @@ class CloSETConfig:
     decomposition: bool = True
     body_only: bool = True
 
-    def replace(self, **kw) -> CloSETConfig:
-        bad = set(kw) - {f.name for f in dataclasses.fields(self)}
-        if bad:
-            raise ValueError(f"unknown CloSET config field(s): {', '.join(sorted(bad))}")
-        return dataclasses.replace(self, **kw)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> CloSETConfig:
-        d = dict(d)
-        for k in ("pose", "garment"):
-            sub = d[k]
-            d[k] = PointNet2Config(**{f: tuple(tuple(x) if isinstance(x, list) else x for x in v)
-                                      if isinstance(v, list) else v for f, v in sub.items()})  # fmt: skip
-        return cls(**d)
 
 
 def _pn2(npoints, radii, nsamples, sa, fp) -> PointNet2Config:

@@ -70,7 +70,6 @@ Parameter counts (3-channel points, ``LATENT_PRESETS``): ``paper`` 29,655,043 (P
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -89,10 +88,11 @@ from pocoloco.models.layers import (
     positional_encoding_dim,
 )
 from pocoloco.models.pocoloco import PREDICTION_TYPES, joint_offset_features
+from pocoloco.utils.config import Config
 
 
 @dataclass(frozen=True)
-class LatentDenoiserConfig:
+class LatentDenoiserConfig(Config):
     """Architecture of :class:`LatentDenoiser`; defaults are the paper-width preset (``paper``).
 
     width: latent width D (latents, time and joint tokens). depth: number of read / compute / write
@@ -183,25 +183,6 @@ class LatentDenoiserConfig:
         return (self.num_latents + 1 + self.num_joints + int(self.num_outfits > 0) + int(self.shape_dim > 0)
                 + self.body_points)  # fmt: skip
 
-    def replace(self, **changes: Any) -> LatentDenoiserConfig:
-        """A copy with some fields changed (validated); an unknown field is a one-line ValueError."""
-        _check_fields(changes)
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> LatentDenoiserConfig:
-        """Inverse of :meth:`to_dict`; an unknown key is a one-line ValueError."""
-        _check_fields(d)
-        return cls(**d)
-
-
-def _check_fields(d: dict[str, Any]) -> None:
-    bad = sorted(set(d) - {f.name for f in dataclasses.fields(LatentDenoiserConfig)})
-    if bad:
-        raise ValueError(f"unknown LatentDenoiserConfig field(s): {', '.join(bad)}")
 
 
 LATENT_PRESETS: dict[str, LatentDenoiserConfig] = {

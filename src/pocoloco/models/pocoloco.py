@@ -25,7 +25,6 @@ cross-attention has its own projections (standard attention, paper Eq. 5).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -42,12 +41,13 @@ from pocoloco.models.layers import (
     positional_encoding,
     positional_encoding_dim,
 )
+from pocoloco.utils.config import Config
 
 PREDICTION_TYPES = ("epsilon", "sample", "v_prediction")
 
 
 @dataclass(frozen=True)
-class PocoLocoDenoiserConfig:
+class PocoLocoDenoiserConfig(Config):
     """Architecture of ``PocoLocoDenoiser``; defaults are the paper's (Sec. 5.1).
 
     width: model width D. depth: number of blocks. heads / head_dim: attention
@@ -112,11 +112,6 @@ class PocoLocoDenoiserConfig:
         """Channels per attention head."""
         return self.head_dim if self.head_dim is not None else self.width // self.heads
 
-    def replace(self, **changes) -> "PocoLocoDenoiserConfig":
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 DENOISER_PRESETS: dict[str, PocoLocoDenoiserConfig] = {

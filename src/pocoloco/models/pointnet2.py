@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from pocoloco.ops import ball_query, farthest_point_sampling, knn
+from pocoloco.utils.config import Config
 
 __all__ = [
     "FeaturePropagation",
@@ -273,7 +274,7 @@ class FeaturePropagation(nn.Module):
 
 
 @dataclass(frozen=True)
-class PointNet2Config:
+class PointNet2Config(Config):
     """A PointNet++ encoder with L = len(npoints) SA and L FP levels.
 
     npoints, radii, nsamples: per SA level (centroids, ball radius in input units,

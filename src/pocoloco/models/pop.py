@@ -42,7 +42,7 @@ Ri input map resolution, Rq query map resolution.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -58,6 +58,7 @@ from pocoloco.body.surface import (
     uv_to_grid,
 )
 from pocoloco.models.pop_decoder import ShapeDecoder
+from pocoloco.utils.config import Config
 
 __all__ = ["DECODER_IMPLS", "POP", "POPBatch", "POPConfig", "POPOutput", "POPQuery", "POP_PRESETS", "pop_preset"]
 
@@ -70,7 +71,7 @@ DECODER_IMPLS = ("linear_valid", "conv1d_all_pixels")
 
 
 @dataclass(frozen=True)
-class POPConfig:
+class POPConfig(Config):
     """POP hyper-parameters (paper SupMat A.1-A.2).
 
     unet_channels: output channels of the stride-2 down convolutions (their number is
@@ -147,14 +148,6 @@ class POPConfig:
         if self.normal_start < 0:
             raise ValueError(f"POPConfig.normal_start must be >= 0, got {self.normal_start}")
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["unet_channels"] = list(self.unet_channels)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> POPConfig:
-        return cls(**{**d, "unet_channels": tuple(d["unet_channels"])})
 
 
 POP_PRESETS: dict[str, POPConfig] = {

@@ -7,8 +7,8 @@ small`` is ``SYNTH_PRESETS["small"]`` with command-line overrides applied.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
+from ..utils.config import Config
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ ALL_MOTION_KINDS: tuple[str, ...] = CLASSIC_MOTION_KINDS + ("reach", "crouch", "
 
 
 @dataclass(frozen=True)
-class SynthConfig:
+class SynthConfig(Config):
     """Settings of a synthetic capture run (``pocoloco data synth``).
 
     Sequences: each is one procedural motion (``synth.motion``) of
@@ -103,16 +103,6 @@ class SynthConfig:
     heldout_sequences: int = 0
     frame_storage: str = "float32"
 
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "SynthConfig":
-        d = dict(d)
-        d["subjects"] = tuple(SubjectSpec(**s) for s in d["subjects"])
-        if "motion_kinds" in d:
-            d["motion_kinds"] = tuple(d["motion_kinds"])
-        return cls(**d)
 
 
 #: overrides that reproduce the first pipeline (``dataclasses.replace(config, **SYNTH_V1)``)

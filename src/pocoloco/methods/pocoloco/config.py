@@ -15,6 +15,7 @@ from pocoloco.diffusion.schedules import PREDICTION_TYPES
 from pocoloco.models.denoisers import ARCHITECTURES, denoiser_config_from_dict
 from pocoloco.models.latent import LATENT_PRESETS, LatentDenoiserConfig
 from pocoloco.models.pocoloco import DENOISER_PRESETS, PocoLocoDenoiserConfig
+from pocoloco.utils.config import Config
 
 __all__ = ["LR_SCHEDULES", "SCHEDULE_KINDS", "TRAIN_PRESETS", "PocoLocoTrainConfig", "train_preset"]
 
@@ -27,7 +28,7 @@ RESUMABLE_CHANGES = frozenset({"steps", "ckpt_every", "sample_every", "log_every
 
 
 @dataclass(frozen=True)
-class PocoLocoTrainConfig:
+class PocoLocoTrainConfig(Config):
     """Everything that defines a training run (the data folder and the device excepted).
 
     preset: name of the denoiser preset (``tiny`` / ``small`` / ``paper``); denoiser: its config
@@ -151,30 +152,14 @@ class PocoLocoTrainConfig:
                 raise ValueError(f"subjects must be distinct names, got {self.subjects!r}")
             object.__setattr__(self, "subjects", tuple(sorted(str(s) for s in self.subjects)))
 
-    def replace(self, **changes) -> PocoLocoTrainConfig:
-        """A copy with fields changed (validated again)."""
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d["adam_betas"] = list(self.adam_betas)
-        if self.subjects is not None:
-            d["subjects"] = list(self.subjects)
-        return d
-
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> PocoLocoTrainConfig:
-        """Inverse of :meth:`to_dict`; unknown keys raise."""
+        """Inverse of :meth:`to_dict` (:class:`~pocoloco.utils.config.Config`); the denoiser's config
+        class follows ``architecture`` (checkpoints written before it existed hold the transformer)."""
         d = dict(d)
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"unknown TrainConfig fields {unknown}")
-        if "denoiser" in d:  # checkpoints written before "architecture" existed hold the transformer
+        if isinstance(d.get("denoiser"), dict):
             d["denoiser"] = denoiser_config_from_dict(d.get("architecture", "transformer"), d["denoiser"])
-        if "adam_betas" in d:
-            d["adam_betas"] = tuple(d["adam_betas"])
-        return cls(**d)
+        return super().from_dict(d)
 
 
 TRAIN_PRESETS: dict[str, PocoLocoTrainConfig] = {
