@@ -1,5 +1,6 @@
 """Training loop and checkpoints: schedules, data order, exact resume, DDP replicas, bad input."""
 
+import dataclasses
 import json
 import math
 import os
@@ -40,17 +41,17 @@ def _states_equal(a: dict, b: dict) -> float:
 # ------------------------------------------------------------------------------- pure pieces
 def test_lr_warmup_and_cosine():
     c = train_preset("tiny", steps=10, warmup_steps=4, lr=1.0, lr_schedule="cosine")
-    lrs = [lr_at(c, s) for s in range(10)]
+    lrs = [lr_at(c.loop(), s) for s in range(10)]
     assert lrs[:4] == [0.25, 0.5, 0.75, 1.0]
     assert lrs[4] == pytest.approx(1.0) and lrs[-1] == pytest.approx(0.5 * (1 + math.cos(math.pi * 5 / 6)))
     assert all(a >= b for a, b in zip(lrs[3:], lrs[4:]))
     const = c.replace(lr_schedule="constant")
-    assert [lr_at(const, s) for s in range(4, 10)] == [1.0] * 6
+    assert [lr_at(const.loop(), s) for s in range(4, 10)] == [1.0] * 6
 
 
 def test_lr_wsd_is_constant_then_linear_to_zero():
     c = train_preset("tiny", steps=10, warmup_steps=2, lr=1.0, lr_schedule="wsd", decay_steps=4)
-    lrs = [lr_at(c, s) for s in range(10)]
+    lrs = [lr_at(c.loop(), s) for s in range(10)]
     assert lrs == [0.5, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.75, 0.5, 0.25]  # decay over steps 6..9, 0 at step 10
     with pytest.raises(ValueError, match="decay_steps"):
         train_preset("tiny", steps=10, lr_schedule="wsd", decay_steps=0)
@@ -59,13 +60,13 @@ def test_lr_wsd_is_constant_then_linear_to_zero():
 
 
 def test_lr_wsd_on_the_clock_takes_the_lower_of_steps_and_time():
-    c = train_preset("tiny", steps=100, warmup_steps=0, lr=1.0, lr_schedule="wsd", decay_steps=20)
+    c = train_preset("tiny", steps=100, warmup_steps=0, lr=1.0, lr_schedule="wsd", decay_steps=20).loop()
     assert lr_at(c, 10, 0.0) == lr_at(c, 10) == 1.0  # stable on both clocks
     assert lr_at(c, 10, 0.8) == pytest.approx(1.0) and lr_at(c, 10, 0.7) == 1.0  # the last fifth of the budget starts the decay
     assert lr_at(c, 10, 0.9) == pytest.approx(0.5)  # slower machine than planned: the clock decides
     assert lr_at(c, 10, 1.0) == 0.0 and lr_at(c, 10, 1.5) == 0.0
     assert lr_at(c, 90, 0.1) == pytest.approx(0.5)  # faster machine: the step count decides
-    const = c.replace(lr_schedule="constant")
+    const = dataclasses.replace(c, lr_schedule="constant")
     assert lr_at(const, 10, 0.99) == 1.0  # only wsd runs on the clock
 
 

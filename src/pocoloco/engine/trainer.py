@@ -30,11 +30,9 @@ Run folder::
     RUN_DIR/samples/step_XXXXXX.png   the task's previews next to the data
     RUN_DIR/checkpoints/       see :mod:`pocoloco.engine.checkpoint`
 
-The config a task carries is the method's frozen dataclass; the loop reads these fields:
-``model`` (kind), ``preset``, ``steps``, ``batch_size``, ``lr``, ``seed``, ``ckpt_every``,
-``sample_every``, ``log_every``, ``keep_checkpoints`` and, when present, ``warmup_steps`` (0),
-``lr_schedule`` ("constant"), ``grad_clip`` (None), ``ema_decay`` (None), ``bf16`` (False),
-``num_workers`` (0); ``to_dict()`` / ``from_dict()`` store it in checkpoints.
+The config a task carries is the method's frozen dataclass (a :class:`pocoloco.utils.config.Config`:
+``to_dict()`` / ``from_dict()`` store it in checkpoints); the loop reads only what its ``loop()``
+returns, one typed :class:`LoopSettings` (steps, learning-rate curve, EMA, clipping, bf16, periods).
 """
 
 from __future__ import annotations
@@ -64,6 +62,7 @@ __all__ = [
     "frozen",
     "EMA",
     "Logger",
+    "LoopSettings",
     "ProgressBar",
     "TrainResult",
     "TrainingTask",
@@ -96,8 +95,35 @@ def frozen(model: nn.Module):
             p.requires_grad_(flags[n])
 
 
+# ---------------------------------------------------------------------------- the loop's settings
+@dataclass(frozen=True)
+class LoopSettings:
+    """What the training loop reads from a method's training config (its ``loop()``), every field
+    explicit: ``preset`` (checked on resume), ``steps``, ``lr`` (the rate the optimiser's groups
+    scale with), ``seed``; ``warmup_steps`` / ``lr_schedule`` / ``decay_steps`` (:func:`lr_at`);
+    ``ema_decay`` (None: no EMA), ``grad_clip`` (None: the norm is only logged), ``bf16``;
+    ``ckpt_every`` / ``sample_every`` / ``log_every`` (0 disables checkpoints / previews),
+    ``keep_checkpoints``; ``num_workers`` (DataLoader processes)."""
+
+    preset: str
+    steps: int
+    lr: float
+    seed: int
+    warmup_steps: int
+    lr_schedule: str
+    decay_steps: int
+    ema_decay: float | None
+    grad_clip: float | None
+    bf16: bool
+    ckpt_every: int
+    sample_every: int
+    log_every: int
+    keep_checkpoints: int
+    num_workers: int
+
+
 # ---------------------------------------------------------------------------- pure schedules
-def lr_at(config: Any, step: int, time_share: float | None = None) -> float:
+def lr_at(config: LoopSettings, step: int, time_share: float | None = None) -> float:
     """Learning rate of optimiser step ``step`` (0-based): linear warm-up over ``warmup_steps``,
     then constant, cosine (to 0 at ``steps``) or ``wsd``: constant, then linear to 0 over the
     last ``decay_steps`` (warm-up / stable / decay, Hu et al. 2024, MiniCPM).
@@ -105,10 +131,10 @@ def lr_at(config: Any, step: int, time_share: float | None = None) -> float:
     ``time_share`` (share of a time budget used so far, wsd only): the decay also runs on the
     clock, over the same share of the budget as ``decay_steps`` is of ``steps``, and the lower of
     the two rates is taken, so a run on a machine slower than planned still ends cooled down."""
-    warmup = getattr(config, "warmup_steps", 0)
+    warmup = config.warmup_steps
     if warmup and step < warmup:
         return config.lr * (step + 1) / warmup
-    schedule = getattr(config, "lr_schedule", "constant")
+    schedule = config.lr_schedule
     if schedule == "cosine":
         span = max(config.steps - warmup, 1)
         progress = min(max(step - warmup, 0) / span, 1.0)
@@ -396,11 +422,12 @@ def _check_resume_config(task: TrainingTask, ck: ckpt_io.Checkpoint) -> None:
         raise ValueError(f"{ck.path}: cannot resume with a different config ({detail})")
     lr_changes = [k for k in LR_FIELDS if k in a and a[k] != b.get(k)]
     if lr_changes:  # a new LR curve is fine if the steps already taken saw the same one
-        changed = next((s for s in range(ck.step) if lr_at(stored, s) != lr_at(task.config, s)), None)
+        old, new = stored.loop(), task.config.loop()
+        changed = next((s for s in range(ck.step) if lr_at(old, s) != lr_at(new, s)), None)
         if changed is not None:
             raise ValueError(f"{ck.path}: cannot resume with {', '.join(lr_changes)} changed: the learning rate of "
-                             f"step {changed} (already taken) would change from {lr_at(stored, changed):.3g} to "
-                             f"{lr_at(task.config, changed):.3g}")  # fmt: skip
+                             f"step {changed} (already taken) would change from {lr_at(old, changed):.3g} to "
+                             f"{lr_at(new, changed):.3g}")  # fmt: skip
 
 
 def _to_device(batch: Any, device: torch.device) -> Any:
@@ -448,7 +475,7 @@ def train(
     If ``torch.distributed`` is initialised, the model is wrapped in DistributedDataParallel and
     every rank trains on its own part of each global batch.
     """
-    config = task.config
+    config = task.config.loop()
     device = torch.device(device)
     if time_budget_s is not None and not time_budget_s > 0:
         raise ValueError(f"time budget must be > 0 seconds, got {time_budget_s}")
@@ -477,8 +504,7 @@ def train(
     if ck is not None:
         model.load_state_dict(ck.model_state)
     model.to(device)
-    ema_decay = getattr(config, "ema_decay", None)
-    ema = EMA(model, ema_decay) if ema_decay is not None else None
+    ema = EMA(model, config.ema_decay) if config.ema_decay is not None else None
     if ema is not None and ck is not None and ck.ema_state is not None:
         ema.load_state_dict(ck.ema_state)
     optimizer = task.make_optimizer(model)
@@ -501,19 +527,20 @@ def train(
     batches = task.step_batches(model, rank, world)
     loader = torch.utils.data.DataLoader(
         batches, batch_size=None, sampler=range(start_step, config.steps),
-        num_workers=getattr(config, "num_workers", 0), pin_memory=device.type == "cuda",
+        num_workers=config.num_workers, pin_memory=device.type == "cuda",
     )  # fmt: skip
 
     # ---- rank-0 outputs ---------------------------------------------------------------------
     logger = None
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(out / "config.json", {"data": os.fspath(data), "world_size": world, **config.to_dict()})
+        write_json_atomic(out / "config.json", {"data": os.fspath(data), "world_size": world,
+                                                **task.config.to_dict()})  # fmt: skip
         logger = Logger(out, start_step if ck is not None else None)
 
     def save(step: int) -> Path:
         return ckpt_io.save_checkpoint(
-            ckpt_root, step, model_kind=task.kind, preset=config.preset, config=config.to_dict(),
+            ckpt_root, step, model_kind=task.kind, preset=config.preset, config=task.config.to_dict(),
             normalisation=task.normalisation, model_state=model.state_dict(),
             ema_state=None if ema is None else ema.state_dict(), optimizer_state=optimizer.state_dict(),
             rng_state=ckpt_io.capture_rng_state(),
@@ -521,8 +548,7 @@ def train(
             keep=config.keep_checkpoints,
         )  # fmt: skip
 
-    bf16 = bool(getattr(config, "bf16", False))
-    grad_clip = getattr(config, "grad_clip", None)
+    bf16, grad_clip = config.bf16, config.grad_clip
 
     def autocast():
         return torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
@@ -530,7 +556,7 @@ def train(
     bar = ProgressBar(progress and rank == 0, start_step, config.steps)
     last_ckpt, saved_step, loss_val, t0, step = None, None, float("nan"), time.perf_counter(), start_step
     stopped_by_budget = False
-    clock_decay = time_budget_s is not None and getattr(config, "lr_schedule", "constant") == "wsd"
+    clock_decay = time_budget_s is not None and config.lr_schedule == "wsd"
     time_share = 0.0 if clock_decay else None
     model.train()
     try:

@@ -54,6 +54,7 @@ from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.models.closet import CLOSET_PRESETS, CloSETConfig, CloSETLossWeights
 from pocoloco.models.pop import POP_PRESETS, POPConfig
 from pocoloco.viz.render import render_grid
+from pocoloco.engine.trainer import LoopSettings
 from pocoloco.utils.config import Config
 
 __all__ = ["NORMAL_START_FRACTION", "SKINNED_PRESETS", "SkinnedMethod", "SkinnedTask", "SkinnedTrainConfig",
@@ -143,6 +144,16 @@ class SkinnedTrainConfig(Config):
             w = dataclasses.asdict(CloSETLossWeights(**self.closet_weights))
             object.__setattr__(self, "closet_weights", w)
         object.__setattr__(self, "net", json.loads(json.dumps(net)))  # plain JSON types (tuples -> lists)
+
+    def loop(self) -> LoopSettings:
+        """What the training loop reads (:class:`pocoloco.engine.trainer.LoopSettings`): a constant
+        learning rate without warm-up, as in both papers."""
+        return LoopSettings(
+            preset=self.preset, steps=self.steps, lr=self.lr, seed=self.seed, warmup_steps=0,
+            lr_schedule="constant", decay_steps=0, ema_decay=self.ema_decay, grad_clip=self.grad_clip, bf16=self.bf16,
+            ckpt_every=self.ckpt_every, sample_every=self.sample_every, log_every=self.log_every,
+            keep_checkpoints=self.keep_checkpoints, num_workers=0,
+        )  # fmt: skip
 
     def net_config(self) -> POPConfig | CloSETConfig:
         """The ``POPConfig`` or ``CloSETConfig``."""

@@ -15,6 +15,7 @@ from pocoloco.diffusion.schedules import PREDICTION_TYPES
 from pocoloco.models.denoisers import ARCHITECTURES, denoiser_config_from_dict
 from pocoloco.models.latent import LATENT_PRESETS, LatentDenoiserConfig
 from pocoloco.models.pocoloco import DENOISER_PRESETS, PocoLocoDenoiserConfig
+from pocoloco.engine.trainer import LoopSettings
 from pocoloco.utils.config import Config
 
 __all__ = ["LR_SCHEDULES", "SCHEDULE_KINDS", "TRAIN_PRESETS", "PocoLocoTrainConfig", "train_preset"]
@@ -151,6 +152,15 @@ class PocoLocoTrainConfig(Config):
             if isinstance(self.subjects, str) or not self.subjects or len(set(self.subjects)) != len(self.subjects):
                 raise ValueError(f"subjects must be distinct names, got {self.subjects!r}")
             object.__setattr__(self, "subjects", tuple(sorted(str(s) for s in self.subjects)))
+
+    def loop(self) -> LoopSettings:
+        """What the training loop reads (:class:`pocoloco.engine.trainer.LoopSettings`)."""
+        return LoopSettings(
+            preset=self.preset, steps=self.steps, lr=self.lr, seed=self.seed, warmup_steps=self.warmup_steps,
+            lr_schedule=self.lr_schedule, decay_steps=self.decay_steps, ema_decay=self.ema_decay,
+            grad_clip=self.grad_clip, bf16=self.bf16, ckpt_every=self.ckpt_every, sample_every=self.sample_every,
+            log_every=self.log_every, keep_checkpoints=self.keep_checkpoints, num_workers=self.num_workers,
+        )  # fmt: skip
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> PocoLocoTrainConfig:
