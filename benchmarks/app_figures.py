@@ -68,11 +68,10 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     loaded = load_method(resolve_checkpoint(resolve_ckpt_arg(args.ckpt)), expect="pocoloco")
-    norm, config = loaded.normalisation, loaded.config
     layout = fmt.DatasetLayout(args.data)
     subject, sequence = args.sequence.split("/")
     # a model that knows who wears what draws the sequence's own outfit
-    model = loaded.denoiser_for(loaded.outfit_id(subject) if loaded.outfit_names() else None)
+    prior = loaded.point_prior(loaded.outfit_id(subject) if loaded.outfit_names() else None)
     idx = layout.frame_indices(subject, "test", sequence)
 
     def frame(i: int):
@@ -87,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
         partial = fr.points[~inside]
         panels = [(partial[subset(len(partial), N, [0])], None, None, "partial scan (hem removed)")]
         for init, title in (("sample", "completed"), ("noise", "plain RePaint")):
-            c = complete(model, norm, config, partial, fr.joints, N, init=init, seeds=[0], **kw)
+            c = complete(prior, partial, fr.joints, N, init=init, seeds=[0], **kw)
             panels.append((c.points[0], np.where(c.known[0], 0, 2), None, f"{title} (orange: generated)"))
         gsel = subset(len(fr.points), N, [0])
         panels.append((fr.points[gsel], fr.labels[gsel], None, "GT scan"))
@@ -98,7 +97,7 @@ def main(argv: list[str] | None = None) -> None:
         src, tgt = frame(idx[0]), frame(idx[10])
         panels = [(src.points[subset(len(src.points), N, [0])], None, None, "source")]
         for mode, t, title in (("renoise", 100, "renoise t=100"), ("region", None, "region")):
-            e = edit(model, norm, config, src.points, tgt.joints, source_joints=src.joints, mode=mode, t=t,
+            e = edit(prior, src.points, tgt.joints, source_joints=src.joints, mode=mode, t=t,
                      num_points=N, seeds=[0], **kw)  # fmt: skip
             lab = np.where(e.regenerated[0], 2, 0) if mode == "region" else None
             panels.append((e.points[0], lab, None, title + (" (orange: new)" if lab is not None else "")))
@@ -114,7 +113,7 @@ def main(argv: list[str] | None = None) -> None:
         rows = {}
         for method, anchor, title in (("independent", "root", "independent"), ("shared-noise", "root", "shared noise"),
                                       ("chain", "world", "chain (world)")):  # fmt: skip
-            rows[title] = animate(model, norm, config, joints, args.anim_points, method=method, anchor=anchor,
+            rows[title] = animate(prior, joints, args.anim_points, method=method, anchor=anchor,
                                   seed=0, **kw).points  # fmt: skip
         rows["GT"] = np.stack([f.points[subset(len(f.points), args.anim_points, [0, k])] for k, f in
                                enumerate(frames)])  # fmt: skip

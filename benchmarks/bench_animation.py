@@ -61,10 +61,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
     loaded = load_method(ckpt, expect="pocoloco")
-    norm, config = loaded.normalisation, loaded.config
 
-    def model_for(subject: str):  # a model that knows who wears what draws the subject's own outfit
-        return loaded.denoiser_for(loaded.outfit_id(subject) if loaded.outfit_names() else None)
+    def prior_for(subject: str):  # a model that knows who wears what draws the subject's own outfit
+        return loaded.point_prior(loaded.outfit_id(subject) if loaded.outfit_names() else None)
 
     layout = fmt.DatasetLayout(args.data)
     seqs = [(s, q) for s in layout.subjects() for q in layout.sequences(s, args.split)]
@@ -81,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
         gt_row = None
         for method in args.methods:
             ts = time.perf_counter()
-            anim = animate(model_for(subject), norm, config, joints, args.points, method=method.replace("-world", ""), t=args.t,
+            anim = animate(prior_for(subject), joints, args.points, method=method.replace("-world", ""), t=args.t,
                            sampler=args.sampler, steps=args.steps, seed=args.seed,
                            anchor="world" if method == "chain-world" else "root")  # fmt: skip
             sec = (time.perf_counter() - ts) / len(idx)

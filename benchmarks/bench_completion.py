@@ -140,7 +140,6 @@ def main(argv: list[str] | None = None) -> dict:
             p.error(f"unknown {name} {unknown}; choose from {', '.join(known)}")
 
     method = load_method(resolve_ckpt_arg(args.ckpt), expect="pocoloco")
-    norm, config = method.normalisation, method.config
     layout = fmt.DatasetLayout(args.data)
     frames = layout.iter_frames(args.split, layout.subjects())
     chosen = [frames[i] for i in select_frames(frames, args.frames)]
@@ -151,10 +150,10 @@ def main(argv: list[str] | None = None) -> dict:
     for subject, sequence, path in chosen:
         fr = fmt.read_frame(path, ["points", "normals", "joints"])
         # a model that knows who wears what completes the frame's own outfit
-        model = method.denoiser_for(method.outfit_id(subject) if method.outfit_names() else None)
+        prior = method.point_prior(method.outfit_id(subject) if method.outfit_names() else None)
         for seed in args.seeds:
             t0 = time.perf_counter()
-            cands = draw_candidates(model, norm, config, fr.joints, args.points, [seed], K)
+            cands = draw_candidates(prior, fr.joints, args.points, [seed], K)
             per_sample = (time.perf_counter() - t0) / K
             fresh = cands.points[0, 0]  # candidate 0 has the output's seed: the fresh sample
             fresh_in = None
@@ -173,7 +172,7 @@ def main(argv: list[str] | None = None) -> dict:
                     else:
                         kw = {"candidates": args.candidates, "partial_normals": partial_n} | kw
                         t0 = time.perf_counter()
-                        comp = complete(model, norm, config, partial, fr.joints, args.points, seeds=[seed],
+                        comp = complete(prior, partial, fr.joints, args.points, seeds=[seed],
                                         samples=None if kw.get("init") == "noise" else cands, **kw)  # fmt: skip
                         sec = time.perf_counter() - t0
                         if kw.get("init") != "noise":

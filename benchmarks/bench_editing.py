@@ -60,10 +60,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     ckpt = resolve_checkpoint(resolve_ckpt_arg(args.ckpt))
     loaded = load_method(ckpt, expect="pocoloco")
-    norm, config = loaded.normalisation, loaded.config
 
-    def model_for(subject: str):  # a model that knows who wears what draws the subject's own outfit
-        return loaded.denoiser_for(loaded.outfit_id(subject) if loaded.outfit_names() else None)
+    def prior_for(subject: str):  # a model that knows who wears what draws the subject's own outfit
+        return loaded.point_prior(loaded.outfit_id(subject) if loaded.outfit_names() else None)
 
     layout = fmt.DatasetLayout(args.data)
     candidates = []  # (subject, sequence, source index, target index)
@@ -80,7 +79,7 @@ def main(argv: list[str] | None = None) -> dict:
         src = fmt.read_frame(layout.frame_path(subject, args.split, sequence, i), ["points", "joints"])
         tgt = fmt.read_frame(layout.frame_path(subject, args.split, sequence, j), ["points", "joints"])
         for seed in args.seeds:
-            res = evaluate_edit(model_for(subject), norm, config, src.points, src.joints, tgt.points, tgt.joints, args.points,
+            res = evaluate_edit(prior_for(subject), src.points, src.joints, tgt.points, tgt.joints, args.points,
                                 seed=seed, sampler=args.sampler, steps=args.steps, renoise_ts=args.ts,
                                 threshold=args.threshold)  # fmt: skip
             for method, m in res.items():

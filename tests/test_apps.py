@@ -3,18 +3,15 @@ references, CLI outputs and one-line errors."""
 
 import json
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
 from pocoloco.apps.animation import animate, flicker_cm, load_motion, warp_by_body
-from pocoloco.apps.common import (
-    chain_timesteps,
-    denoise_from,
-    repaint_resampling,
-    subset,
-    to_normalised,
-)
+from pocoloco.diffusion.chains import chain_timesteps, repaint_resampling
+from pocoloco.apps.common import denoise_from, subset, to_normalised
 from pocoloco.apps.completion import (
     candidate_seeds,
     choose_candidate,
@@ -34,6 +31,7 @@ from pocoloco.diffusion.sampler_base import PerSampleRNG
 from pocoloco.diffusion.samplers import make_timesteps, sample_ddpm
 from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.methods import train
+from pocoloco.methods import load_method
 from pocoloco.methods.pocoloco import load_denoiser, sample_clouds, train_preset
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
@@ -51,6 +49,12 @@ def run(tiny_dataset, tmp_path_factory):
 @pytest.fixture(scope="module")
 def loaded(run):
     return load_denoiser(run)
+
+
+@pytest.fixture(scope="module")
+def prior(run):
+    """The apps' hook of the trained tiny model (``method.point_prior``)."""
+    return load_method(run).point_prior(None)
 
 
 @pytest.fixture(scope="module")
@@ -75,12 +79,12 @@ def test_chain_timesteps_match_the_samplers_at_T_and_start_at_t():
 
 
 # -------------------------------------------------------------------------------- completion
-def test_completion_keeps_known_points_exactly(loaded, seq):
+def test_completion_keeps_known_points_exactly(loaded, prior, seq):
     model, norm, cfg = loaded
     fr = seq[1][0]
     inside = region_mask(fr.points, fr.joints, "left_hand")
     partial = fr.points[~inside]
-    comp = complete(model, norm, cfg, partial, fr.joints, 64, num=2, steps=3, seeds=[3, 4], coverage=0.5)
+    comp = complete(prior, partial, fr.joints, 64, num=2, steps=3, seeds=[3, 4], coverage=0.5)
     assert comp.points.shape == (2, 64, 3) and comp.known.shape == (2, 64) and comp.num_known == 32
     assert comp.known[:, :32].all() and not comp.known[:, 32:].any()
     for k, s in enumerate([3, 4]):  # bit-exact copies of the scan subset drawn from the output's seed
@@ -92,19 +96,19 @@ def test_completion_keeps_known_points_exactly(loaded, seq):
     mask = np.zeros((1, 64), bool)
     mask[0, :32] = True
     for sampler in ("dpm++", "ddpm"):
-        x = denoise_from(model, norm, cfg, fr.joints, None, 1000, sampler, 4, [0], known=(mask, xk))
+        x = denoise_from(prior, fr.joints, None, 1000, sampler, 4, [0], known=(mask, xk))
         np.testing.assert_allclose(x[0, :32], xk[0, :32], atol=1e-5)
 
 
-def test_coverage_estimate_against_brute_force(loaded, seq):
+def test_coverage_estimate_against_brute_force(loaded, prior, seq):
     model, norm, cfg = loaded
     fr = seq[1][0]
     partial = fr.points[~region_mask(fr.points, fr.joints, "hem")][::7]
-    c = estimate_coverage(model, norm, cfg, partial, fr.joints, 48, radius=0.3, seed=2, probe_steps=2)
+    c = estimate_coverage(prior, partial, fr.joints, 48, radius=0.3, seed=2, probe_steps=2)
     probe = sample_clouds(model, norm, cfg, fr.joints, 1, 48, steps=2, seeds=[2]).points[0]
     d = np.sqrt(((probe[:, None].astype(np.float64) - partial[None]) ** 2).sum(-1)).min(1)
     assert c == pytest.approx(float((d < 0.3).mean()))
-    comp = complete(model, norm, cfg, partial, fr.joints, 48, steps=2, seeds=[2], radius=0.3, probe_steps=2)
+    comp = complete(prior, partial, fr.joints, 48, steps=2, seeds=[2], radius=0.3, probe_steps=2)
     assert comp.coverage_estimated and comp.num_known == round(comp.coverage * 48)
 
 
@@ -124,22 +128,22 @@ def test_hole_points_finds_the_missing_cap_and_ignores_strays():
     assert len(far) == 10 and 400 not in far and (sample[far, 2] > 0.45).all()
 
 
-def test_completion_sample_init_starts_from_the_samples_hole_points(loaded, seq):
+def test_completion_sample_init_starts_from_the_samples_hole_points(loaded, prior, seq):
     model, norm, cfg = loaded
     fr = seq[1][0]
     partial = fr.points[~region_mask(fr.points, fr.joints, "hem")]
     kw = {"num": 1, "sampler": "ddpm", "steps": 3, "seeds": [5], "radius": 0.3, "max_cos": None}  # distance-only hole test
-    comp = complete(model, norm, cfg, partial, fr.joints, 64, init="sample", t=1, coverage=0.75, candidates=1, **kw)
+    comp = complete(prior, partial, fr.joints, 64, init="sample", t=1, coverage=0.75, candidates=1, **kw)
     assert comp.init == "sample" and comp.t == 1 and comp.num_known == 48
     full = sample_clouds(model, norm, cfg, fr.joints, 1, 64, sampler="ddpm", steps=3, seeds=[5]).points[0]
     start = full[hole_points(full, partial, 0.3, num=16)[0]]
     gen = comp.points[0, 48:]
     # t = 1: one nearly noise-free denoiser call, so the generated points stay at their start
     assert np.linalg.norm(gen - start, axis=1).max() < 0.05
-    noise = complete(model, norm, cfg, partial, fr.joints, 64, init="noise", coverage=0.75, **kw)
+    noise = complete(prior, partial, fr.joints, 64, init="noise", coverage=0.75, **kw)
     assert noise.t == 1000 and np.linalg.norm(noise.points[0, 48:] - start, axis=1).mean() > 0.05
     with pytest.raises(ValueError, match="unknown completion init"):
-        complete(model, norm, cfg, partial, fr.joints, 64, init="magic")
+        complete(prior, partial, fr.joints, 64, init="magic")
 
 
 class _GaussianDenoiser:
@@ -185,19 +189,19 @@ def test_repaint_resampling_jumps_keep_the_marginals():
     assert abs(jumped.std().item() - plain.std().item()) < 0.02 and abs(jumped.mean().item()) < 0.02
 
 
-def test_resampling_options_are_validated(loaded, seq):
+def test_resampling_options_are_validated(loaded, prior, seq):
     model, norm, cfg = loaded
     fr = seq[1][0]
     with pytest.raises(ValueError, match="resample and jump must be >= 1"):
-        denoise_from(model, norm, cfg, fr.joints, None, 10, "ddpm", 2, [0], num_points=8, resample=0)
+        denoise_from(prior, fr.joints, None, 10, "ddpm", 2, [0], num_points=8, resample=0)
     partial = fr.points[~region_mask(fr.points, fr.joints, "hem")]
     for bad, message in (({"jump": 0}, "resample and jump"), ({"candidates": 0}, "candidates must be >= 1"),
                          ({"t": -1}, r"t must be in \[0, 1000\]"), ({"max_cos": 0.0}, r"max_cos must be in")):
         with pytest.raises(ValueError, match=message):
-            complete(model, norm, cfg, partial, fr.joints, 16, steps=2, **bad)
+            complete(prior, partial, fr.joints, 16, steps=2, **bad)
 
 
-def test_best_of_k_picks_the_candidate_closest_to_the_visible_scan(loaded, seq):
+def test_best_of_k_picks_the_candidate_closest_to_the_visible_scan(loaded, prior, seq):
     rng = np.random.default_rng(1)
     scan = rng.normal(size=(300, 3))
     samples = np.stack([scan[:200] + off for off in ([0.3, 0, 0], [0.01, 0, 0], [0.1, 0, 0])]).astype(np.float32)
@@ -209,17 +213,17 @@ def test_best_of_k_picks_the_candidate_closest_to_the_visible_scan(loaded, seq):
     model, norm, cfg = loaded
     fr = seq[1][0]
     partial = fr.points[~region_mask(fr.points, fr.joints, "hem")]
-    cands = draw_candidates(model, norm, cfg, fr.joints, 32, [4, 5], 3, steps=2)
+    cands = draw_candidates(prior, fr.joints, 32, [4, 5], 3, steps=2)
     assert cands.points.shape == (2, 3, 32, 3) and cands.seeds[1, 0] == 5
     plain = sample_clouds(model, norm, cfg, fr.joints, 1, 32, steps=2, seeds=[5]).points[0]
     np.testing.assert_allclose(cands.points[1, 0], plain, atol=1e-5)  # candidate 0: the seed's plain sample
     kw = {"num": 2, "steps": 2, "seeds": [4, 5], "candidates": 3}
-    comp = complete(model, norm, cfg, partial, fr.joints, 32, **kw)
+    comp = complete(prior, partial, fr.joints, 32, **kw)
     assert comp.chosen.tolist() == [choose_candidate(cands.points[b], partial)[0] for b in range(2)]
-    again = complete(model, norm, cfg, partial, fr.joints, 32, samples=cands, **kw)  # drawn once, reused
+    again = complete(prior, partial, fr.joints, 32, samples=cands, **kw)  # drawn once, reused
     np.testing.assert_array_equal(again.points, comp.points)
     with pytest.raises(ValueError, match="samples must be draw_candidates"):
-        complete(model, norm, cfg, partial, fr.joints, 32, samples=cands, **(kw | {"seeds": [4, 6]}))
+        complete(prior, partial, fr.joints, 32, samples=cands, **(kw | {"seeds": [4, 6]}))
 
 
 def _ellipsoid(n, rng, axes=(0.3, 0.2, 0.5)):
@@ -272,20 +276,20 @@ def test_score_hole_against_brute_force():
 
 
 # ----------------------------------------------------------------------------------- editing
-def test_edit_renoise_small_t_keeps_the_source_full_chain_forgets_it(loaded, seq):
+def test_edit_renoise_small_t_keeps_the_source_full_chain_forgets_it(loaded, prior, seq):
     model, norm, cfg = loaded
     src_fr, tgt_fr = seq[1][0], seq[1][-1]
     source = src_fr.points[:64]  # N = M: the subsample is the identity (sorted indices)
     kw = dict(source_joints=src_fr.joints, num_points=64, seeds=[1])
     # t = 1: one denoiser call at abar_0 = 1 - 1e-4; the result is the source moved with the root
-    near = edit(model, norm, cfg, source, tgt_fr.joints, mode="renoise", t=1, **kw).points[0]
+    near = edit(prior, source, tgt_fr.joints, mode="renoise", t=1, **kw).points[0]
     shift = norm.root(tgt_fr.joints) - norm.root(src_fr.joints)
     dev = np.linalg.norm(near - (source + shift), axis=1)
     assert dev.mean() < 0.01 and dev.max() < 0.05, (dev.mean(), dev.max())
     # t = T: pure noise, exactly sampling from scratch, whatever the source
     kw["sampler"] = "dpm++"  # deterministic: equal to sampling from scratch to float round-off
-    full = edit(model, norm, cfg, source, tgt_fr.joints, mode="renoise", t=1000, steps=3, **kw).points[0]
-    other = edit(model, norm, cfg, source[::-1].copy() + 0.1, tgt_fr.joints, mode="renoise", t=1000, steps=3,
+    full = edit(prior, source, tgt_fr.joints, mode="renoise", t=1000, steps=3, **kw).points[0]
+    other = edit(prior, source[::-1].copy() + 0.1, tgt_fr.joints, mode="renoise", t=1000, steps=3,
                  **kw).points[0]  # fmt: skip
     scratch = sample_clouds(model, norm, cfg, tgt_fr.joints, 1, 64, sampler="dpm++", steps=3, seeds=[1]).points[0]
     np.testing.assert_allclose(full, scratch, atol=1e-5)
@@ -307,7 +311,7 @@ def _nearest_bone_slow(points, joints):
     return np.array(out)
 
 
-def test_region_edit_keeps_static_points_and_regenerates_moving_ones(loaded, seq):
+def test_region_edit_keeps_static_points_and_regenerates_moving_ones(loaded, prior, seq):
     model, norm, cfg = loaded
     src_fr = seq[1][0]
     hand = region_mask(src_fr.points, src_fr.joints, ((22,), 0.06))
@@ -319,31 +323,31 @@ def test_region_edit_keeps_static_points_and_regenerates_moving_ones(loaded, seq
     assert np.flatnonzero(moved).tolist() == [20, 22]
     bone_moves = np.array([moved[a] or moved[b] for a, b in _bones(24)])
     np.testing.assert_array_equal(moving, bone_moves[_nearest_bone_slow(source, src_fr.joints)])
-    res = edit(model, norm, cfg, source, target, mode="region", source_joints=src_fr.joints, num_points=64,
+    res = edit(prior, source, target, mode="region", source_joints=src_fr.joints, num_points=64,
                steps=3, seeds=[0], threshold=0.05)  # fmt: skip
     np.testing.assert_array_equal(res.regenerated[0], moving)
     np.testing.assert_allclose(res.points[0][~moving], source[~moving] + np.float32([0.3, 0, 0]), atol=1e-6)
     assert moving[:32].mean() > 0.5 and not moving[32:].all()  # the hand moves, most of the body does not
     assert np.abs(res.points[0][moving] - source[moving]).max() > 1e-2
     with pytest.raises(ValueError, match="region mode needs the source pose"):
-        edit(model, norm, cfg, source, target, mode="region")
+        edit(prior, source, target, mode="region")
 
 
 # --------------------------------------------------------------------------------- animation
-def test_chain_depends_on_the_previous_frame_independent_does_not(loaded, seq):
+def test_chain_depends_on_the_previous_frame_independent_does_not(loaded, prior, seq):
     model, norm, cfg = loaded
     joints = np.stack([f.joints for f in seq[1][:3]])
     kw = dict(t=200, steps=3)
-    a = animate(model, norm, cfg, joints, 48, method="chain", seeds=[0, 1, 2], **kw).points
-    b = animate(model, norm, cfg, joints, 48, method="chain", seeds=[9, 1, 2], **kw).points
+    a = animate(prior, joints, 48, method="chain", seeds=[0, 1, 2], **kw).points
+    b = animate(prior, joints, 48, method="chain", seeds=[9, 1, 2], **kw).points
     assert np.abs(a[0] - b[0]).max() > 1e-2 and np.abs(a[1] - b[1]).max() > 1e-3
-    i = animate(model, norm, cfg, joints, 48, method="independent", seeds=[0, 1, 2], sampler="dpm++", **kw).points
-    j = animate(model, norm, cfg, joints, 48, method="independent", seeds=[9, 1, 2], sampler="dpm++", **kw).points
+    i = animate(prior, joints, 48, method="independent", seeds=[0, 1, 2], sampler="dpm++", **kw).points
+    j = animate(prior, joints, 48, method="independent", seeds=[9, 1, 2], sampler="dpm++", **kw).points
     np.testing.assert_array_equal(i[1:], j[1:])
     for k in range(3):  # independent frames are plain samples
         ref = sample_clouds(model, norm, cfg, joints[k], 1, 48, sampler="dpm++", steps=3, seeds=[k]).points[0]
         np.testing.assert_allclose(i[k], ref, atol=1e-5)
-    same = animate(model, norm, cfg, joints[[0, 0]], 48, method="shared-noise", seed=4, **kw).points
+    same = animate(prior, joints[[0, 0]], 48, method="shared-noise", seed=4, **kw).points
     np.testing.assert_array_equal(same[0], same[1])
 
 
@@ -479,3 +483,86 @@ def test_cli_bad_inputs_one_line_and_nothing_written(run, seq, tmp_path, capsys)
         assert code == 2 and message in err and len(err.splitlines()) == 1, (argv, err)
         assert not (tmp_path / "out").exists()
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
+
+
+# ------------------------------------------------------------------ the apps through the Method hook
+class _SphereDenoiser(torch.nn.Module):
+    """The exact denoiser of a toy prior: every clean point lies on the unit sphere of the normalised
+    frame (x0_hat = x / |x|), returned as the epsilon its schedule implies."""
+
+    def __init__(self, alpha_bar: torch.Tensor):
+        super().__init__()
+        self.register_buffer("alpha_bar", alpha_bar.to(torch.float32))
+        self.unused = torch.nn.Parameter(torch.zeros(1))  # the apps read the device and dtype from a parameter
+
+    def forward(self, x, t, joints):
+        ab = self.alpha_bar[t].view(-1, 1, 1)
+        x0 = x / x.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        return (x - ab.sqrt() * x0) / (1 - ab).sqrt()
+
+
+def _fourth_method():
+    """A dummy fourth method: only :meth:`Method.point_prior` is implemented for the apps."""
+    from pocoloco.data.dataset import Normalisation
+    from pocoloco.diffusion.schedules import NoiseSchedule
+    from pocoloco.methods.base import Method, PointPrior
+
+    schedule = NoiseSchedule.from_kind("four", 1000)
+    norm = Normalisation(mean=(0.0, 0.0, 0.0), std=0.25)
+
+    class SphereMethod(Method):
+        kind = "sphere"
+
+        @classmethod
+        def from_checkpoint(cls, ck, device="cpu", use_ema=True):
+            raise NotImplementedError
+
+        @classmethod
+        def presets(cls):
+            return {}
+
+        @classmethod
+        def training_task(cls, config, data):
+            raise NotImplementedError
+
+        def load_pose(self, spec, outfit=None, frame_id=None, any_pose=False):
+            raise NotImplementedError
+
+        def predict(self, pose, num_points, seeds=(0,), outfit=None, options=None):
+            raise NotImplementedError
+
+        def point_prior(self, outfit):
+            alpha_bar = torch.tensor([schedule.alpha_bar(t) for t in range(1000)])
+            return PointPrior(_SphereDenoiser(alpha_bar), self.normalisation, schedule, "epsilon", 3, 24)
+
+    return SphereMethod(torch.nn.Linear(1, 1), None, norm, Path("."), 0, {}), norm
+
+
+def test_a_fourth_method_gets_completion_and_animation_through_the_hook(seq):
+    """Completion and animation run on any method that gives a PointPrior: a dummy method whose
+    denoiser puts every point on the unit sphere of the normalised frame gets both, and its outputs
+    land on that sphere (known points of the completion kept exactly)."""
+    method, norm = _fourth_method()
+    prior = method.point_prior(None)
+    frames = seq[1][:3]
+    joints = np.stack([f.joints for f in frames])
+
+    def radius(points, j):  # distance from the sphere's centre in normalised units
+        return np.linalg.norm(to_normalised(norm, points, None, j, 3), axis=-1)
+
+    anim = animate(prior, joints, 64, method="chain", t=200, steps=5, seeds=[0, 1, 2])
+    assert anim.points.shape == (3, 64, 3)
+    for k in range(3):
+        np.testing.assert_allclose(radius(anim.points[k], joints[k]), 1.0, atol=0.02)
+    fr = frames[0]
+    root = fr.joints[0]
+    shell = np.random.default_rng(0).normal(size=(400, 3))
+    shell = root + 0.25 * shell / np.linalg.norm(shell, axis=1, keepdims=True)  # the prior's own surface, in metres
+    partial = shell[shell[:, 2] > root[2]].astype(np.float32)  # its upper half: the lower half is the hole
+    comp = complete(prior, partial, fr.joints, 64, steps=5, seeds=[3], coverage=0.5, candidates=1)
+    np.testing.assert_array_equal(comp.points[0, : comp.num_known], partial[subset(len(partial), comp.num_known, [3, 1])])
+    np.testing.assert_allclose(radius(comp.points[0], fr.joints), 1.0, atol=0.02)
+    with pytest.raises(ValueError, match="POP cannot complete, edit or animate"):
+        from pocoloco.methods.pop.method import POPMethod
+
+        POPMethod.point_prior(POPMethod.__new__(POPMethod), None)

@@ -548,7 +548,9 @@ def test_canonical_heading_trains_records_and_samples_turn_with_the_body(tiny_da
     from pocoloco.data import format as fmt
 
     src = fmt.read_frame(ds.frames[0][2]).points[:200]
-    res = edit(model, norm, config, src, small, source_joints=joints, mode="region", steps=2)
+    from pocoloco.methods import load_method
+
+    res = edit(load_method(out).point_prior(None), src, small, source_joints=joints, mode="region", steps=2)
     kept = ~res.regenerated[0]
     assert kept.any()
     np.testing.assert_allclose(res.points[0][kept], (rotate_z(src - root, 0.02) + root + [0.3, 0, 0])[kept], atol=1e-5)

@@ -10,6 +10,9 @@
 - :mod:`~pocoloco.apps.meshing`: watertight Poisson meshes of clouds, optionally with the anny
   body's head and hands.
 
-Completion, editing and animation run PocoLoco's samplers from an intermediate state
-(:func:`pocoloco.apps.common.denoise_from`).
+Completion, editing and animation run on any method's generative hook,
+``method.point_prior(outfit)`` (:class:`pocoloco.methods.base.PointPrior`: a denoiser under one
+pose, its normalisation and schedule), through the SDEdit / RePaint chains of
+:mod:`pocoloco.diffusion.chains` (:func:`pocoloco.apps.common.denoise_from`); a method without the
+hook (POP, CloSET) answers with a one-line error.
 """

@@ -35,14 +35,14 @@ import numpy as np
 
 from pocoloco.apps.common import denoise_from, subset, to_metres, to_normalised
 from pocoloco.data import format as fmt
-from pocoloco.data.dataset import Normalisation
 from pocoloco.data.format import read_frame
 from pocoloco.data.poses import check_joints, check_skeleton
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.evaluation.metrics import chamfer_cm, nearest
+from pocoloco.methods.base import PointPrior
 
-__all__ = ["METHODS", "Animation", "MotionInput", "add_animate_arguments", "animate", "cmd_animate",
-           "evaluate_animation", "flicker_cm", "load_motion", "render_gif", "warp_by_body"]  # fmt: skip
+__all__ = ["METHODS", "Animation", "MotionInput", "animate",
+           "evaluate_animation", "flicker_cm", "load_motion", "warp_by_body"]  # fmt: skip
 
 METHODS = ("independent", "shared-noise", "chain")
 ANCHORS = ("root", "world")
@@ -134,9 +134,7 @@ def load_motion(spec: str | os.PathLike, num_joints: int = 24, any_pose: bool = 
 
 # -------------------------------------------------------------------------------------- animate
 def animate(
-    model,
-    normalisation: Normalisation,
-    config: Any,
+    prior: PointPrior,
     joints: np.ndarray,
     num_points: int,
     *,
@@ -160,7 +158,8 @@ def animate(
         raise ValueError(f"unknown animation method {method!r}; choose one of: {', '.join(METHODS)}")
     if anchor not in ANCHORS:
         raise ValueError(f"unknown anchor {anchor!r}; choose one of: {', '.join(ANCHORS)}")
-    C, J, T = int(config.denoiser.point_channels), int(config.denoiser.num_joints), int(config.num_timesteps)
+    C, J, T = prior.point_channels, prior.num_joints, prior.schedule.num_timesteps
+    normalisation = prior.normalisation
     joints = np.asarray(joints)
     if joints.ndim != 3 or joints.shape[0] < 1:
         raise ValueError(f"joints must have shape (T, {J}, 3), got {joints.shape}")
@@ -180,13 +179,13 @@ def animate(
     normals = np.empty((F, num_points, 3), np.float32) if C == 6 else None
     for k in range(F):
         if method != "chain" or k == 0:
-            x = denoise_from(model, normalisation, config, joints[k], None, T, sampler, steps, [seeds[k]],
+            x = denoise_from(prior, joints[k], None, T, sampler, steps, [seeds[k]],
                              num_points=num_points)  # fmt: skip
         else:
             ref = joints[k - 1] if anchor == "root" else joints[k]
             prev_n = None if normals is None else normals[k - 1]
             x0 = to_normalised(normalisation, points[k - 1], prev_n, ref, C)[None]  # (1, N, C)
-            x = denoise_from(model, normalisation, config, joints[k], x0, t, sampler,
+            x = denoise_from(prior, joints[k], x0, t, sampler,
                              None if steps is None else min(steps, t), [seeds[k]])  # fmt: skip
         p, n = to_metres(normalisation, x, joints[k])
         points[k] = p[0]

@@ -1,21 +1,15 @@
-"""Shared machinery of the applications: partial reverse chains, input checks, output folders.
+"""Shared machinery of the applications: partial reverse chains under a pose, input checks, output
+folders.
 
-The core is :func:`denoise_from`: start the reverse process at an intermediate step from a
-*renoised* clean cloud (SDEdit, Meng et al. 2022: ``x_t ~ q(x_t | x0) = N(sqrt(abar_t) x0,
-(1 - abar_t) I)``, DDPM eq. 4) or from pure noise, optionally keeping known points (RePaint,
-Lugmayr et al. 2022, via the samplers' ``known=``), and denoise under one pose.
-
-Step convention (``t`` everywhere in :mod:`pocoloco.apps`): ``t`` is the 1-based step of the
-paper, ``1 <= t <= T``. The chain starts at timestep index ``t - 1`` (the samplers' 0-based
-index): ``t = 1`` is the least noisy step (one denoiser call at abar_0 = 1 - beta_0), ``t = T``
-means *pure noise*, exactly what :func:`pocoloco.methods.pocoloco.sampling.sample_clouds` does (the samplers treat
-N(0, I) as x at index T - 1, although abar_{T-1} = 0.004 > 0 for the "four" schedule), so
-``t = T`` forgets the source entirely.
+The core is :func:`denoise_from`: run a method's :class:`~pocoloco.methods.base.PointPrior` from an
+intermediate step, starting from a *renoised* clean cloud (SDEdit) or from pure noise, optionally
+keeping known points (RePaint), under one pose; the chains themselves are
+:mod:`pocoloco.diffusion.chains` (its module docstring gives the step convention: ``t`` is 1-based,
+``t = T`` is pure noise).
 """
 
 from __future__ import annotations
 
-import math
 import os
 import shutil
 import uuid
@@ -29,14 +23,9 @@ import torch
 from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.format import read_frame
 from pocoloco.data.published import read_ply
-from pocoloco.diffusion.sampler_base import SamplerRun
-from pocoloco.diffusion.samplers import (
-    SAMPLER_STEPS,
-    PerSampleRNG,
-    check_sampler,
-    sample,
-)
-from pocoloco.diffusion.schedules import NoiseSchedule
+from pocoloco.diffusion.chains import chain_timesteps, renoise, repaint_resampling
+from pocoloco.diffusion.samplers import PerSampleRNG, sample
+from pocoloco.methods.base import PointPrior
 from pocoloco.utils.atomic import atomic_write, no_file_reason, output_folder
 
 #: a scan whose bounding box is larger than this (metres) is taken to be in the wrong unit
@@ -46,32 +35,9 @@ MAX_ROOT_DISTANCE_M = 1.0
 
 
 # ------------------------------------------------------------------------------------ chains
-def chain_timesteps(t: int, num_timesteps: int, sampler: str, steps: int | None = None) -> list[int]:
-    """Descending timestep indices of a reverse chain that starts at step ``t`` (1-based, see the
-    module docstring): ``steps`` of them with the samplers' "trailing" spacing over the first
-    ``t`` indices, ``round(t - k t / steps) - 1`` for ``k = 0 .. steps-1`` (so the first is
-    ``t - 1`` and, for ``t = T``, the list equals the from-scratch sampler's).
-
-    ``steps=None``: every index for ddpm, else ``min(t, default)`` (dpm++ 20, ddim 50).
-    """
-
-    check_sampler(sampler, None, num_timesteps)
-    if not 1 <= t <= num_timesteps:
-        raise ValueError(f"t must be in [1, {num_timesteps}] (the model's training timesteps), got {t}")
-    if steps is None:
-        default = SAMPLER_STEPS[sampler]
-        steps = t if default is None else min(t, default)
-    if not 1 <= steps <= t:
-        raise ValueError(f"steps must be in [1, t={t}] for a chain starting at step t, got {steps}")
-    ts = np.round(t - np.arange(steps) * (t / steps)).astype(np.int64) - 1
-    return [int(x) for x in ts]
-
-
 @torch.no_grad()
 def denoise_from(
-    model: torch.nn.Module,
-    normalisation: Normalisation,
-    config: Any,
+    prior: PointPrior,
     joints: np.ndarray,
     x0: np.ndarray | None,
     t: int,
@@ -86,29 +52,25 @@ def denoise_from(
     """Run the reverse chain from step ``t`` under one pose, in the *normalised* frame.
 
     Args:
-        model, normalisation, config: as returned by ``load_denoiser``.
+        prior: the method's generative point model (``method.point_prior(outfit)``).
         joints: (J, 3) target pose in metres (its root defines the normalised frame).
         x0: (B, N, C) clean clouds, normalised with ``joints``' root, to renoise to step t
-            (SDEdit); None, or ``t = T``: start from pure noise.
-        t: 1-based start step (module docstring).
-        sampler, steps: see :func:`chain_timesteps`.
+            (SDEdit, :func:`~pocoloco.diffusion.chains.renoise`); None, or ``t = T``: pure noise.
+        t: 1-based start step. sampler, steps: see :func:`~pocoloco.diffusion.chains.chain_timesteps`.
         seeds: B seeds; sample b's initial noise, the renoising noise and any sampler noise come
             from one generator seeded ``seeds[b]`` (``PerSampleRNG``), so with ``t = T`` and no
             ``known`` the result equals ``sample_clouds`` with the same seeds and steps.
         known: (mask (B, N) bool, x0_known (B, N, C) normalised) points kept (RePaint without
             resampling: known points are replaced by q(x_s | x0_known) after every step).
         num_points: N when neither x0 nor known is given.
-        resample, jump: RePaint's resampling (Lugmayr et al. 2022, Algorithm 1 and its jump
-            schedule): after every ``jump`` steps of the chain, go back up over them (x_a ~
-            q(x_a | x_b) = N(sqrt(abar_a / abar_b) x_b, (1 - abar_a / abar_b) I)) and redo them,
-            ``resample`` passes in all (1: off, the default). With resample > 1 every step is an
-            ancestral DDPM step whatever ``sampler`` is; denoiser calls = steps x resample.
+        resample, jump: RePaint's resampling (:func:`~pocoloco.diffusion.chains.repaint_resampling`;
+            1: off, the default). With resample > 1 every step is an ancestral DDPM step whatever
+            ``sampler`` is; denoiser calls = steps x resample.
     Returns:
         (B, N, C) float32 normalised clouds (:func:`to_metres` maps them back).
     """
 
-    den = config.denoiser
-    C, J, T = int(den.point_channels), int(den.num_joints), int(config.num_timesteps)
+    C, J, T = prior.point_channels, prior.num_joints, prior.schedule.num_timesteps
     timesteps = chain_timesteps(t, T, sampler, steps)
     if resample < 1 or jump < 1:
         raise ValueError(f"resample and jump must be >= 1, got {resample} and {jump}")
@@ -124,16 +86,14 @@ def denoise_from(
         N = int(num_points)
     else:
         raise ValueError("denoise_from needs x0, known or num_points (to know N)")
+    model = prior.denoiser
     param = next(model.parameters())
     device, dtype = param.device, param.dtype
-    _, joints_n = normalisation.normalise(np.zeros((1, 3), np.float32), np.asarray(joints, np.float32))
-    schedule = NoiseSchedule.from_kind(config.schedule, T)
+    _, joints_n = prior.normalisation.normalise(np.zeros((1, 3), np.float32), np.asarray(joints, np.float32))
     rng = PerSampleRNG(seeds, device=device)
     noise = rng.randn((N, C), dtype=dtype, device=device)  # (B, N, C)
     if x0 is not None and t < T:
-        ab = schedule.alpha_bar(t - 1)
-        x = math.sqrt(ab) * torch.as_tensor(x0, dtype=torch.float64, device=device) + math.sqrt(1 - ab) * noise.double()
-        noise = x.to(dtype)  # (B, N, C) x at index t - 1 (SDEdit's renoised source)
+        noise = renoise(prior.schedule, x0, noise, t)  # (B, N, C) x at index t - 1 (SDEdit's renoised source)
     kw: dict[str, Any] = {}
     if known is not None:
         mask, xk = known
@@ -144,41 +104,25 @@ def denoise_from(
     model.eval()
     try:
         if resample > 1:
-            out = repaint_resampling(model, schedule, noise, cond, timesteps, rng, config.prediction_type,
+            out = repaint_resampling(model, prior.schedule, noise, cond, timesteps, rng, prior.prediction_type,
                                      kw.get("known"), resample, jump)  # fmt: skip
         else:
-            out = sample(sampler, model, schedule, noise, cond, timesteps=timesteps, rng=rng,
-                         prediction_type=config.prediction_type, **kw)  # fmt: skip
+            out = sample(sampler, model, prior.schedule, noise, cond, timesteps=timesteps, rng=rng,
+                         prediction_type=prior.prediction_type, **kw)  # fmt: skip
     finally:
         model.train(was_training)
     return out.float().cpu().numpy()
 
 
-def repaint_resampling(model: torch.nn.Module, schedule: NoiseSchedule, noise: torch.Tensor, cond: Any,
-                       timesteps: list[int], rng: PerSampleRNG | None, prediction_type: str | None,
-                       known: tuple[torch.Tensor, torch.Tensor] | None, resample: int,
-                       jump: int) -> torch.Tensor:  # fmt: skip
-    """Ancestral DDPM over ``timesteps`` (descending) with RePaint's resampling (Lugmayr et al.
-    2022, Algorithm 1): the chain is cut into segments of ``jump`` steps; each segment is run,
-    then the state is diffused back to the segment's start with q(x_a | x_b) (all points; the
-    known ones are then re-imposed at a) and the segment is run again, ``resample`` passes in all.
-    noise: (B, N, C) the state at ``timesteps[0]``; returns (B, N, C) in noise.dtype.
-    Denoiser calls: ``len(timesteps) * resample``.
-    """
-
-    run = SamplerRun(model, schedule, noise, cond, prediction_type, list(timesteps), None, rng, known, None)
-    x = run.start(noise)
-    S = len(run.timesteps)
-    for a in range(0, S, jump):
-        b = min(a + jump, S)
-        for rep in range(resample):
-            for i in range(a, b):  # ancestral steps, as sample_ddpm
-                x, _ = run.ancestral_step(x, i)
-            if rep < resample - 1:  # jump back up from the segment's end b to its start a
-                ratio = run.ab[a] / run.ab_prev[b - 1]
-                x = ratio**0.5 * x + (1.0 - ratio) ** 0.5 * run.randn_like(x)
-                x = run.impose_known(x, run.ab[a])
-    return x.to(run.dtype)
+def sample_prior(prior: PointPrior, joints: np.ndarray, num_points: int, seeds: Sequence[int],
+                 sampler: str = "dpm++sde", steps: int | None = None, batch_size: int = 8) -> tuple[np.ndarray, np.ndarray | None]:  # fmt: skip
+    """Fresh samples of the pose (J, 3), one per seed, ``batch_size`` at a time: points (K, N, 3)
+    metres in ``joints``' frame and unit normals (K, N, 3) or None (the chain from t = T)."""
+    seeds = [int(s) for s in seeds]
+    T = prior.schedule.num_timesteps
+    parts = [denoise_from(prior, joints, None, T, sampler, steps, seeds[b : b + batch_size], num_points=num_points)
+             for b in range(0, len(seeds), batch_size)]  # fmt: skip
+    return to_metres(prior.normalisation, np.concatenate(parts), joints)
 
 
 def to_metres(normalisation: Normalisation, x: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:

@@ -50,22 +50,21 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from pocoloco.apps.common import (
     check_scan,
     denoise_from,
+    sample_prior,
     subset,
     to_metres,
     to_normalised,
 )
-from pocoloco.data.dataset import Normalisation
 from pocoloco.data.poses import check_joints
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.evaluation.metrics import nearest
-from pocoloco.methods.pocoloco.sampling import sample_clouds
+from pocoloco.methods.base import PointPrior
 from pocoloco.ops.knn import knn_numpy
 
 __all__ = [
@@ -246,21 +245,21 @@ def candidate_seeds(seed: int, k: int) -> list[int]:
     return [int(seed)] + [int(np.random.SeedSequence([int(seed), j]).generate_state(1)[0]) for j in range(1, k)]
 
 
-def draw_candidates(model, normalisation: Normalisation, config: Any, joints: np.ndarray, num_points: int,
+def draw_candidates(prior: PointPrior, joints: np.ndarray, num_points: int,
                     seeds: Sequence[int], candidates: int = DEFAULT_CANDIDATES, sampler: str = "dpm++sde",
                     steps: int | None = None) -> CandidateSamples:  # fmt: skip
     """``candidates`` full samples of the pose (J, 3) for each output seed (:func:`candidate_seeds`),
     ``num_points`` points each; ``len(seeds) x candidates x steps`` denoiser calls."""
     seeds = [int(s) for s in seeds]
     all_seeds = np.array([candidate_seeds(s, candidates) for s in seeds], np.int64)  # (B, K)
-    out = sample_clouds(model, normalisation, config, joints, all_seeds.size, num_points, sampler=sampler,
-                        steps=steps, seeds=all_seeds.reshape(-1).tolist())  # fmt: skip
+    joints = check_joints("joints", joints, prior.num_joints)
+    points, normals = sample_prior(prior, joints, num_points, all_seeds.reshape(-1).tolist(), sampler, steps)
     B, K = all_seeds.shape
-    normals = None if out.normals is None else out.normals.reshape(B, K, num_points, 3)
-    return CandidateSamples(out.points.reshape(B, K, num_points, 3), normals, all_seeds)
+    normals = None if normals is None else normals.reshape(B, K, num_points, 3)
+    return CandidateSamples(points.reshape(B, K, num_points, 3), normals, all_seeds)
 
 
-def estimate_coverage(model, normalisation: Normalisation, config: Any, partial: np.ndarray, joints: np.ndarray,
+def estimate_coverage(prior: PointPrior, partial: np.ndarray, joints: np.ndarray,
                       num_points: int, radius: float = DEFAULT_RADIUS_M, seed: int = 0, probe_steps: int = 5,
                       normals: np.ndarray | None = None, max_cos: float | None = None) -> float:  # fmt: skip
     """Coverage c in [0, 1] of a quick probe sample (``probe_steps`` dpm++ steps) of N points: the
@@ -269,8 +268,7 @@ def estimate_coverage(model, normalisation: Normalisation, config: Any, partial:
 
     if not radius > 0:
         raise ValueError(f"coverage radius must be > 0, got {radius}")
-    probe = sample_clouds(model, normalisation, config, joints, 1, num_points, sampler="dpm++",
-                          steps=probe_steps, seeds=[seed]).points[0]  # fmt: skip
+    probe = sample_prior(prior, joints, num_points, [seed], "dpm++", probe_steps)[0][0]
     if max_cos is not None and max_cos < 1.0:
         return hole_points(probe, partial, radius, normals=normals, max_cos=max_cos)[1]
     d, _ = nearest(probe, partial)
@@ -279,9 +277,7 @@ def estimate_coverage(model, normalisation: Normalisation, config: Any, partial:
 
 # ------------------------------------------------------------------------------- completion
 def complete(
-    model,
-    normalisation: Normalisation,
-    config: Any,
+    prior: PointPrior,
     partial: np.ndarray,
     joints: np.ndarray,
     num_points: int,
@@ -322,8 +318,8 @@ def complete(
     from the pose, and bad options.
     """
 
-    C, T = int(config.denoiser.point_channels), int(config.num_timesteps)
-    joints = check_joints("joints", joints, int(config.denoiser.num_joints))
+    C, T, normalisation = prior.point_channels, prior.schedule.num_timesteps, prior.normalisation
+    joints = check_joints("joints", joints, prior.num_joints)
     partial = check_scan(name, partial, joints, normalisation.root_joint)
     M = partial.shape[0]
     if num < 1 or num_points < 1:
@@ -371,7 +367,7 @@ def complete(
     pick = None  # (B, N, 3 [+3]) the chosen full samples
     if init == "sample":
         if samples is None:
-            samples = draw_candidates(model, normalisation, config, joints, num_points, seeds, candidates,
+            samples = draw_candidates(prior, joints, num_points, seeds, candidates,
                                       sampler, steps)  # fmt: skip
         visible = np.zeros((num, candidates))
         for b in range(num):
@@ -384,7 +380,7 @@ def complete(
         pick = (pick_pts, pick_nrm)
     else:
         c0 = coverage if not estimated else estimate_coverage(
-            model, normalisation, config, partial, joints, num_points, radius, seeds[0], probe_steps,
+            prior, partial, joints, num_points, radius, seeds[0], probe_steps,
             normals=partial_normals, max_cos=max_cos)  # fmt: skip
         covs = [c0] * num
     if not estimated:
@@ -398,7 +394,7 @@ def complete(
         nrm = None if partial_normals is None else partial_normals[idx]
         xk[b, : n_known[b]] = to_normalised(normalisation, partial[idx], nrm, joints, C)
     if pick is None:  # plain RePaint from pure noise
-        x = denoise_from(model, normalisation, config, joints, None, T, sampler, steps, seeds, known=(mask, xk),
+        x = denoise_from(prior, joints, None, T, sampler, steps, seeds, known=(mask, xk),
                          resample=resample, jump=jump)  # fmt: skip
         t_used = T
     else:
@@ -416,7 +412,7 @@ def complete(
         t_used = 0 if mask.all() else t
         if t_used > 0:
             chain_seeds = [int(samples.seeds[b, chosen[b]]) for b in range(num)]
-            x = denoise_from(model, normalisation, config, joints, x0, t_used, sampler,
+            x = denoise_from(prior, joints, x0, t_used, sampler,
                              None if steps is None else min(steps, t_used), chain_seeds, known=(mask, xk),
                              resample=resample, jump=jump)  # fmt: skip
         else:

@@ -18,33 +18,32 @@ Two modes:
 Point i of an edited cloud descends from point i of the (subsampled) source cloud.
 
 Public API: :func:`edit` -> :class:`Edit`, :func:`moving_region`, :func:`nearest_bone`,
-:func:`evaluate_edit` (the benchmark's metrics); CLI pieces :func:`add_edit_arguments` /
-:func:`cmd_edit` (``pocoloco edit``).
+:func:`evaluate_edit` (the benchmark's metrics); the command is ``pocoloco edit`` (:mod:`pocoloco.cli.apps`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from pocoloco.apps.common import (
     check_scan,
     denoise_from,
+    sample_prior,
     subset,
     to_metres,
     to_normalised,
 )
 from pocoloco.body.skeleton import JOINT_PARENTS
-from pocoloco.data.dataset import Normalisation, rotate_z
+from pocoloco.data.dataset import rotate_z
 from pocoloco.data.poses import check_joints
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.evaluation.metrics import chamfer_cm
-from pocoloco.methods.pocoloco.sampling import sample_clouds
+from pocoloco.methods.base import PointPrior
 
-__all__ = ["Edit", "MODES", "add_edit_arguments", "cmd_edit", "edit", "evaluate_edit", "moved_joints", "moving_region",
+__all__ = ["Edit", "MODES", "edit", "evaluate_edit", "moved_joints", "moving_region",
            "nearest_bone"]  # fmt: skip
 
 MODES = ("renoise", "region")
@@ -113,9 +112,7 @@ def moving_region(points: np.ndarray, source_joints: np.ndarray, target_joints: 
 
 # ---------------------------------------------------------------------------------------- edit
 def edit(
-    model,
-    normalisation: Normalisation,
-    config: Any,
+    prior: PointPrior,
     source: np.ndarray,
     target_joints: np.ndarray,
     *,
@@ -138,7 +135,8 @@ def edit(
     Output k depends only on ``seeds[k]`` (default 0..K-1).
     """
 
-    C, J, T = int(config.denoiser.point_channels), int(config.denoiser.num_joints), int(config.num_timesteps)
+    C, J, T = prior.point_channels, prior.num_joints, prior.schedule.num_timesteps
+    normalisation = prior.normalisation
     if mode not in MODES:
         raise ValueError(f"unknown edit mode {mode!r}; choose one of: {', '.join(MODES)}")
     target_joints = check_joints("target joints", target_joints, J)
@@ -173,12 +171,12 @@ def edit(
     moved = None
     if mode == "renoise":
         regen = np.ones((num, N), bool)
-        x = denoise_from(model, normalisation, config, target_joints, x0, t, sampler, steps, seeds)
+        x = denoise_from(prior, target_joints, x0, t, sampler, steps, seeds)
     else:
         regen = np.stack([moving_region(s, source_joints, target_joints, threshold, normalisation.root_joint)[0]
                           for s in src])  # fmt: skip
         moved = moved_joints(source_joints, target_joints, threshold, normalisation.root_joint)
-        x = denoise_from(model, normalisation, config, target_joints, x0 if t < T else None, t, sampler, steps,
+        x = denoise_from(prior, target_joints, x0 if t < T else None, t, sampler, steps,
                          seeds, known=(~regen, x0))  # fmt: skip
     points, normals = to_metres(normalisation, x, target_joints)
     if mode == "region":  # kept points exactly: the source moved with the root (and turned with it, with heading)
@@ -192,7 +190,7 @@ def edit(
 
 
 # ------------------------------------------------------------------------------------ benchmark
-def evaluate_edit(model, normalisation: Normalisation, config: Any, source: np.ndarray, source_joints: np.ndarray,
+def evaluate_edit(prior: PointPrior, source: np.ndarray, source_joints: np.ndarray,
                   target: np.ndarray, target_joints: np.ndarray, num_points: int, seed: int = 0,
                   sampler: str = "dpm++sde", steps: int | None = None, renoise_ts: Sequence[int] = (100, 300),
                   threshold: float = DEFAULT_THRESHOLD_M) -> dict[str, dict[str, float]]:  # fmt: skip
@@ -209,6 +207,7 @@ def evaluate_edit(model, normalisation: Normalisation, config: Any, source: np.n
     Plus ``moved_joints`` (count) and ``static_share`` (share of source points kept static).
     """
 
+    normalisation = prior.normalisation
     root = normalisation.root_joint
     gsel = subset(len(target), num_points, [seed, 4])
     gt = target[gsel]
@@ -229,11 +228,10 @@ def evaluate_edit(model, normalisation: Normalisation, config: Any, source: np.n
     kw = dict(source_joints=source_joints, num_points=num_points, sampler=sampler, steps=steps, seeds=[seed],
               threshold=threshold)  # fmt: skip
     for t in renoise_ts:
-        out[f"renoise_t{t}"] = score(edit(model, normalisation, config, source, target_joints, mode="renoise", t=t,
+        out[f"renoise_t{t}"] = score(edit(prior, source, target_joints, mode="renoise", t=t,
                                           **kw).points[0])  # fmt: skip
-    out["region"] = score(edit(model, normalisation, config, source, target_joints, mode="region", **kw).points[0])
-    out["scratch"] = score(sample_clouds(model, normalisation, config, target_joints, 1, num_points, sampler=sampler,
-                                         steps=steps, seeds=[seed]).points[0])  # fmt: skip
+    out["region"] = score(edit(prior, source, target_joints, mode="region", **kw).points[0])
+    out["scratch"] = score(sample_prior(prior, target_joints, num_points, [seed], sampler, steps)[0][0])
     out["copy"] = score((src + shift).astype(np.float32))
     for m in out.values():
         m["moved_joints"] = float(moved.sum())

@@ -99,17 +99,16 @@ def cmd_complete(args: argparse.Namespace) -> None:
         if getattr(args, name) < 1:
             raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
     partial, normals = read_cloud(args.partial)
-    method = load_method_from_args(args, expect="pocoloco")
-    outfit = pick_outfit(method, args.outfit, args.joints)
-    model = method.denoiser_for(outfit)
-    normalisation, config, ckpt, step = method.normalisation, method.config, method.path, method.step
-    joints = load_joints(args.joints, args.frame_id, config.denoiser.num_joints, any_pose=args.any_pose)
-    check_sampler(args.sampler, args.steps, config.num_timesteps)
-    if args.t is not None and not 0 <= args.t <= config.num_timesteps:
-        raise ValueError(f"--t must be in [0, {config.num_timesteps}] (0: no harmonising chain), got {args.t}")
+    method = load_method_from_args(args)
+    prior = method.point_prior(pick_outfit(method, args.outfit, args.joints))
+    ckpt, step, T = method.path, method.step, prior.schedule.num_timesteps
+    joints = load_joints(args.joints, args.frame_id, prior.num_joints, any_pose=args.any_pose)
+    check_sampler(args.sampler, args.steps, T)
+    if args.t is not None and not 0 <= args.t <= T:
+        raise ValueError(f"--t must be in [0, {T}] (0: no harmonising chain), got {args.t}")
     seeds = [args.seed + k for k in range(args.num)]
     t0 = time.perf_counter()
-    comp = complete(model, normalisation, config, partial, joints, args.points, partial_normals=normals,
+    comp = complete(prior, partial, joints, args.points, partial_normals=normals,
                     num=args.num, sampler=args.sampler, steps=args.steps, seeds=seeds, coverage=args.coverage,
                     radius=args.coverage_radius, max_cos=args.max_normal_cos, candidates=args.candidates,
                     init=args.init, t=args.t, resample=args.resample, jump=args.jump,
@@ -188,19 +187,17 @@ def cmd_edit(args: argparse.Namespace) -> None:
     if not args.threshold > 0:
         raise ValueError(f"--threshold must be > 0, got {args.threshold}")
     source, normals = read_cloud(args.source)
-    method = load_method_from_args(args, expect="pocoloco")
-    outfit = pick_outfit(method, args.outfit, args.joints)
-    model = method.denoiser_for(outfit)
-    normalisation, config, ckpt, step = method.normalisation, method.config, method.path, method.step
-    J = config.denoiser.num_joints
+    method = load_method_from_args(args)
+    prior = method.point_prior(pick_outfit(method, args.outfit, args.joints))
+    ckpt, step, T, J = method.path, method.step, prior.schedule.num_timesteps, prior.num_joints
     target = load_joints(args.joints, None, J, any_pose=args.any_pose)
     src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J, any_pose=args.any_pose)
-    check_sampler(args.sampler, args.steps, config.num_timesteps)
-    if args.t is not None and not 1 <= args.t <= config.num_timesteps:
-        raise ValueError(f"--t must be in [1, {config.num_timesteps}] (the model's training timesteps), got {args.t}")
+    check_sampler(args.sampler, args.steps, T)
+    if args.t is not None and not 1 <= args.t <= T:
+        raise ValueError(f"--t must be in [1, {T}] (the model's training timesteps), got {args.t}")
     seeds = [args.seed + k for k in range(args.num)]
     t0 = time.perf_counter()
-    res = edit(model, normalisation, config, source, target, source_joints=src_joints, source_normals=normals,
+    res = edit(prior, source, target, source_joints=src_joints, source_normals=normals,
                mode=args.mode, t=args.t, num_points=args.points, num=args.num, sampler=args.sampler, steps=args.steps,
                seeds=seeds, threshold=args.threshold, name=os.fspath(args.source))  # fmt: skip
     seconds = time.perf_counter() - t0
@@ -294,19 +291,18 @@ def cmd_animate(args: argparse.Namespace) -> None:
         raise ValueError(f"--points must be >= 1, got {args.points}")
     if not args.fps > 0:
         raise ValueError(f"--fps must be > 0, got {args.fps}")
-    method = load_method_from_args(args, expect="pocoloco")
-    outfit = pick_outfit(method, args.outfit, args.motion)
-    model = method.denoiser_for(outfit)
-    normalisation, config, ckpt, step = method.normalisation, method.config, method.path, method.step
-    motion = load_motion(args.motion, config.denoiser.num_joints, any_pose=args.any_pose)
+    method = load_method_from_args(args)
+    prior = method.point_prior(pick_outfit(method, args.outfit, args.motion))
+    ckpt, step, T = method.path, method.step, prior.schedule.num_timesteps
+    motion = load_motion(args.motion, prior.num_joints, any_pose=args.any_pose)
     chosen = _parse_frames(args.frames, len(motion.joints))
-    check_sampler(args.sampler, args.steps, config.num_timesteps)
-    if not 1 <= args.t <= config.num_timesteps:
-        raise ValueError(f"--t must be in [1, {config.num_timesteps}] (the model's training timesteps), got {args.t}")
+    check_sampler(args.sampler, args.steps, T)
+    if not 1 <= args.t <= T:
+        raise ValueError(f"--t must be in [1, {T}] (the model's training timesteps), got {args.t}")
     joints = motion.joints[chosen]
     t0 = time.perf_counter()
     with progress_bar("animate", total=len(chosen)) as update:
-        anim = animate(model, normalisation, config, joints, args.points, method=args.method, t=args.t,
+        anim = animate(prior, joints, args.points, method=args.method, t=args.t,
                        sampler=args.sampler, steps=args.steps, seed=args.seed, anchor=args.anchor,
                        progress=update)  # fmt: skip
     seconds = time.perf_counter() - t0

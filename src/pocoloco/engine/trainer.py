@@ -98,12 +98,9 @@ def frozen(model: nn.Module):
 # ---------------------------------------------------------------------------- the loop's settings
 @dataclass(frozen=True)
 class LoopSettings:
-    """What the training loop reads from a method's training config (its ``loop()``), every field
-    explicit: ``preset`` (checked on resume), ``steps``, ``lr`` (the rate the optimiser's groups
-    scale with), ``seed``; ``warmup_steps`` / ``lr_schedule`` / ``decay_steps`` (:func:`lr_at`);
-    ``ema_decay`` (None: no EMA), ``grad_clip`` (None: the norm is only logged), ``bf16``;
-    ``ckpt_every`` / ``sample_every`` / ``log_every`` (0 disables checkpoints / previews),
-    ``keep_checkpoints``; ``num_workers`` (DataLoader processes)."""
+    """What the loop reads from a method's train config (its ``loop()``): ``lr`` is the rate the
+    optimiser's groups scale with; warm-up / schedule / decay: :func:`lr_at`; ``ema_decay`` /
+    ``grad_clip`` None: off; ``*_every`` 0: never; ``num_workers``: DataLoader processes."""
 
     preset: str
     steps: int

@@ -11,7 +11,10 @@ they hold: they load a checkpoint with :func:`pocoloco.methods.load_method` and 
   (one cloud per seed; a deterministic method (``deterministic``) takes one seed, which only
   picks its query points);
 * ``method.outfit_id(name)`` / ``outfit_names()`` (methods with outfit codes; PocoLoco has none);
-* ``method.info()`` (what reports say about the checkpoint).
+* ``method.info()`` (what reports say about the checkpoint);
+* ``method.point_prior(outfit)`` -> :class:`PointPrior`, the hook completion, editing and animation
+  run on (a generative point model under one pose); a method without one answers with a one-line
+  error, so a new generative method gets the apps by implementing this one hook.
 
 Adding a method = one folder under ``methods/`` with a :class:`Method` subclass, and one line in
 :data:`pocoloco.methods.registry.METHODS`.
@@ -32,11 +35,12 @@ from torch import nn
 
 from pocoloco.data.dataset import Normalisation
 from pocoloco.data.poses import MeanShapeCache, Pose, outfit_of_spec
+from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.engine.checkpoint import Checkpoint, save_checkpoint
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.utils.hardware import available_memory_bytes
 
-__all__ = ["MEMORY_SHARE", "Method", "SampledClouds", "SamplerOptions", "fit_to_memory"]
+__all__ = ["MEMORY_SHARE", "Method", "PointPrior", "SampledClouds", "SamplerOptions", "fit_to_memory"]
 
 #: meta.json entries that ``save_checkpoint`` writes itself
 _META_OWN = frozenset({"format", "version", "model_kind", "preset", "step", "config", "normalisation", "has_ema",
@@ -70,6 +74,22 @@ class SamplerOptions:
     bf16: bool = False
     batch_size: int = 8
     progress: Callable[[int, int], None] | None = None
+
+
+@dataclass(frozen=True)
+class PointPrior:
+    """A generative point model under one pose, as the apps (completion, editing, animation) run it:
+    ``denoiser(x (B, N, C), t (B,), joints (B, J, 3)) -> (B, N, C)`` in the normalised frame of
+    ``normalisation`` (joints normalised with their own root), trained on ``schedule`` to predict
+    ``prediction_type``; C = ``point_channels`` (3, or 6 with unit normals), J = ``num_joints``.
+    The SDEdit / RePaint chains over it are :mod:`pocoloco.diffusion.chains`."""
+
+    denoiser: nn.Module
+    normalisation: Normalisation
+    schedule: NoiseSchedule
+    prediction_type: str
+    point_channels: int
+    num_joints: int
 
 
 class Method(ABC):
@@ -213,6 +233,12 @@ class Method(ABC):
                 options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
         """One cloud of ``num_points`` points per seed for ``pose`` (and ``outfit``), in the frame
         of the pose (metres). Cloud k depends only on ``seeds[k]``."""
+
+    def point_prior(self, outfit: int | None) -> PointPrior:
+        """The hook the apps run on (:class:`PointPrior`), for outfit id ``outfit``; methods that are
+        not generative point models answer with a one-line error."""
+        raise ValueError(f"{self.title} cannot complete, edit or animate point clouds: these apps need a generative "
+                         "point model (PocoLoco)")  # fmt: skip
 
     def check_options(self, options: SamplerOptions) -> None:
         """One-line ValueError if ``options`` cannot be used with this model (before any work)."""

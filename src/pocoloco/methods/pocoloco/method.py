@@ -21,10 +21,11 @@ from pocoloco.data.poses import (
     pose_from_frame,
     subject_of_spec,
 )
+from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
-from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
+from pocoloco.methods.base import Method, PointPrior, SampledClouds, SamplerOptions
 from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.fitting import CodeFit, fit_outfit_code
 from pocoloco.methods.pocoloco.sampling import sample_clouds
@@ -125,6 +126,13 @@ class PocoLocoMethod(Method):
             raise ValueError(f"--outfit is required (this PocoLoco checkpoint knows outfits {', '.join(self.outfit_names())})")
         kw = self.condition(outfit)
         return OutfitBound(self.model, None if code is not None else kw["outfit"], kw["shape"], code=code)
+
+    def point_prior(self, outfit: int | None) -> PointPrior:
+        """The apps' hook: the denoiser with ``outfit`` bound in (:meth:`denoiser_for`), its
+        normalisation, schedule and parametrisation."""
+        c = self.config
+        return PointPrior(self.denoiser_for(outfit), self.normalisation, NoiseSchedule.from_kind(c.schedule, c.num_timesteps),
+                          c.prediction_type, int(c.denoiser.point_channels), int(c.denoiser.num_joints))  # fmt: skip
 
     def condition(self, outfit: int | None) -> dict[str, Any]:
         """``sample_clouds`` keyword arguments (``outfit``, ``shape``) for outfit id ``outfit``."""
