@@ -37,7 +37,7 @@ per substep) only has to cover motion relative to the pelvis.
 Self-contact (``self_contact``): newton VBD's vertex-triangle and edge-edge cloth
 self-contact, detected once per substep, 1.6 cm reach. It removes 85-98 % of the
 crossing triangle pairs, at 2.4-3.2x the simulation time, and its speed cap still
-tears the cloth on fast spins (``benchmarks/bench_cloth_settings.py``).
+tears the cloth on fast spins (``benchmarks/experiments/bench_cloth_settings.py``).
 
 Sequences that start on the same pose settle the same way: ``ClothSequence.settled``
 can be passed back (``settled=``) to skip the settle (bit-identical results).
@@ -92,7 +92,7 @@ class ClothSimSettings:
         touching layers about half their gap: this caps the cloth's speed relative
         to the simulation frame (1.6 cm at 10 substeps of 4 ms: 1.7 m/s), so use
         ``frame="root"`` (a walking body's skirt layers otherwise lag and tangle).
-        Measured on a walk (benchmarks/bench_cloth_settings.py): a 1 cm reach lets
+        Measured on a walk (benchmarks/experiments/bench_cloth_settings.py): a 1 cm reach lets
         legs through the cloth (8 of 110 frames > 3 cm), 1.6 cm none; cost 2.1x /
         2.7x / 3.6x the simulation without self-contact at 1.0 / 1.6 / 2.4 cm.
     self_contact_fallback: after the first hard failure (explosion) of a sequence
@@ -103,7 +103,7 @@ class ClothSimSettings:
     replay_graphs: record each substep's kernel launches (collision detection and the
         solver step) once as a warp graph and replay it (warp >= 1.10 records CPU graphs):
         the same bits, 1.27x less simulation CPU time on a skirt sequence (Python launch overhead gone;
-        benchmarks/bench_synth_v2.py). False launches every kernel from Python.
+        benchmarks/experiments/bench_synth_v2.py). False launches every kernel from Python.
     capsule_percentile: percentile of the part vertices' distance to a capsule
         axis used as its radius (100 = enclose every vertex).
     max_stretch, max_distance, max_penetration, max_penetration_fraction:

@@ -57,12 +57,12 @@ class SynthConfig(Config):
         or ``"grid"`` (the first skirt / long_shirt grids, 72 x 36).
     cloth_self_contact: newton VBD cloth self-contact (~90 % fewer crossing
         triangles, but 2.4-3.2x the simulation time and, at its 1.6 cm reach, fast
-        spins still tear the cloth: off by default; benchmarks/bench_cloth_settings.py).
+        spins still tear the cloth: off by default; benchmarks/experiments/bench_cloth_settings.py).
     cloth_frame: ``"root"`` (simulate in a frame translating with the pelvis, the
         same physics; needed by self-contact) or ``"world"`` (``ClothSimSettings.frame``).
     cloth_substeps, cloth_iterations: VBD substeps per frame and iterations per
         substep (v1: 10 x 5; in the root frame 7 x 5 keeps the cloth out of the body
-        better than 10 x 5 did in the world frame, benchmarks/bench_cloth_settings.py).
+        better than 10 x 5 did in the world frame, benchmarks/experiments/bench_cloth_settings.py).
     capture_cull_hidden_faces: draw capture candidates only on faces that may be
         visible (``capture.possibly_visible_faces``).
     self_intersection_every: count cloth self-intersections (crossing triangle

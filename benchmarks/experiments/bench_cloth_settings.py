@@ -8,7 +8,7 @@ plus cloth self-intersection (pairs of garment triangles that cross each other, 
 seconds per simulated frame (settling and kernel compilation excluded), so other jobs on the
 machine matter less; wall seconds are in the JSON.
 
-    python benchmarks/bench_cloth_settings.py --preset small --sequences 2 --frames 40 \
+    python benchmarks/experiments/bench_cloth_settings.py --preset small --sequences 2 --frames 40 \
         --variants "10x5" "10x3" "10x3 sc" [--subjects skirt shirt] [--out benchmarks/results/cloth_settings.json]
 
 A variant is "SUBSTEPSxITERATIONS" optionally followed by "sc" (self-contact on), "iso"

@@ -14,7 +14,7 @@ into the body (max / mean mm, % of garment vertices inside), cloth self-intersec
 (crossing triangle pairs on every 10th stored frame, counted after generation, outside the
 timings), loose-garment share of the points.
 
-    python benchmarks/bench_synth_v2.py --preset small --frames 24 --workers 2 --repeats 3 \\
+    python benchmarks/experiments/bench_synth_v2.py --preset small --frames 24 --workers 2 --repeats 3 \\
         [--variant v2 "v2 sc: cloth_self_contact=True"] [--out benchmarks/results/synth_v2.json] \\
         [--before-src /path/to/an/older/checkout/src]
 
@@ -139,7 +139,7 @@ def main() -> None:
 
     base = dataclasses.replace(synth_preset(args.preset), frames_per_sequence=args.frames,
                                train_sequences=args.train_sequences, test_sequences=args.test_sequences)  # fmt: skip
-    here = str(Path(__file__).resolve().parents[1] / "src")
+    here = str(Path(__file__).resolve().parents[2] / "src")
     variants = [("v1", SYNTH_V1)] + list(map(parse_variant, args.variant))
     settings = [(n, dataclasses.replace(base, **o)) for n, o in variants]
     sources = {n: (here, o) for n, o in variants}

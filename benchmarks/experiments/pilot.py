@@ -7,7 +7,7 @@ most that many steps before the deadline) is then scored with ``pocoloco eval`` 
 ``--splits`` (the same frames and seeds for every arm), without baselines. Prints a table (overall
 and per-subject Chamfer, M2S, far outliers, loose share against the ground truth's) and writes JSON.
 
-    python benchmarks/pilot.py --data data/medium --minutes 35 --out ~/.cache/pocoloco/runs/pilot_who \\
+    python benchmarks/experiments/pilot.py --data data/medium --minutes 35 --out ~/.cache/pocoloco/runs/pilot_who \\
         --arm joints="--preset latent_small" \\
         --arm who="--preset latent_small --outfit-codes --body-shape" \\
         --splits test heldout --frames 28 --seeds 0 1 --json benchmarks/results/pilot_who.json

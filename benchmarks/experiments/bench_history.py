@@ -8,7 +8,7 @@ stay. Reported: mean / max distance (cm) between the garments of every pair
 of histories, root-relative, at 0, 0.2, 0.5 and 1 s after arrival. This is why
 PocoLoco models p(cloth | pose) as a distribution.
 
-    python benchmarks/bench_history.py [--garment skirt] [--kinds spin walk kick] [--out ...]
+    python benchmarks/experiments/bench_history.py [--garment skirt] [--kinds spin walk kick] [--out ...]
 """
 
 from __future__ import annotations

@@ -7,8 +7,8 @@ and scored; the nearest-frame, posed-body and GT-resample baselines are computed
 same frames and points. Writes ``--out`` (JSON) and a plot next to it: Chamfer (cm) vs. step
 for EMA and raw weights, with the baselines as horizontal lines, next to the training loss.
 
-    python benchmarks/quality_over_training.py runs/small --watch      # keep polling (Ctrl-C to stop)
-    python benchmarks/quality_over_training.py runs/small              # evaluate what is there, then exit
+    python benchmarks/experiments/quality_over_training.py runs/small --watch      # keep polling (Ctrl-C to stop)
+    python benchmarks/experiments/quality_over_training.py runs/small              # evaluate what is there, then exit
 
 Checkpoints are deleted by training (``keep_checkpoints``); with ``--watch`` each is evaluated
 soon after it is written.

@@ -17,7 +17,7 @@ JSON), split into:
   numpy and the occlusion rays themselves (with the number of rays);
 - writing the frame file.
 
-    python benchmarks/profile_synth.py --preset small --frames 24 [--v1] [--set capture_cameras=24 ...]
+    python benchmarks/experiments/profile_synth.py --preset small --frames 24 [--v1] [--set capture_cameras=24 ...]
         [--out benchmarks/results/profile_synth.json]
 
 ``--v1`` applies ``config.SYNTH_V1`` (the first pipeline's settings; the profile of
