@@ -7,8 +7,8 @@ standard error (std / sqrt(n)). The frames and the GT subsets of two ``bench qua
 same ``--frames`` / ``--points`` / dataset are identical, so the pairing removes the frame-to-frame
 spread that dominates an unpaired comparison.
 
-    python benchmarks/compare_quality.py docs/quality_medium/test/quality.json:pocoloco \\
-        out/gpu_test/quality.json:pocoloco --also docs/quality_medium/test/quality.json:pop --json cmp.json
+    python benchmarks/compare_quality.py benchmarks/results/quality_medium/test/quality.json:pocoloco \\
+        out/gpu_test/quality.json:pocoloco --also benchmarks/results/quality_medium/test/quality.json:pop --json cmp.json
 """
 
 from __future__ import annotations

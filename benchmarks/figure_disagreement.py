@@ -4,7 +4,7 @@ PocoLoco and POP, one per subject, points coloured by label (a generated point t
 its nearest scan point); each panel's title gives Chamfer to the scan and the share of loose-garment points.
 
     python benchmarks/figure_disagreement.py --data ~/.cache/pocoloco/data/medium \\
-        --quality docs/quality_medium/test/quality.json --ckpt-pocoloco default --ckpt-pop default:pop \\
+        --quality benchmarks/results/quality_medium/test/quality.json --ckpt-pocoloco default --ckpt-pop default:pop \\
         --ckpt-closet default:closet --out docs/images/models_disagree.png
 """
 
