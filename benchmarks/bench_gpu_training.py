@@ -66,7 +66,7 @@ def train_row(data: str, preset: str, batch: int, device: torch.device, warmup: 
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        train(task, data, Path(tmp) / "run", device=device, progress=False, log_fn=log, compile_model=compile_model)
+        train(task, Path(tmp) / "run", device=device, progress=False, log_fn=log, compile_model=compile_model)
     seconds = times[warmup + steps] - times[warmup] if warmup else times[steps] - t0
     sps = steps / seconds
     n_params = sum(p.numel() for p in task.build_model().parameters())

@@ -78,7 +78,7 @@ def run_candidate(data: str, preset: str, batch: int, seconds: float, device: to
     task = PocoLocoTask(config, data)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        result = train(task, data, Path(tmp) / "run", device=device, progress=False, time_budget_s=seconds)
+        result = train(task, Path(tmp) / "run", device=device, progress=False, time_budget_s=seconds)
     wall = time.perf_counter() - t0
     val = validation_loss(task, result.ema, data, device)
     return {"preset": preset, "batch": batch, "points": config.num_points, "lr": config.lr, "steps": result.step,

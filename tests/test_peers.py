@@ -113,12 +113,12 @@ def test_checkpoint_kind_mismatch_is_one_line(runs, tiny_run, tiny_dataset, test
         load_method(tiny_run, expect=("pop", "closet"))
     with pytest.raises(ValueError, match="checkpoint is of model 'closet', expected 'pocoloco'"):
         load_denoiser(runs["closet"])
-    # a CloSET checkpoint where PocoLoco is required, a CloSET checkpoint given to POP's fit
+    # a CloSET checkpoint given to an app that needs a generative point model (the Method hook), and to POP's fit
     scan = tmp_path / "scan.ply"
     write_ply(scan, np.zeros((300, 3), np.float32), normals=np.tile([0, 0, 1.0], (300, 1)).astype(np.float32))
     err = _one_line_error(capsys, main(["complete", "--ckpt", str(runs["closet"]), "--partial", str(scan), "--joints",
                                         "demo:skirt", "--out", str(tmp_path / "c")]))  # fmt: skip
-    assert "'closet'" in err and "'pocoloco'" in err
+    assert "CloSET cannot complete, edit or animate point clouds" in err
     err = _one_line_error(capsys, main(["fit", "--ckpt", str(runs["closet"]), "--scan", str(scan), "--frame",
                                         test_frame[0], "--out", str(tmp_path / "f")]))  # fmt: skip
     assert "this CloSET checkpoint cannot fit a new outfit" in err

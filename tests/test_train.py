@@ -625,3 +625,34 @@ def test_the_config_base_round_trips_every_preset_and_names_unknown_fields():
                 config.replace(bogus=1)
             with pytest.raises(ValueError, match=f"unknown {type(config).__name__} field\\(s\\): bogus$"):
                 type(config).from_dict({**d, "bogus": 1})
+
+
+@pytest.mark.parametrize("model", ["pocoloco", "pop"])
+def test_train_opens_the_dataset_once(tiny_dataset, tmp_path, monkeypatch, model):
+    """`pocoloco train` reads the card and checks the frame files once per command: the opened
+    dataset (data.dataset.OpenedDataset) is handed down to the task and its datasets."""
+    from pocoloco.cli import main
+    from pocoloco.data import card as card_module
+    from pocoloco.data import verify
+
+    calls = {"read_card": 0, "check_frames": 0}
+
+    def counting(module, name):
+        original = getattr(module, name)
+
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return original(*args, **kwargs)
+
+        monkeypatch.setattr(module, name, wrapper)
+
+    counting(card_module, "read_card")
+    counting(verify, "check_frames")
+    from pocoloco.data import format as fmt
+
+    monkeypatch.setattr(fmt, "read_card", card_module.read_card)
+    monkeypatch.setattr(fmt, "check_frames", verify.check_frames)
+    argv = ["train", "--model", model, "--data", str(tiny_dataset), "--out", str(tmp_path / "run"), "--preset", "tiny",
+            "--steps", "1", "--sample-every", "0", "--ckpt-every", "0", "--no-progress", "--threads", "1"]  # fmt: skip
+    assert main(argv) == 0
+    assert calls == {"read_card": 1, "check_frames": 1}, calls

@@ -96,10 +96,10 @@ def test_a_train_that_fails_before_its_first_checkpoint_leaves_no_folder(tiny_da
     folder that held something before is left as it was."""
     from pocoloco.cli import train as train_cli
 
-    def failing_run(task, data, out, **kw):
+    def failing_run(task, out, **kw):
         (Path(out) / "config.json").write_text("{}")
         (Path(out) / "metrics.jsonl").write_text("")
-        raise ValueError(f"{data}/subjects/skirt/train/x.npz: CRC-32 mismatch (corrupt)")
+        raise ValueError(f"{task.data}/subjects/skirt/train/x.npz: CRC-32 mismatch (corrupt)")
 
     monkeypatch.setattr(train_cli, "run_training", failing_run)
     argv = ["train", "--data", str(tiny_dataset), "--preset", "tiny", "--steps", "1", "--out"]

@@ -15,6 +15,7 @@ import torch.distributed as dist
 
 from pocoloco.cli.common import add_threads_argument, console
 from pocoloco.utils.atomic import exclusive_lock, output_folder
+from pocoloco.data.dataset import OpenedDataset
 from pocoloco.data.pack import is_pack, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
 from pocoloco.engine.trainer import LR_SCALING_RULES, check_run_folder, dist_info, init_distributed, scaled_lr
@@ -90,22 +91,26 @@ def _config_from_args(args: argparse.Namespace):
 
 def cmd_train(args: argparse.Namespace) -> None:
     """Validate everything (options, data, run folder), then print the banner and train."""
-    training_card(args.data)  # one line if --data is neither a dataset folder nor a training pack
+    # the dataset opened once (card read; frames checked below, once): one line if --data is neither
+    # a dataset folder nor a training pack
+    data = args.data if is_pack(args.data) else OpenedDataset.open(args.data, subjects=[])
+    if is_pack(args.data):
+        training_card(args.data)
     config = _config_from_args(args)
     if is_pack(args.data) and config.model != "pocoloco":
         raise ValueError(f"--data {args.data}: a training pack holds what PocoLoco trains on; --model {config.model} "
                          "trains on the dataset folder")  # fmt: skip
-    task = method_class(config.model).training_task(config, args.data)
+    if isinstance(data, OpenedDataset):
+        data = data.ensure_checked(getattr(config, "subjects", None))
+    task = method_class(config.model).training_task(config, data)
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")
     if int(os.environ.get("RANK", "0")) != 0:  # torchrun: rank 0 holds the run folder's lock
         _train(args, config, task)
         return
-    output_folder(args.out)
-    check_run_folder(args.out, args.resume)
-    out = Path(args.out)
+    out = output_folder(args.out)
     with exclusive_lock(out, "pocoloco train") as lock:  # a second train into the same folder is refused
-        check_run_folder(out, args.resume)  # again under the lock: another run may have just written one
+        check_run_folder(out, args.resume)  # under the lock: another run may have just written one
         fresh = all(p == lock for p in out.iterdir())
         try:
             _train(args, config, task)
@@ -138,7 +143,7 @@ def _train(args: argparse.Namespace, config, task) -> None:
                 f"batch={config.batch_size}x{world} N={config.num_points} lr={config.lr:.3g}"
                 + (f" budget={args.time_budget:g} min" if args.time_budget else "") + f" -> {args.out}"
             )  # fmt: skip
-        result = run_training(task, args.data, args.out, device=device, resume=args.resume,
+        result = run_training(task, args.out, device=device, resume=args.resume,
                               progress=not args.no_progress,
                               time_budget_s=None if args.time_budget is None else 60.0 * args.time_budget,
                               compile_model=args.compile, export_to=Path(args.out) / "model")  # fmt: skip

@@ -38,7 +38,7 @@ from torch.utils.data import Dataset
 
 from . import format as fmt
 
-__all__ = ["Normalisation", "PointCloudDataset", "frame_velocity", "rotate_z"]
+__all__ = ["Normalisation", "OpenedDataset", "PointCloudDataset", "frame_velocity", "rotate_z"]
 
 #: frames per second of a dataset whose card does not record it (the synthetic presets' rate)
 DEFAULT_FPS = 25.0
@@ -171,6 +171,44 @@ def frame_velocity(path: str | os.PathLike, joints: np.ndarray, fps: float | Non
     return np.zeros_like(np.asarray(joints, np.float32))
 
 
+@dataclass(frozen=True)
+class OpenedDataset:
+    """A dataset folder opened once per command and handed down instead of its path: the card (read
+    once), the layout, and the subjects whose frame files were already checked against the card
+    (:func:`pocoloco.data.format.check_frames`), so that the tasks and datasets built from it read
+    and scan nothing again. It is an ``os.PathLike`` of the folder (``os.fspath`` / ``str`` give the
+    path), so code that only needs the path takes it unchanged."""
+
+    root: str
+    card: dict[str, Any]
+    layout: fmt.DatasetLayout
+    checked: frozenset[str] = frozenset()
+
+    @classmethod
+    def open(cls, root: str | os.PathLike, subjects: Sequence[str] | None = None) -> OpenedDataset:
+        """Read the card and check the frame files of ``subjects`` (None: every subject); one-line
+        ValueErrors for a missing / malformed card or a damaged frame."""
+        if isinstance(root, OpenedDataset):
+            return root.ensure_checked(subjects)
+        root = os.fspath(root)
+        return cls(root, fmt.read_card(root), fmt.DatasetLayout(root)).ensure_checked(subjects)
+
+    def ensure_checked(self, subjects: Sequence[str] | None = None) -> OpenedDataset:
+        """This dataset with the frames of ``subjects`` (None: all) checked: itself if they were."""
+        names = sorted(self.card["subjects"]) if subjects is None else sorted(subjects)
+        todo = [s for s in names if s not in self.checked and s in self.card["subjects"]]
+        if not todo:
+            return self
+        fmt.check_frames(self.root, subjects=todo, card=self.card)
+        return dataclasses.replace(self, checked=self.checked | frozenset(todo))
+
+    def __fspath__(self) -> str:
+        return self.root
+
+    def __str__(self) -> str:
+        return self.root
+
+
 class PointCloudDataset(Dataset):
     """Frames of one split of a pocoloco dataset, as dicts of tensors.
 
@@ -199,12 +237,13 @@ class PointCloudDataset(Dataset):
 
     A dataset whose frame files (of any split of these subjects) disagree with its card or
     ``sequence.json`` files (a missing, extra, truncated or unreadable frame;
-    :func:`pocoloco.data.format.check_frames`) is refused with a one-line ``ValueError``.
+    :func:`pocoloco.data.format.check_frames`) is refused with a one-line ``ValueError``. ``root``
+    may be an :class:`OpenedDataset` (its card and checks are reused).
     """
 
     def __init__(
         self,
-        root: str | os.PathLike,
+        root: str | os.PathLike | OpenedDataset,
         split: str = "train",
         num_points: int | None = 10_000,
         subjects: Sequence[str] | None = None,
@@ -216,9 +255,11 @@ class PointCloudDataset(Dataset):
         heading: bool = False,
         velocity: bool = False,
     ):
-        self.root = os.fspath(root)
+        opened = root if isinstance(root, OpenedDataset) else OpenedDataset(os.fspath(root), fmt.read_card(root),
+                                                                            fmt.DatasetLayout(root))  # fmt: skip
+        self.root = opened.root
         self.body_point_ids = None if body_point_ids is None else np.asarray(body_point_ids, np.int64)
-        self.card = fmt.read_card(self.root)
+        self.card = opened.card
         if split not in fmt.SPLITS:
             raise ValueError(f"unknown split {split!r}; expected one of {fmt.SPLITS}")
         if num_points is not None and num_points < 1:
@@ -240,9 +281,9 @@ class PointCloudDataset(Dataset):
             self.normalisation = dataclasses.replace(self.normalisation, heading=True)
         self.velocity = velocity
         self.fps = float((self.card.get("generation_config") or {}).get("fps") or DEFAULT_FPS)
-        self.layout = fmt.DatasetLayout(self.root)
+        self.layout = opened.layout
         chosen = self.subject_names if subjects is None else sorted(subjects)
-        fmt.check_frames(self.root, subjects=chosen, card=self.card)  # every split: one line on a bad frame
+        opened.ensure_checked(chosen)  # every split: one line on a bad frame (once per opened dataset)
         self.frames = self.layout.iter_frames(split, chosen)  # list of (subject, sequence, path)
         if not self.frames:
             raise ValueError(f"{self.root}: no frames in split {split!r} for subjects {chosen}")

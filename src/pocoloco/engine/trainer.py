@@ -213,6 +213,7 @@ class TrainingTask(ABC):
 
     Attributes:
         config: the method's train config (fields: module docstring).
+        data: the dataset it trains on (a folder, an opened dataset or a training pack; recorded).
         kind: the checkpoints' ``model_kind`` (``config.model``).
         normalisation: the dataset's, stored in every checkpoint.
         resumable_changes: config fields that may differ on ``--resume``.
@@ -221,6 +222,7 @@ class TrainingTask(ABC):
     """
 
     config: Any
+    data: str | os.PathLike
     kind: str
     normalisation: Normalisation
     resumable_changes: frozenset[str] = frozenset({"steps", "ckpt_every", "sample_every", "log_every",
@@ -440,7 +442,6 @@ def _grad_norm(model: nn.Module) -> torch.Tensor:
 
 def train(
     task: TrainingTask,
-    data: str | os.PathLike,
     out: str | os.PathLike,
     *,
     device: str | torch.device = "cpu",
@@ -451,7 +452,7 @@ def train(
     compile_model: bool = False,
     export_to: str | os.PathLike | None = None,
 ) -> TrainResult:
-    """Run ``task`` into the run folder ``out`` (``data``: recorded in config.json and checkpoints).
+    """Run ``task`` into the run folder ``out`` (its ``data`` is recorded in config.json and checkpoints).
 
     Args:
         device: where to train (the caller chooses; with DDP the process's device). On CUDA,
@@ -472,7 +473,7 @@ def train(
     If ``torch.distributed`` is initialised, the model is wrapped in DistributedDataParallel and
     every rank trains on its own part of each global batch.
     """
-    config = task.config.loop()
+    config, data = task.config.loop(), os.fspath(task.data)
     device = torch.device(device)
     if time_budget_s is not None and not time_budget_s > 0:
         raise ValueError(f"time budget must be > 0 seconds, got {time_budget_s}")
@@ -531,7 +532,7 @@ def train(
     logger = None
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(out / "config.json", {"data": os.fspath(data), "world_size": world,
+        write_json_atomic(out / "config.json", {"data": data, "world_size": world,
                                                 **task.config.to_dict()})  # fmt: skip
         logger = Logger(out, start_step if ck is not None else None)
 
@@ -541,7 +542,7 @@ def train(
             normalisation=task.normalisation, model_state=model.state_dict(),
             ema_state=None if ema is None else ema.state_dict(), optimizer_state=optimizer.state_dict(),
             rng_state=ckpt_io.capture_rng_state(),
-            extra={"world_size": world, "data": os.fspath(data), **task.checkpoint_extra(model)},
+            extra={"world_size": world, "data": data, **task.checkpoint_extra(model)},
             keep=config.keep_checkpoints,
         )  # fmt: skip
 

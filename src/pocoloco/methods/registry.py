@@ -84,4 +84,4 @@ def train(config: Any, data: str | os.PathLike, out: str | os.PathLike, **kwargs
     """Train ``config`` (any method's train config) on ``data`` into the run folder ``out`` with the
     shared loop (:func:`pocoloco.engine.trainer.train`; ``kwargs``: device, resume, progress, log_fn)."""
     task = method_class(config.model).training_task(config, data)
-    return trainer.train(task, data, out, **kwargs)
+    return trainer.train(task, out, **kwargs)

@@ -38,11 +38,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from pocoloco.data.dataset import Normalisation, PointCloudDataset
+from pocoloco.data.dataset import Normalisation, OpenedDataset, PointCloudDataset
 from pocoloco.data.format import (
     DatasetLayout,
-    check_frames,
-    read_card,
     read_frame,
     read_subject,
 )
@@ -267,10 +265,10 @@ class SkinnedTask(TrainingTask):
     method: type[SkinnedMethod]
 
     def __init__(self, config: SkinnedTrainConfig, data: str | Path):
-        self.config, self.data, self.kind = config, data, config.model
-        card = read_card(data)
-        self.normalisation = Normalisation.from_card(card)
-        names = DatasetLayout(data).subjects()
+        opened = OpenedDataset.open(data, subjects=[])  # the card (read here unless the caller opened it)
+        self.config, self.kind = config, config.model
+        self.normalisation = Normalisation.from_card(opened.card)
+        names = opened.layout.subjects()
         if config.subjects is not None:
             unknown = [x for x in config.subjects if x not in names]
             if unknown:
@@ -278,7 +276,7 @@ class SkinnedTask(TrainingTask):
             names = list(config.subjects)
         if not names:
             raise ValueError(f"{data}: no subjects")
-        check_frames(data, subjects=names, card=card)  # a missing or damaged frame: one line, before training
+        self.data = opened.ensure_checked(names)  # a missing or damaged frame: one line, before training
         self.assets = read_subjects(data, names)
         self.outfits = {s: i for i, s in enumerate(names)}
         self.model: nn.Module | None = None
