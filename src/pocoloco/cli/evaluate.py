@@ -29,9 +29,13 @@ from pocoloco.evaluation.quality import (
     PER_SUBJECT_ROWS,
     QUALITY_ROWS,
     bench_quality,
+    check_quality_inputs,
     garment_table_markdown,
     table_markdown,
 )
+from pocoloco.engine.checkpoint import latest_checkpoint, read_meta
+from pocoloco.methods import train, train_preset
+from pocoloco.methods.registry import config_from_checkpoint
 from pocoloco.utils.atomic import output_folder
 
 __all__ = ["register"]
@@ -102,15 +106,43 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (eval.json, eval.md, plots)")
 
 
+def _train_missing(key: str, data, work: Path, steps: int, preset: str) -> Path:
+    """Train (or resume / reuse) the quality row ``key`` for ``steps`` steps in ``work/key``; its newest
+    checkpoint (``bench quality --train-steps``)."""
+    run = work / key
+    existing = latest_checkpoint(run / "checkpoints")
+    if existing is not None and read_meta(existing)["step"] >= steps:
+        return existing
+    _, kind, decomposition = QUALITY_ROWS[key]
+    if existing is not None:
+        cfg = config_from_checkpoint(existing, kind, steps=steps)
+    else:
+        extra = {"decomposition": False} if decomposition is False else {}
+        cfg = train_preset(kind, preset, steps=steps, sample_every=0, ckpt_every=max(steps // 4, 1), **extra)
+    train(cfg, data, run, resume=existing is not None, progress=True)
+    return latest_checkpoint(run / "checkpoints")
+
+
 def cmd_bench_quality(args: argparse.Namespace) -> None:
     settings = EvalSettings(split=args.split, num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
                             sampler=args.sampler, steps=args.steps, clip=5.0, nearest_align=args.nearest_align,
                             subjects=tuple(args.subjects) if args.subjects else None)  # fmt: skip
     con = console(stderr=True)
     ckpts = {key: getattr(args, f"ckpt_{key}") for key in QUALITY_ROWS}
-    report = bench_quality(args.data, ckpts, args.out, settings, train_steps=args.train_steps, work=args.work,
-                           preset=args.preset, device=args.device, progress=lambda m: con.print(f"[bold]{m}"),
-                           train_progress=True)  # fmt: skip
+    if args.train_steps is not None and (args.train_steps < 1 or args.work is None):
+        raise ValueError("--train-steps needs a positive K and --work DIR")
+    check_quality_inputs(args.data, ckpts, settings)  # every given input, before any training
+    output_folder(args.out)
+    trained = []
+    if args.train_steps is not None:
+        for key in QUALITY_ROWS:
+            if ckpts.get(key) is None and key not in PER_SUBJECT_ROWS:
+                con.print(f"[bold]training {QUALITY_ROWS[key][0]} for {args.train_steps} steps in {Path(args.work) / key}")
+                ckpts[key] = _train_missing(key, args.data, Path(args.work), args.train_steps, args.preset)
+                trained.append(key)
+    report = bench_quality(args.data, ckpts, args.out, settings, device=args.device,
+                           trained={"rows": trained, "train_steps": args.train_steps, "train_preset": args.preset},
+                           progress=lambda m: con.print(f"[bold]{m}"))  # fmt: skip
     print(table_markdown(report["means"]))
     garment = garment_table_markdown(report["means"])
     if garment:

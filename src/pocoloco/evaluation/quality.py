@@ -4,8 +4,9 @@ decomposition on the same test frames, with the nearest-frame and posed-body bas
 Every model goes through :func:`pocoloco.evaluation.evaluate.evaluate` with the same :class:`EvalSettings`,
 so the frames, the GT subsets (fixed seeds per frame) and the metrics are identical across rows;
 the baselines are computed once (a baselines-only pass over the same frames). Checkpoints are given
-(``--ckpt-pocoloco`` ...) or, with ``--train-steps K``, trained into ``--work DIR/<row>`` (a run there
-is resumed up to K steps, or reused if it is already there); a model with neither is left out.
+(``--ckpt-pocoloco`` ...); the command's ``--train-steps K`` trains the missing rows first
+(:mod:`pocoloco.cli.evaluate`; this layer evaluates, it does not train); a model with neither is
+left out.
 
 Output (``--out``): ``quality.json`` (settings, checkpoints, the mean table, per-subject tables,
 per-frame rows of every model, with best of K and the energy score per frame), ``quality.md`` (for
@@ -23,7 +24,6 @@ from typing import Any
 from pocoloco.data.format import DatasetLayout, read_card
 from pocoloco.engine.checkpoint import (
     META_FILE,
-    latest_checkpoint,
     read_meta,
     resolve_checkpoint,
 )
@@ -37,8 +37,6 @@ from pocoloco.evaluation.evaluate import (
     markdown_table,
 )
 from pocoloco.evaluation.metrics import nearest
-from pocoloco.methods import train, train_preset
-from pocoloco.methods.registry import config_from_checkpoint
 from pocoloco.utils.atomic import (
     jsonable,
     output_folder,
@@ -109,21 +107,22 @@ def _check_per_subject(key: str, ckpts) -> dict[str, Path]:
     return out
 
 
-def _train_missing(key: str, data, work: Path, steps: int, preset: str, progress: bool) -> Path:
-    """Train (or resume / reuse) row ``key`` for ``steps`` steps in ``work/key``; its newest checkpoint."""
-    run = work / key
-    existing = latest_checkpoint(run / "checkpoints")
-    if existing is not None and read_meta(existing)["step"] >= steps:
-        return _check_kind(key, existing)
-    resume = existing is not None
-    _, kind, decomposition = QUALITY_ROWS[key]
-    if resume:
-        cfg = config_from_checkpoint(existing, kind, steps=steps)
-    else:
-        extra = {"decomposition": False} if decomposition is False else {}
-        cfg = train_preset(kind, preset, steps=steps, sample_every=0, ckpt_every=max(steps // 4, 1), **extra)
-    train(cfg, data, run, resume=resume, progress=progress)
-    return _check_kind(key, run)
+def check_quality_inputs(data, ckpts: dict[str, Any], settings: EvalSettings = EvalSettings()) -> dict[str, Any]:
+    """Everything :func:`bench_quality` would refuse, before any long work (training the missing rows
+    included): the dataset, the split's frames, the row keys and each given checkpoint's kind.
+    Returns row key -> checkpoint path (per-subject rows: subject -> path) for the rows given."""
+    unknown = sorted(set(ckpts) - set(QUALITY_ROWS))
+    if unknown:
+        raise ValueError(f"unknown model rows {unknown}; choose from {', '.join(QUALITY_ROWS)}")
+    read_card(data)  # not a dataset: that first
+    layout = DatasetLayout(data)
+    if not layout.iter_frames(settings.split, list(settings.subjects) if settings.subjects else layout.subjects()):
+        raise ValueError(f"{data}: no frames in split {settings.split!r}")  # before a word is printed
+    paths: dict[str, Any] = {}
+    for key in QUALITY_ROWS:
+        if ckpts.get(key) is not None:
+            paths[key] = _check_per_subject(key, ckpts[key]) if key in PER_SUBJECT_ROWS else _check_kind(key, ckpts[key])
+    return paths
 
 
 def bench_quality(
@@ -132,44 +131,24 @@ def bench_quality(
     out,
     settings: EvalSettings = EvalSettings(),
     *,
-    train_steps: int | None = None,
-    work=None,
-    preset: str = "small",
+    trained: dict[str, Any] | None = None,
     device: str = "cpu",
     progress=None,
-    train_progress: bool = False,
 ) -> dict[str, Any]:
     """Evaluate every row on the same frames and write quality.json / quality.md / quality.png.
 
-    ckpts: row key (``QUALITY_ROWS``) -> checkpoint path or None. With ``train_steps``, missing
-    rows are trained with ``preset`` into ``work``. progress: ``callable(message)``.
-    Returns the quality.json dict.
+    ckpts: row key (``QUALITY_ROWS``) -> checkpoint path or None (checked by
+    :func:`check_quality_inputs`). trained: what the caller trained for this table, recorded in the
+    settings (``{"rows": [keys], "train_steps": K, "train_preset": name}``; the ``pocoloco bench
+    quality --train-steps`` command trains the missing rows before calling this). progress:
+    ``callable(message)``. Returns the quality.json dict.
     """
-    read_card(data)
-    unknown = sorted(set(ckpts) - set(QUALITY_ROWS))
-    if unknown:
-        raise ValueError(f"unknown model rows {unknown}; choose from {', '.join(QUALITY_ROWS)}")
-    if train_steps is not None and (train_steps < 1 or work is None):
-        raise ValueError("--train-steps needs a positive K and --work DIR")
-    read_card(data)  # not a dataset: that first
-    layout = DatasetLayout(data)
-    if not layout.iter_frames(settings.split, list(settings.subjects) if settings.subjects else layout.subjects()):
-        raise ValueError(f"{data}: no frames in split {settings.split!r}")  # before a word is printed
-    out = output_folder(out)
-    paths: dict[str, Any] = {}
-    for key in QUALITY_ROWS:  # validate every given checkpoint before any long work
-        if ckpts.get(key) is not None:
-            paths[key] = _check_per_subject(key, ckpts[key]) if key in PER_SUBJECT_ROWS else _check_kind(key, ckpts[key])
-    trained = []
-    for key in QUALITY_ROWS:
-        if key not in paths and train_steps is not None and key not in PER_SUBJECT_ROWS:
-            if progress:
-                progress(f"training {QUALITY_ROWS[key][0]} for {train_steps} steps in {Path(work) / key}")
-            paths[key] = _train_missing(key, data, Path(work), train_steps, preset, train_progress)
-            trained.append(key)
+    paths = check_quality_inputs(data, ckpts, settings)
     if not paths:
         raise ValueError("no model to compare: give --ckpt-pocoloco / --ckpt-pop / --ckpt-closet / "
                          "--ckpt-closet-nodecomp, or --train-steps K with --work DIR")  # fmt: skip
+    out = output_folder(out)
+    trained = trained or {}
 
     if progress:
         progress("baselines")
@@ -201,8 +180,9 @@ def bench_quality(
         per_subject[s].update({b: dict(base.per_subject[s][b]) for b in BASELINE_ROWS if b in base.per_subject[s]})
 
     report = {
-        "settings": {**base.settings, "rows": {k: QUALITY_ROWS[k][0] for k in results}, "trained_here": trained,
-                     "train_steps": train_steps, "train_preset": preset if trained else None},
+        "settings": {**base.settings, "rows": {k: QUALITY_ROWS[k][0] for k in results},
+                     "trained_here": list(trained.get("rows", [])), "train_steps": trained.get("train_steps"),
+                     "train_preset": trained.get("train_preset") if trained.get("rows") else None},
         "checkpoints": {k: {"path": ({s: describe_checkpoint(q) for s, q in p.items()} if isinstance(p, dict)
                                      else describe_checkpoint(p)), "step": results[k][0].settings["step"],
                             "preset": results[k][0].settings["preset"], "eval_seconds": results[k][1]}
