@@ -15,11 +15,21 @@ from pocoloco import __version__
 from pocoloco.cli import apps, data, evaluate, sample, tools, train
 from pocoloco.cli.common import EXIT_USER_ERROR, USER_ERRORS, run_command
 
-__all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "build_parser", "main", "run_command"]
+__all__ = ["EXIT_USER_ERROR", "USER_ERRORS", "OneLineParser", "build_parser", "main", "run_command"]
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, with its own errors (an unknown option, a value of the wrong type, a missing required
+    option) as the one line every other user error gets, instead of the usage block; every
+    sub-command's parser is one too (argparse builds them with the parent's class)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        sys.stderr.write(f"pocoloco: error: {message} (`{self.prog} --help` lists the options)\n")
+        raise SystemExit(EXIT_USER_ERROR)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="pocoloco", description="Point-cloud models of humans in loose clothing.")
+    p = OneLineParser(prog="pocoloco", description="Point-cloud models of humans in loose clothing.")
     p.add_argument("--version", action="version", version=f"pocoloco {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     for module in (data, train, sample, apps, evaluate, tools):

@@ -40,7 +40,7 @@ from pocoloco.cli.common import (
 from pocoloco.data.poses import load_joints
 from pocoloco.data.published import write_ply
 from pocoloco.diffusion.samplers import check_sampler
-from pocoloco.methods import checkpoint_kind
+from pocoloco.methods import SamplerOptions, checkpoint_kind, fit_to_memory
 from pocoloco.utils.atomic import jsonable, no_file_reason, write_json_atomic
 from pocoloco.viz.render import render_gif, render_grid
 
@@ -51,6 +51,11 @@ METHOD_ALIASES = {"chain-world": ("chain", "world"), "chain-root": ("chain", "ro
 
 
 # ------------------------------------------------------------------------------------ completion
+#: upper bounds of the options that multiply the work (RePaint passes, candidate samples per output)
+MAX_RESAMPLE = 100
+MAX_CANDIDATES = 64
+
+
 def add_complete_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco complete`` options."""
     parser.add_argument("--partial", required=True, help="partial scan: .ply (or a dataset frame .npz / (M, 3) .npy)")
@@ -91,16 +96,18 @@ def cmd_complete(args: argparse.Namespace) -> None:
             raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
     if args.coverage is not None and not 0.0 <= args.coverage <= 1.0:
         raise ValueError(f"--coverage must be in [0, 1], got {args.coverage}")
-    if not args.coverage_radius > 0:
-        raise ValueError(f"--coverage-radius must be > 0, got {args.coverage_radius}")
+    if not 0 < args.coverage_radius < float("inf"):
+        raise ValueError(f"--coverage-radius must be a finite number > 0, got {args.coverage_radius}")
     if not 0.0 < args.max_normal_cos <= 1.0:
         raise ValueError(f"--max-normal-cos must be in (0, 1], got {args.max_normal_cos}")
-    for name in ("candidates", "resample", "jump"):
-        if getattr(args, name) < 1:
-            raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
+    for name, most in (("candidates", MAX_CANDIDATES), ("resample", MAX_RESAMPLE), ("jump", None)):
+        value = getattr(args, name)
+        if value < 1 or (most is not None and value > most):
+            raise ValueError(f"--{name} must be in [1, {most}], got {value}" if most else f"--{name} must be >= 1, got {value}")
     partial, normals = read_cloud(args.partial)
     method = load_method_from_args(args)
     prior = method.point_prior(pick_outfit(method, args.outfit, args.joints))
+    fit_to_memory(method, args.points, args.num * args.candidates, SamplerOptions(batch_size=1))  # K candidates each
     ckpt, step, T = method.path, method.step, prior.schedule.num_timesteps
     joints = load_joints(args.joints, args.frame_id, prior.num_joints, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, T)
@@ -184,11 +191,12 @@ def cmd_edit(args: argparse.Namespace) -> None:
     for name in ("points", "num"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
-    if not args.threshold > 0:
-        raise ValueError(f"--threshold must be > 0, got {args.threshold}")
+    if not 0 < args.threshold < float("inf"):
+        raise ValueError(f"--threshold must be a finite number > 0 (metres), got {args.threshold}")
     source, normals = read_cloud(args.source)
     method = load_method_from_args(args)
     prior = method.point_prior(pick_outfit(method, args.outfit, args.joints))
+    fit_to_memory(method, args.points or min(len(source), 4096), args.num or 1, SamplerOptions(batch_size=1))
     ckpt, step, T, J = method.path, method.step, prior.schedule.num_timesteps, prior.num_joints
     target = load_joints(args.joints, None, J, any_pose=args.any_pose)
     src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J, any_pose=args.any_pose)
@@ -289,8 +297,8 @@ def cmd_animate(args: argparse.Namespace) -> None:
         raise ValueError(f"unknown --anchor {args.anchor!r}; choose one of: {', '.join(ANCHORS)}")
     if args.points < 1:
         raise ValueError(f"--points must be >= 1, got {args.points}")
-    if not args.fps > 0:
-        raise ValueError(f"--fps must be > 0, got {args.fps}")
+    if not 0 < args.fps <= 1000:
+        raise ValueError(f"--fps must be in (0, 1000], got {args.fps}")
     method = load_method_from_args(args)
     prior = method.point_prior(pick_outfit(method, args.outfit, args.motion))
     ckpt, step, T = method.path, method.step, prior.schedule.num_timesteps
@@ -300,6 +308,7 @@ def cmd_animate(args: argparse.Namespace) -> None:
     if not 1 <= args.t <= T:
         raise ValueError(f"--t must be in [1, {T}] (the model's training timesteps), got {args.t}")
     joints = motion.joints[chosen]
+    fit_to_memory(method, args.points, len(chosen), SamplerOptions(batch_size=1))  # every frame is kept
     t0 = time.perf_counter()
     with progress_bar("animate", total=len(chosen)) as update:
         anim = animate(prior, joints, args.points, method=args.method, t=args.t,
@@ -411,6 +420,10 @@ def cmd_mesh(args: argparse.Namespace) -> None:
         raise ValueError(f"--out {out}: would overwrite the input")
     if out.is_dir():
         raise ValueError(f"--out {out}: is a folder")
+    if args.knn < 3:
+        raise ValueError(f"--knn must be >= 3 (neighbours for a normal), got {args.knn}")
+    if args.fit_steps < 1:
+        raise ValueError(f"--fit-steps must be >= 1, got {args.fit_steps}")
     if args.refine_body:
         _cmd_refine(args, src, out)
         return

@@ -258,10 +258,15 @@ class Method(ABC):
 MEMORY_SHARE = 0.8
 
 
+#: bytes an output point keeps while its cloud waits to be written: float32 points, normals and the
+#: normalised (B, N, C <= 6) array the samplers return
+OUTPUT_BYTES_PER_POINT = 4 * (3 + 3 + 6)
+
+
 def fit_to_memory(method: Method, num_points: int, num_clouds: int, options: SamplerOptions) -> SamplerOptions:
     """``options`` with a batch size (clouds denoised together) that fits in the free memory of the
     model's device (a one-line warning when it had to be lowered); a one-line error naming the most
-    points that fit when even one cloud does not."""
+    points that fit when even one cloud does not, or the most clouds whose outputs fit together."""
     free = available_memory_bytes(method.device)
     if free is None:
         return options
@@ -272,6 +277,11 @@ def fit_to_memory(method: Method, num_points: int, num_clouds: int, options: Sam
         raise ValueError(f"--points {num_points:,}: one cloud needs ~{per_cloud / 2**30:.1f} GiB and "
                          f"{free / 2**30:.1f} GiB are free; at most ~{most:,} points fit (draw several clouds "
                          "with other seeds and merge them)")  # fmt: skip
+    kept = OUTPUT_BYTES_PER_POINT * num_points * num_clouds  # every cloud's output is kept until it is written
+    if kept > budget:
+        most = max(int(budget // (OUTPUT_BYTES_PER_POINT * num_points)), 0)
+        raise ValueError(f"--num {num_clouds:,} clouds of {num_points:,} points: the clouds alone need ~{kept / 2**30:.3g} GiB "
+                         f"and {free / 2**30:.1f} GiB are free; at most ~{most:,} clouds of that size fit")  # fmt: skip
     fits = max(1, int(budget // per_cloud))
     batch = min(options.batch_size, num_clouds)
     if fits < batch:
