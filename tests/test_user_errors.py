@@ -177,3 +177,20 @@ def test_the_corpus_of_malformed_inputs_is_one_line_each(tmp_path, capsys, monke
     err = _one_line(capsys, main([a.format(d=corpus) for a in argv]))
     assert message in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written
+
+
+def test_train_checks_memory_before_the_first_step(tiny_dataset, tmp_path, capsys, monkeypatch):
+    """A training step that cannot fit in the free memory: one line naming the estimate and what to
+    lower, before any step, and no run folder left."""
+    from pocoloco.engine import trainer
+    from pocoloco.methods.pocoloco.config import training_point_bytes
+    from pocoloco.methods.pocoloco import train_preset
+
+    need = training_point_bytes(train_preset("latent_tiny")) * 2 * 4096
+    monkeypatch.setattr(trainer, "available_memory_bytes", lambda device: need // 2)
+    argv = ["train", "--data", str(tiny_dataset), "--preset", "latent_tiny", "--steps", "1", "--batch-size", "2",
+            "--num-points", "4096", "--lr", "1e-3", "--no-progress", "--out", str(tmp_path / "run")]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "one training step needs" in err and "lower --batch-size or --num-points" in err
+    assert not (tmp_path / "run").exists()

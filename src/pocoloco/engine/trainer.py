@@ -33,6 +33,10 @@ Run folder::
 The config a task carries is the method's frozen dataclass (a :class:`pocoloco.utils.config.Config`:
 ``to_dict()`` / ``from_dict()`` store it in checkpoints); the loop reads only what its ``loop()``
 returns, one typed :class:`LoopSettings` (steps, learning-rate curve, EMA, clipping, bf16, periods).
+
+Why this module is long: it is the one loop every method trains with, and the pieces above (the
+schedules, EMA, logging, run-folder checks, the task contract) exist only for it; split across
+modules they would each need the others' internals.
 """
 
 from __future__ import annotations
@@ -56,6 +60,7 @@ from torch import nn
 from pocoloco.data.dataset import Normalisation
 from pocoloco.engine import checkpoint as ckpt_io
 from pocoloco.utils.atomic import write_json_atomic
+from pocoloco.utils.hardware import available_memory_bytes
 from pocoloco.viz.render import plot_curves
 
 __all__ = [
@@ -93,6 +98,10 @@ def frozen(model: nn.Module):
         model.train(was_training)
         for n, p in model.named_parameters():
             p.requires_grad_(flags[n])
+
+
+#: share of the free memory a training step may plan to use
+TRAIN_MEMORY_SHARE = 0.8
 
 
 # ---------------------------------------------------------------------------- the loop's settings
@@ -228,6 +237,11 @@ class TrainingTask(ABC):
     resumable_changes: frozenset[str] = frozenset({"steps", "ckpt_every", "sample_every", "log_every",
                                                    "keep_checkpoints", "num_workers"})  # fmt: skip
     ddp_find_unused: bool = False
+
+    def step_bytes(self) -> int | None:
+        """Working memory of one training step (activations kept for backward), checked against the
+        device's free memory before training; None where the method cannot tell."""
+        return None
 
     @abstractmethod
     def build_model(self) -> nn.Module:
@@ -497,6 +511,11 @@ def train(
         if start_step > config.steps:
             raise ValueError(f"{ck.path}: checkpoint is at step {start_step}, past --steps {config.steps}")
 
+    need, free = task.step_bytes(), available_memory_bytes(device)
+    if need is not None and free is not None and need > TRAIN_MEMORY_SHARE * free:
+        fits = TRAIN_MEMORY_SHARE * free / need
+        raise ValueError(f"one training step needs ~{need / 2**30:.1f} GiB and {free / 2**30:.1f} GiB are free on {device}; "
+                         f"about {fits:.0%} of it fits: lower --batch-size or --num-points")  # fmt: skip
     torch.manual_seed(config.seed)
     model = task.build_model()
     if ck is not None:

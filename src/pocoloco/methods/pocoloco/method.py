@@ -26,7 +26,7 @@ from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import Method, PointPrior, SampledClouds, SamplerOptions
-from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig
+from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig, point_bytes
 from pocoloco.methods.pocoloco.fitting import CodeFit, fit_outfit_code
 from pocoloco.methods.pocoloco.sampling import sample_clouds
 from pocoloco.methods.pocoloco.training import PocoLocoTask
@@ -178,10 +178,8 @@ class PocoLocoMethod(Method):
         """The latent denoiser's point stream: ``point_width`` x (``point_mlp_ratio`` + 2) float32
         activations plus the position encoding per point (measured: ~1.4 KiB at ``latent_small``'s
         64 x 4, estimated 1.8 KiB); the all-points transformer keeps the default."""
-        d = self.config.denoiser
-        if self.config.architecture != "latent":
-            return super().bytes_per_point()
-        return int(4 * (d.point_width * (d.point_mlp_ratio + 2) + 64))
+        per_point = point_bytes(self.config)
+        return super().bytes_per_point() if per_point is None else per_point
 
     def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
                   any_pose: bool = False) -> Pose:  # fmt: skip

@@ -27,7 +27,7 @@ from pocoloco.data.step_batches import StepBatches
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, diffusion_loss, sample_ddim
 from pocoloco.engine.checkpoint import Checkpoint
 from pocoloco.engine.trainer import TrainingTask, fused_optimizer_options
-from pocoloco.methods.pocoloco.config import RESUMABLE_CHANGES, PocoLocoTrainConfig
+from pocoloco.methods.pocoloco.config import RESUMABLE_CHANGES, PocoLocoTrainConfig, training_point_bytes
 from pocoloco.models.conditioning import SHAPE_KEYS, PoseCondition, phenotype_vector
 from pocoloco.models.denoisers import build_denoiser
 from pocoloco.ops.sampling import farthest_point_sampling
@@ -71,6 +71,10 @@ class PocoLocoTask(TrainingTask):
         self.schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
         self.generator: torch.Generator | None = None
         self._preview_frames: list[dict[str, Any]] | None = None
+
+    def step_bytes(self) -> int | None:
+        per_point = training_point_bytes(self.config)
+        return None if per_point is None else per_point * self.config.batch_size * self.config.num_points
 
     def build_model(self) -> nn.Module:
         return build_denoiser(self.config.architecture, self.config.denoiser)
