@@ -12,6 +12,7 @@ from pocoloco.apps.meshing import estimate_normals, mesh_from_points
 from pocoloco.body.surface import write_uv_map
 from pocoloco.data.published import read_ply
 from pocoloco.engine.checkpoint import WEIGHTS_DTYPES, export_for_sampling, resolve_checkpoint
+from pocoloco.methods import load_method
 from pocoloco.viz.render import (
     VIEWS,
     render_gif,
@@ -153,7 +154,10 @@ def cmd_view(args: argparse.Namespace) -> None:
 # -------------------------------------------------------------------------------- export-model
 def cmd_export_model(args: argparse.Namespace) -> None:
     """A small sampling-only copy of a checkpoint (how the shipped models were made)."""
-    out = export_for_sampling(resolve_checkpoint(args.ckpt), args.out, use_ema=not args.raw_weights, dtype=args.dtype)
+    ckpt = resolve_checkpoint(args.ckpt)
+    buffers = [name for name, b in load_method(ckpt).model.named_buffers() if b.is_floating_point()]
+    out = export_for_sampling(ckpt, args.out, use_ema=not args.raw_weights, dtype=args.dtype,
+                              keep_float32=buffers)  # geometry buffers (templates, UV queries) stay float32
     size = sum(f.stat().st_size for f in out.iterdir())
     weights = json.loads((out / "meta.json").read_text(encoding="utf-8"))["weights"]  # raw if the model keeps no EMA
     print(f"wrote {out} ({size / 1e6:.1f} MB, {'EMA' if weights == 'ema' else 'raw'} weights, {args.dtype})")

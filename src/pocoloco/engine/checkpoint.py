@@ -46,6 +46,7 @@ import re
 import shutil
 import uuid
 import warnings
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -493,7 +494,7 @@ def _load_one(ckpt: Path, expect_model: str | None, expect_preset: str | None, m
 
 
 def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema: bool = True,
-                        dtype: str = "float32") -> Path:
+                        dtype: str = "float32", keep_float32: Collection[str] = ()) -> Path:
     """Write a small sampling-only copy of a checkpoint: ``meta.json`` + one ``model.safetensors``.
 
     The weights are the EMA weights (``use_ema``, if the checkpoint has them) or the raw ones; no
@@ -503,6 +504,8 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     dtype: storage dtype of the floating tensors, ``"float32"`` or ``"float16"`` (half the bytes;
         integer / bool buffers untouched; loading casts back to float32). Recorded in ``meta.json``
         as ``weights_dtype``. A value beyond float16's range (65504) is a one-line ValueError.
+    keep_float32: tensors stored in float32 whatever ``dtype`` (a model's geometry buffers: a
+        template's vertices in metres lose ~0.5 mm to float16, which moves every output point).
     """
     from safetensors.torch import save_file
 
@@ -511,7 +514,8 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     ck = load_checkpoint(path, expect_model=None, training_state=False)
     state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
     if dtype != "float32":
-        state = {k: _cast_finite(k, v, WEIGHTS_DTYPES[dtype], ck.path) for k, v in state.items()}
+        keep = set(keep_float32)
+        state = {k: v if k in keep else _cast_finite(k, v, WEIGHTS_DTYPES[dtype], ck.path) for k, v in state.items()}
     meta = dict(ck.meta)
     meta.update(has_ema=False, has_training_state=False, exported_from=str(ck.path),
                 weights="ema" if (use_ema and ck.ema_state is not None) else "raw", weights_dtype=dtype)  # fmt: skip

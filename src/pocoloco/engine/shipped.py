@@ -6,8 +6,8 @@ stored as fp16 and loaded as float32, their SHA-256 in the meta). ``assets/pocol
 PocoLoco's ``latent_small`` preset (the linear-in-N latent denoiser, outfit codes + body shape)
 trained on the ``medium`` synthetic dataset (14 outfits, 7 garment kinds) on one GPU for 5.5 min
 (EMA weights); ``assets/pop_medium`` POP (``small`` preset) trained on ``medium``, 10,000 steps on
-one CPU thread; ``assets/closet_small`` CloSET (``small`` preset) still trained on the ``small``
-dataset (3 outfits) until its ``medium`` run ships; the peers' raw weights (they keep no EMA). How each was trained and its evaluation are in README.md ("The default
+one CPU thread; ``assets/closet_medium`` CloSET (``small`` preset) trained on ``medium``, 10,000
+steps on one CPU thread; the peers' raw weights (they keep no EMA). How each was trained and its evaluation are in README.md ("The default
 model", "POP and CloSET"). Written by :func:`pocoloco.engine.checkpoint.export_for_sampling`
 (``pocoloco export-model``).
 """
@@ -22,7 +22,7 @@ __all__ = ["ASSETS_DIR", "SHIPPED_MODELS", "default_checkpoint", "describe_check
 ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
 DEFAULT_MODEL_DIR = ASSETS_DIR / "pocoloco_medium"
 #: ``--ckpt default:NAME`` -> folder under assets/ (``default`` alone is PocoLoco's)
-SHIPPED_MODELS = {"pocoloco": "pocoloco_medium", "pop": "pop_medium", "closet": "closet_small"}
+SHIPPED_MODELS = {"pocoloco": "pocoloco_medium", "pop": "pop_medium", "closet": "closet_medium"}
 
 
 def default_checkpoint(kind: str = "pocoloco") -> Path:

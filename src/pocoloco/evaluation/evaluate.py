@@ -442,7 +442,7 @@ def write_outputs(out: str | os.PathLike, result: EvalResult, examples: list[dic
     """eval.json, eval.md, chamfer_per_frame.png, examples.png in ``out`` (each written atomically)."""
     out = output_folder(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out / "eval.json", jsonable(result.to_dict()))
+    write_json_atomic(out / "eval.json", jsonable(result.to_dict()), indent=None)  # per-frame rows: compact
     write_text_atomic(out / "eval.md", markdown_tables(result))
     curves = {}
     for method in result.means:

@@ -194,7 +194,7 @@ def bench_quality(
         "frames": {k: res.frames for k, (res, _) in results.items()} | {"baselines": base.frames},
     }  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out / "quality.json", jsonable(report))
+    write_json_atomic(out / "quality.json", jsonable(report), indent=None)  # per-frame rows: compact
     write_text_atomic(out / "quality.md", quality_markdown(report))
     render_comparison(base_examples, examples, out / "quality.png")
     return report
