@@ -40,7 +40,7 @@ from pocoloco.cli.common import (
 from pocoloco.data.poses import load_joints
 from pocoloco.data.published import write_ply
 from pocoloco.diffusion.samplers import check_sampler
-from pocoloco.methods import SamplerOptions, checkpoint_kind, fit_to_memory
+from pocoloco.methods import check_memory, checkpoint_kind
 from pocoloco.utils.atomic import jsonable, no_file_reason, write_json_atomic
 from pocoloco.viz.render import render_gif, render_grid
 
@@ -107,7 +107,7 @@ def cmd_complete(args: argparse.Namespace) -> None:
     partial, normals = read_cloud(args.partial)
     method = load_method_from_args(args)
     prior = method.point_prior(pick_outfit(method, args.outfit, args.joints))
-    fit_to_memory(method, args.points, args.num * args.candidates, SamplerOptions(batch_size=1))  # K candidates each
+    check_memory(method, args.points, args.num * args.candidates)  # K candidates each
     ckpt, step, T = method.path, method.step, prior.schedule.num_timesteps
     joints = load_joints(args.joints, args.frame_id, prior.num_joints, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, T)
@@ -196,7 +196,7 @@ def cmd_edit(args: argparse.Namespace) -> None:
     source, normals = read_cloud(args.source)
     method = load_method_from_args(args)
     prior = method.point_prior(pick_outfit(method, args.outfit, args.joints))
-    fit_to_memory(method, args.points or min(len(source), 4096), args.num or 1, SamplerOptions(batch_size=1))
+    check_memory(method, args.points or min(len(source), 4096), args.num)
     ckpt, step, T, J = method.path, method.step, prior.schedule.num_timesteps, prior.num_joints
     target = load_joints(args.joints, None, J, any_pose=args.any_pose)
     src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J, any_pose=args.any_pose)
@@ -308,7 +308,7 @@ def cmd_animate(args: argparse.Namespace) -> None:
     if not 1 <= args.t <= T:
         raise ValueError(f"--t must be in [1, {T}] (the model's training timesteps), got {args.t}")
     joints = motion.joints[chosen]
-    fit_to_memory(method, args.points, len(chosen), SamplerOptions(batch_size=1))  # every frame is kept
+    check_memory(method, args.points, len(chosen))  # every frame is kept
     t0 = time.perf_counter()
     with progress_bar("animate", total=len(chosen)) as update:
         anim = animate(prior, joints, args.points, method=args.method, t=args.t,

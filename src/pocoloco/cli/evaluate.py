@@ -16,6 +16,7 @@ from pocoloco.cli.common import (
 )
 from pocoloco.data import format as fmt
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
+from pocoloco.engine.checkpoint import latest_checkpoint, read_meta
 from pocoloco.evaluation.baselines import NEAREST_ALIGNS
 from pocoloco.evaluation.evaluate import (
     GARMENT_COLUMNS,
@@ -33,7 +34,6 @@ from pocoloco.evaluation.quality import (
     garment_table_markdown,
     table_markdown,
 )
-from pocoloco.engine.checkpoint import latest_checkpoint, read_meta
 from pocoloco.methods import train, train_preset
 from pocoloco.methods.registry import config_from_checkpoint
 from pocoloco.utils.atomic import output_folder

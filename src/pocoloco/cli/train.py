@@ -14,7 +14,6 @@ import torch
 import torch.distributed as dist
 
 from pocoloco.cli.common import add_threads_argument, console
-from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.data.dataset import OpenedDataset
 from pocoloco.data.pack import is_pack, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
@@ -23,6 +22,7 @@ from pocoloco.engine.trainer import train as run_training
 from pocoloco.engine.checkpoint import latest_checkpoint
 from pocoloco.methods import METHODS, method_class
 from pocoloco.methods.pocoloco.config import SCHEDULE_KINDS
+from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.methods.registry import config_from_checkpoint
 
 __all__ = ["register"]
@@ -91,17 +91,20 @@ def _config_from_args(args: argparse.Namespace):
 
 def cmd_train(args: argparse.Namespace) -> None:
     """Validate everything (options, data, run folder), then print the banner and train."""
-    # the dataset opened once (card read; frames checked below, once): one line if --data is neither
-    # a dataset folder nor a training pack
-    data = args.data if is_pack(args.data) else OpenedDataset.open(args.data, subjects=[])
-    if is_pack(args.data):
+    # one line if --data is neither a dataset folder nor a training pack; a folder is opened once
+    # (its card read here, its frames checked below) and handed down
+    packed = is_pack(args.data)
+    if packed:
         training_card(args.data)
+        data = args.data
+    else:
+        data = OpenedDataset.open(args.data, subjects=[])
     config = _config_from_args(args)
-    if is_pack(args.data) and config.model != "pocoloco":
+    if packed and config.model != "pocoloco":
         raise ValueError(f"--data {args.data}: a training pack holds what PocoLoco trains on; --model {config.model} "
                          "trains on the dataset folder")  # fmt: skip
-    if isinstance(data, OpenedDataset):
-        data = data.ensure_checked(getattr(config, "subjects", None))
+    if not packed:
+        data = data.ensure_checked(config.subjects)
     task = method_class(config.model).training_task(config, data)
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")

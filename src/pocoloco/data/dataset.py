@@ -255,8 +255,7 @@ class PointCloudDataset(Dataset):
         heading: bool = False,
         velocity: bool = False,
     ):
-        opened = root if isinstance(root, OpenedDataset) else OpenedDataset(os.fspath(root), fmt.read_card(root),
-                                                                            fmt.DatasetLayout(root))  # fmt: skip
+        opened = OpenedDataset.open(root, subjects=[])  # the card (read here unless the caller opened it)
         self.root = opened.root
         self.body_point_ids = None if body_point_ids is None else np.asarray(body_point_ids, np.int64)
         self.card = opened.card

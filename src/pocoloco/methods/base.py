@@ -40,7 +40,7 @@ from pocoloco.engine.checkpoint import Checkpoint, save_checkpoint
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.utils.hardware import available_memory_bytes
 
-__all__ = ["MEMORY_SHARE", "Method", "PointPrior", "SampledClouds", "SamplerOptions", "fit_to_memory"]
+__all__ = ["MEMORY_SHARE", "Method", "PointPrior", "SampledClouds", "SamplerOptions", "check_memory", "fit_to_memory"]
 
 #: meta.json entries that ``save_checkpoint`` writes itself
 _META_OWN = frozenset({"format", "version", "model_kind", "preset", "step", "config", "normalisation", "has_ema",
@@ -263,13 +263,13 @@ MEMORY_SHARE = 0.8
 OUTPUT_BYTES_PER_POINT = 4 * (3 + 3 + 6)
 
 
-def fit_to_memory(method: Method, num_points: int, num_clouds: int, options: SamplerOptions) -> SamplerOptions:
-    """``options`` with a batch size (clouds denoised together) that fits in the free memory of the
-    model's device (a one-line warning when it had to be lowered); a one-line error naming the most
-    points that fit when even one cloud does not, or the most clouds whose outputs fit together."""
+def check_memory(method: Method, num_points: int, num_clouds: int) -> tuple[int, int] | None:
+    """A one-line error naming the most points that fit when even one cloud of ``num_points`` does not
+    fit in the free memory of the model's device, or the most clouds whose outputs fit together;
+    else (free bytes, bytes of one cloud in flight), or None where free memory cannot be told."""
     free = available_memory_bytes(method.device)
     if free is None:
-        return options
+        return None
     budget = MEMORY_SHARE * free
     per_cloud = num_points * method.bytes_per_point()
     if per_cloud > budget:
@@ -282,7 +282,17 @@ def fit_to_memory(method: Method, num_points: int, num_clouds: int, options: Sam
         most = max(int(budget // (OUTPUT_BYTES_PER_POINT * num_points)), 0)
         raise ValueError(f"--num {num_clouds:,} clouds of {num_points:,} points: the clouds alone need ~{kept / 2**30:.3g} GiB "
                          f"and {free / 2**30:.1f} GiB are free; at most ~{most:,} clouds of that size fit")  # fmt: skip
-    fits = max(1, int(budget // per_cloud))
+    return free, per_cloud
+
+
+def fit_to_memory(method: Method, num_points: int, num_clouds: int, options: SamplerOptions) -> SamplerOptions:
+    """``options`` with a batch size (clouds denoised together) that fits in the free memory of the
+    model's device (a one-line warning when it had to be lowered), after :func:`check_memory`."""
+    known = check_memory(method, num_points, num_clouds)
+    if known is None:
+        return options
+    free, per_cloud = known
+    fits = max(1, int(MEMORY_SHARE * free // per_cloud))
     batch = min(options.batch_size, num_clouds)
     if fits < batch:
         warnings.warn(f"denoising {fits} of the {num_clouds} clouds at a time to fit in {free / 2**30:.1f} GiB of free memory")

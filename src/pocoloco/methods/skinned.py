@@ -47,13 +47,12 @@ from pocoloco.data.format import (
 from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, pose_from_frame
 from pocoloco.data.step_batches import StepBatches
 from pocoloco.engine.checkpoint import Checkpoint, one_line
-from pocoloco.engine.trainer import TrainingTask
+from pocoloco.engine.trainer import LoopSettings, TrainingTask
 from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.models.closet import CLOSET_PRESETS, CloSETConfig, CloSETLossWeights
 from pocoloco.models.pop import POP_PRESETS, POPConfig
-from pocoloco.viz.render import render_grid
-from pocoloco.engine.trainer import LoopSettings
 from pocoloco.utils.config import Config
+from pocoloco.viz.render import render_grid
 
 __all__ = ["NORMAL_START_FRACTION", "SKINNED_PRESETS", "SkinnedMethod", "SkinnedTask", "SkinnedTrainConfig",
            "read_subjects", "skinned_preset"]  # fmt: skip
@@ -156,7 +155,6 @@ class SkinnedTrainConfig(Config):
     def net_config(self) -> POPConfig | CloSETConfig:
         """The ``POPConfig`` or ``CloSETConfig``."""
         return POPConfig.from_dict(self.net) if self.model == "pop" else CloSETConfig.from_dict(self.net)
-
 
 
 def _pop_net(name: str, **kw) -> dict[str, Any]:

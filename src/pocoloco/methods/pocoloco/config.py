@@ -12,10 +12,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
+from pocoloco.engine.trainer import LoopSettings
 from pocoloco.models.denoisers import ARCHITECTURES, denoiser_config_from_dict
 from pocoloco.models.latent import LATENT_PRESETS, LatentDenoiserConfig
 from pocoloco.models.pocoloco import DENOISER_PRESETS, PocoLocoDenoiserConfig
-from pocoloco.engine.trainer import LoopSettings
 from pocoloco.utils.config import Config
 
 __all__ = ["LR_SCHEDULES", "SCHEDULE_KINDS", "TRAIN_PRESETS", "PocoLocoTrainConfig", "train_preset"]
