@@ -59,6 +59,9 @@ __all__ = ["PoissonMesh", "MeshReport", "RefineReport", "estimate_normals", "ske
 
 #: Fewer points than this cannot describe a surface worth reconstructing.
 MIN_POINTS = 100
+# Open3D's multi-threaded Poisson solver crashes the process now and then (a data race, Open3D
+# issues #6828 / #7229; it segfaulted our CI once in ~100 runs). One thread costs ~10 % on 2 cores.
+POISSON_THREADS = 1
 
 
 class PoissonMesh(NamedTuple):
@@ -230,7 +233,7 @@ def mesh_from_points(
     for attempt in range(3):
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-                pc, depth=int(depth), scale=float(scale), linear_fit=False
+                pc, depth=int(depth), scale=float(scale), linear_fit=False, n_threads=POISSON_THREADS
             )
         # Where the cloud is open the surface may extrapolate out of the reconstruction cube
         # (centre of the bounding box, side scale * its longest extent) and get cut there:
