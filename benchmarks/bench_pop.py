@@ -100,7 +100,7 @@ def _worker(args) -> None:
         step = [0]
 
         def run():
-            train_step(model, opt, batch, model.config.normal_start + step[0])  # normal term on
+            train_step(model, opt, batch, step[0])  # normal term on (normal_start 0)
             step[0] += 1
 
     setup = _vmhwm_mib()

@@ -17,6 +17,7 @@ from pocoloco.engine import checkpoint as ckpt_io
 from pocoloco.methods import load_method, train
 from pocoloco.methods.pocoloco import load_denoiser
 from pocoloco.methods.skinned import SKINNED_PRESETS, SkinnedTrainConfig, skinned_preset
+from pocoloco.models.pop import LEGACY_TRAINING_FIELDS, POPLossWeights
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
@@ -58,12 +59,32 @@ def test_presets_roundtrip_and_schedule():
         assert SkinnedTrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
     c = skinned_preset("pop", "small", steps=800)
     assert c.normal_start == 500  # the paper's epoch 250 of 400
-    assert c.net_config().normal_start == 500 and c.net_config().lr == c.lr  # the POP config follows the run
+    assert c.pop_loss_weights() == POPLossWeights()  # the paper's (Eq. 3); the network config has none
+    assert not LEGACY_TRAINING_FIELDS & set(c.net)
     assert skinned_preset("closet", "tiny", decomposition=False).net_config().decomposition is False
     with pytest.raises(ValueError, match="closet only"):
         skinned_preset("pop", "tiny", decomposition=False)
     with pytest.raises(ValueError, match="unknown training preset 'huge' for pop"):
         skinned_preset("pop", "huge")
+
+
+def test_a_pop_run_stored_with_training_fields_in_its_network_config_still_loads():
+    """Checkpoints written before the split kept lr, batch, scan points and loss weights in ``net``:
+    they load with the weights moved to ``pop_weights`` and the rest dropped (the run's own fields
+    always held the same values); an unknown field is still refused."""
+    new = skinned_preset("pop", "small", steps=800)
+    old = new.to_dict()
+    del old["pop_weights"]
+    old["net"] = {**old["net"], "lr": new.lr, "lr_features": new.lr_codes, "batch_size": new.batch_size,
+                  "num_scan_points": new.num_points, "normal_start": new.normal_start, "w_s2m": 2e4, "w_m2s": 1e4,
+                  "w_normal": 0.1, "w_displacement": 2e3, "w_feature": 1.0}  # fmt: skip
+    loaded = SkinnedTrainConfig.from_dict(old)
+    assert loaded == new.replace(pop_weights={**new.pop_weights, "s2m": 2e4})
+    assert SkinnedTrainConfig.from_dict(loaded.to_dict()) == loaded
+    with pytest.raises(ValueError, match="unknown POPConfig field"):
+        SkinnedTrainConfig.from_dict({**old, "net": {**old["net"], "w_bogus": 1.0}})
+    with pytest.raises(ValueError, match="POPLossWeights.s2m"):
+        new.replace(pop_weights={"s2m": -1.0})
 
 
 # -------------------------------------------------------------------------------- training

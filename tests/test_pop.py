@@ -32,7 +32,7 @@ from pocoloco.methods.pop import (
     pop_sample_from_frame,
     train_step,
 )
-from pocoloco.models.pop import POP, POPBatch, POPConfig, pop_preset
+from pocoloco.models.pop import POP, POPBatch, POPConfig, POPLossWeights, pop_preset
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
@@ -243,7 +243,7 @@ def test_losses_match_slow_reference(surface, mesh):
     batch = make_batch(mesh, seed=4, n_scan=80, num_points=60)
     out = model(batch)
     out.points.retain_grad()
-    c = model.config
+    c = POPLossWeights(s2m=2e4, displacement=1e3)  # not the defaults: the weights are applied
     for wn, backend in ((0.0, "kdtree"), (0.1, "brute"), (0.1, "kdtree")):
         fast = pop_losses(out, batch.scan_points, batch.scan_normals, c, normal_weight=wn, nn_backend=backend)
         slow = pop_losses_reference(out, batch.scan_points, batch.scan_normals, c, normal_weight=wn)
@@ -256,12 +256,10 @@ def test_losses_match_slow_reference(surface, mesh):
 
 
 def test_training_steps_reduce_the_loss(surface, mesh):
-    model = make_model(surface, mesh, outfits=1, seed=5, normal_start=0)
+    model = make_model(surface, mesh, outfits=1, seed=5)
     rng = np.random.default_rng(5)
     batch = collate_pop([pop_sample_from_frame(synthetic_frame(mesh[0], rng), 0, 500, rng)])
-    opt = make_optimizer(model)
-    for group in opt.param_groups:
-        group["lr"] = 3e-3
+    opt = make_optimizer(model, lr=3e-3, lr_features=3e-3)
     losses = [train_step(model, opt, batch, step)["total"] for step in range(25)]
     assert np.isfinite(losses).all()
     assert min(losses[-5:]) < 0.5 * losses[0], losses

@@ -50,7 +50,7 @@ from pocoloco.engine.checkpoint import Checkpoint, one_line
 from pocoloco.engine.trainer import LoopSettings, TrainingTask
 from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.models.closet import CLOSET_PRESETS, CloSETConfig, CloSETLossWeights
-from pocoloco.models.pop import POP_PRESETS, POPConfig
+from pocoloco.models.pop import LEGACY_LOSS_WEIGHTS, POP_PRESETS, POPConfig, POPLossWeights
 from pocoloco.utils.config import Config
 from pocoloco.viz.render import render_grid
 
@@ -75,7 +75,8 @@ class SkinnedTrainConfig(Config):
     query_points: CloSET's surface points per training step (POP uses its UV query map).
     lr / lr_codes: Adam rates of the networks and of the auto-decoded outfit codes (POP's
     geometric features, CloSET's garment codes). normal_start: first step with the normal loss.
-    closet_weights: ``CloSETLossWeights`` as a dict (CloSET only). subjects: train on these
+    pop_weights: ``POPLossWeights`` as a dict (POP only); closet_weights: ``CloSETLossWeights`` as
+    a dict (CloSET only). subjects: train on these
     subjects only (one outfit each; None = all), e.g. to hold one out for ``pocoloco fit``.
     seed: everything random.
     ckpt_every / sample_every / log_every: periods in steps (0 disables checkpoints / renders).
@@ -93,6 +94,7 @@ class SkinnedTrainConfig(Config):
     lr: float = 3e-4
     lr_codes: float = 5e-4
     normal_start: int = 6250
+    pop_weights: dict[str, float] = field(default_factory=dict)
     closet_weights: dict[str, float] = field(default_factory=dict)
     subjects: list[str] | None = None
     seed: int = 0
@@ -131,16 +133,30 @@ class SkinnedTrainConfig(Config):
             object.__setattr__(self, "subjects", sorted(str(x) for x in self.subjects))
         if self.model == "pop":
             net = POPConfig.from_dict(self.net).to_dict() if self.net else POPConfig().to_dict()
-            # the POP config's own training fields follow the run's (one source of truth)
-            net.update(lr=self.lr, lr_features=self.lr_codes, batch_size=self.batch_size,
-                       num_scan_points=self.num_points, normal_start=self.normal_start)  # fmt: skip
-            POPConfig.from_dict(net)  # validate
+            object.__setattr__(self, "pop_weights", POPLossWeights.from_dict(self.pop_weights).to_dict())
             object.__setattr__(self, "closet_weights", {})
         else:
             net = CloSETConfig.from_dict(self.net).to_dict() if self.net else CLOSET_PRESETS["paper"].to_dict()
             w = dataclasses.asdict(CloSETLossWeights(**self.closet_weights))
             object.__setattr__(self, "closet_weights", w)
+            object.__setattr__(self, "pop_weights", {})
         object.__setattr__(self, "net", json.loads(json.dumps(net)))  # plain JSON types (tuples -> lists)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SkinnedTrainConfig:
+        """As :meth:`Config.from_dict`; a POP run stored before the network and training configs were
+        split kept its loss weights in ``net`` (``w_s2m``, ...): they move to ``pop_weights`` (the
+        other training fields there always equalled the run's own)."""
+        net = d.get("net") if isinstance(d, dict) else None
+        if isinstance(net, dict) and d.get("model", "pop") == "pop":
+            legacy = {LEGACY_LOSS_WEIGHTS[k]: v for k, v in net.items() if k in LEGACY_LOSS_WEIGHTS}
+            if legacy:
+                d = {**d, "pop_weights": {**legacy, **(d.get("pop_weights") or {})}}
+        return super().from_dict(d)
+
+    def pop_loss_weights(self) -> POPLossWeights:
+        """POP's loss weights (paper Eq. 3)."""
+        return POPLossWeights.from_dict(self.pop_weights)
 
     def loop(self) -> LoopSettings:
         """What the training loop reads (:class:`pocoloco.engine.trainer.LoopSettings`): a constant

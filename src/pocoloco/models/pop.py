@@ -41,9 +41,11 @@ Ri input map resolution, Rq query map resolution.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -60,7 +62,8 @@ from pocoloco.body.surface import (
 from pocoloco.models.pop_decoder import ShapeDecoder
 from pocoloco.utils.config import Config
 
-__all__ = ["DECODER_IMPLS", "POP", "POPBatch", "POPConfig", "POPOutput", "POPQuery", "POP_PRESETS", "pop_preset"]
+__all__ = ["DECODER_IMPLS", "LEGACY_LOSS_WEIGHTS", "LEGACY_TRAINING_FIELDS", "POP", "POPBatch", "POPConfig", "POPLossWeights", "POPOutput",
+           "POPQuery", "POP_PRESETS", "pop_preset"]
 
 DECODER_IMPLS = ("linear_valid", "conv1d_all_pixels")
 
@@ -82,8 +85,8 @@ class POPConfig(Config):
     displacement_scale: s in x = T (s r) + p (0.02 in the public code).
     pose_input: "mean_shape" = the UNet sees the posed mean-shape body (paper Sec. 3.2,
         body-shape agnostic), "subject" = the subject's own posed body.
-    Loss weights: s2m and m2s 1e4 each, normal 0.1 from ``normal_start`` (training
-        steps; the paper switches at epoch 250 of 400), displacement 2e3, feature 1.
+    The network only: the loss weights are :class:`POPLossWeights`, the learning rates, batch and
+    scan points the training run's (``pocoloco.methods.skinned.SkinnedTrainConfig``).
     """
 
     input_resolution: int = 128
@@ -103,16 +106,6 @@ class POPConfig(Config):
     decoder_impl: Literal["linear_valid", "conv1d_all_pixels"] = "linear_valid"
     transform_mode: Literal["blend", "polar"] = "blend"
     pose_input: Literal["mean_shape", "subject"] = "mean_shape"
-    num_scan_points: int = 40000
-    w_s2m: float = 1e4
-    w_m2s: float = 1e4
-    w_normal: float = 0.1
-    normal_start: int = 0
-    w_displacement: float = 2e3
-    w_feature: float = 1.0
-    lr: float = 3e-4
-    lr_features: float = 5e-4
-    batch_size: int = 4
 
     def __post_init__(self):
         def pos_int(name):
@@ -121,7 +114,7 @@ class POPConfig(Config):
                 raise ValueError(f"POPConfig.{name} must be a positive integer, got {v!r}")
 
         for name in ("input_resolution", "query_resolution", "pose_channels", "geom_channels", "geom_kernel",
-                     "decoder_width", "decoder_layers", "num_scan_points", "batch_size"):  # fmt: skip
+                     "decoder_width", "decoder_layers"):  # fmt: skip
             pos_int(name)
         if not self.unet_channels or any(int(c) < 1 for c in self.unet_channels):
             raise ValueError(f"POPConfig.unet_channels must be positive integers, got {self.unet_channels!r}")
@@ -140,13 +133,45 @@ class POPConfig(Config):
             raise ValueError(f"POPConfig.transform_mode must be 'blend' or 'polar', got {self.transform_mode!r}")
         if self.pose_input not in ("mean_shape", "subject"):
             raise ValueError(f"POPConfig.pose_input must be 'mean_shape' or 'subject', got {self.pose_input!r}")
-        for name in ("w_s2m", "w_m2s", "w_normal", "w_displacement", "w_feature", "geom_init_std"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"POPConfig.{name} must be >= 0, got {getattr(self, name)!r}")
-        if not (self.lr > 0 and self.lr_features > 0 and self.displacement_scale > 0):
-            raise ValueError("POPConfig.lr, lr_features and displacement_scale must be > 0")
-        if self.normal_start < 0:
-            raise ValueError(f"POPConfig.normal_start must be >= 0, got {self.normal_start}")
+        if not self.geom_init_std >= 0:
+            raise ValueError(f"POPConfig.geom_init_std must be >= 0, got {self.geom_init_std!r}")
+        if not self.displacement_scale > 0:
+            raise ValueError(f"POPConfig.displacement_scale must be > 0, got {self.displacement_scale!r}")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> POPConfig:
+        """As :meth:`Config.from_dict`; the training fields that older checkpoints stored in the network
+        config (:data:`LEGACY_TRAINING_FIELDS`, now the run's and :class:`POPLossWeights`) are dropped."""
+        if isinstance(d, dict):
+            d = {k: v for k, v in d.items() if k not in LEGACY_TRAINING_FIELDS}
+        return super().from_dict(d)
+
+
+#: POPConfig fields of checkpoints written before the network and training configs were split
+#: (loss weight names -> POPLossWeights fields; the rest are SkinnedTrainConfig's)
+LEGACY_LOSS_WEIGHTS = {"w_s2m": "s2m", "w_m2s": "m2s", "w_normal": "normal", "w_displacement": "displacement",
+                       "w_feature": "feature"}  # fmt: skip
+LEGACY_TRAINING_FIELDS = frozenset({*LEGACY_LOSS_WEIGHTS, "num_scan_points", "normal_start", "lr", "lr_features",
+                                    "batch_size"})  # fmt: skip
+
+
+@dataclass(frozen=True)
+class POPLossWeights(Config):
+    """The weights of POP's loss (paper Eq. 3; the values of its public training configuration):
+    scan-to-model and model-to-scan Chamfer 1e4 each, normal 0.1 (from the run's ``normal_start``;
+    the paper switches it on at epoch 250 of 400), displacement 2e3, feature 1."""
+
+    s2m: float = 1e4
+    m2s: float = 1e4
+    normal: float = 0.1
+    displacement: float = 2e3
+    feature: float = 1.0
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"POPLossWeights.{f.name} must be a finite number >= 0, got {v!r}")
 
 
 
@@ -155,9 +180,9 @@ POP_PRESETS: dict[str, POPConfig] = {
     "paper": POPConfig(),
     # CPU presets: smaller maps and widths, same structure
     "small": POPConfig(input_resolution=64, query_resolution=128, unet_channels=(16, 32, 64, 128, 128, 128),
-                       pose_channels=32, geom_channels=32, decoder_width=128, num_scan_points=8192),  # fmt: skip
+                       pose_channels=32, geom_channels=32, decoder_width=128),  # fmt: skip
     "tiny": POPConfig(input_resolution=32, query_resolution=32, unet_channels=(8, 16, 32, 32, 32),
-                      pose_channels=8, geom_channels=8, geom_kernel=3, decoder_width=32, num_scan_points=1024),  # fmt: skip
+                      pose_channels=8, geom_channels=8, geom_kernel=3, decoder_width=32),  # fmt: skip
 }
 
 

@@ -17,27 +17,27 @@ from pocoloco.body.skeleton import NUM_JOINTS
 from pocoloco.body.surface import pose_mean_shape
 from pocoloco.data.format import DatasetLayout, read_frame, read_motion, read_subject
 from pocoloco.methods.pop.losses import check_scan, normal_weight_at, pop_losses
-from pocoloco.models.pop import POP, POPBatch
+from pocoloco.models.pop import POP, POPBatch, POPLossWeights
 
 __all__ = ["POPDataset", "POPSample", "collate_pop", "make_optimizer", "pop_sample_from_frame", "train_step"]
 
 
-def make_optimizer(model: POP) -> torch.optim.Adam:
-    """Adam with lr ``config.lr`` for the network and ``config.lr_features`` for G (SupMat A.2)."""
-    c = model.config
-    return torch.optim.Adam([{"params": model.network_parameters(), "lr": c.lr},
-                             {"params": [model.geom], "lr": c.lr_features}])  # fmt: skip
+def make_optimizer(model: POP, lr: float = 3e-4, lr_features: float = 5e-4) -> torch.optim.Adam:
+    """Adam with ``lr`` for the network and ``lr_features`` for G (SupMat A.2's rates by default)."""
+    return torch.optim.Adam([{"params": model.network_parameters(), "lr": lr},
+                             {"params": [model.geom], "lr": lr_features}])  # fmt: skip
 
 
-def train_step(model: POP, optimizer: torch.optim.Optimizer, batch: POPBatch, step: int) -> dict[str, float]:
+def train_step(model: POP, optimizer: torch.optim.Optimizer, batch: POPBatch, step: int,
+               weights: POPLossWeights = POPLossWeights(), normal_start: int = 0) -> dict[str, float]:  # fmt: skip
     """One optimisation step on ``batch`` (model in training mode); returns the losses as floats.
-    The normal term is on from ``config.normal_start`` and then needs ``scan_normals``."""
+    The normal term is on from step ``normal_start`` and then needs ``scan_normals``."""
     model.train()
-    wn = normal_weight_at(model.config, step)
+    wn = normal_weight_at(weights, normal_start, step)
     check_scan(batch.scan_points, batch.scan_normals, batch.body_vertices.shape[0], need_normals=True)
     optimizer.zero_grad(set_to_none=True)
     out = model(batch)
-    losses = pop_losses(out, batch.scan_points, batch.scan_normals, model.config, normal_weight=wn)
+    losses = pop_losses(out, batch.scan_points, batch.scan_normals, weights, normal_weight=wn)
     losses.total.backward()
     optimizer.step()
     return losses.as_floats()

@@ -11,7 +11,7 @@ from torch import nn
 
 from pocoloco.engine.trainer import frozen
 from pocoloco.methods.pop.losses import pop_losses
-from pocoloco.models.pop import POP, POPBatch
+from pocoloco.models.pop import POP, POPBatch, POPLossWeights
 
 __all__ = ["POPFit", "fit_unseen_outfit"]
 
@@ -25,11 +25,12 @@ class POPFit:
 
 
 def fit_unseen_outfit(model: POP, scan_points, scan_normals, pose_vertices, body_vertices, vtransf, steps: int = 400,
-                      lr: float | None = None, normal_weight: float | None = None, init: torch.Tensor | None = None,
-                      progress=None) -> POPFit:  # fmt: skip
+                      lr: float = 5e-4, normal_weight: float | None = None, init: torch.Tensor | None = None,
+                      progress=None, weights: POPLossWeights = POPLossWeights()) -> POPFit:  # fmt: skip
     """Fit a new outfit to one scan (paper Eq. 7, Sec. 3.3): the network is frozen (eval
     mode, no gradients); only a new geometric feature tensor, initialised to the mean
-    of the trained outfits' tensors, is optimised with Adam (lr ``config.lr_features``).
+    of the trained outfits' tensors, is optimised with Adam (``lr``: by default the paper's rate
+    for the feature tensors) on the training loss ``weights``.
 
     scan_points, scan_normals: (N, 3) pelvis-centred scan; pose_vertices, body_vertices:
     (V, 3); vtransf: (V, 3, 3). Use ``model.add_outfit(fit.features)`` to animate it.
@@ -51,13 +52,13 @@ def fit_unseen_outfit(model: POP, scan_points, scan_normals, pose_vertices, body
     if tuple(start.shape) != (1, *model.geom.shape[1:]):
         raise ValueError(f"init must have shape {(1, *model.geom.shape[1:])}, got {tuple(start.shape)}")
     G = nn.Parameter(start.clone())
-    opt = torch.optim.Adam([G], lr=model.config.lr_features if lr is None else lr)
+    opt = torch.optim.Adam([G], lr=float(lr))
     fit = POPFit(G.data)
     with frozen(model):
         for _ in range(steps):
             opt.zero_grad(set_to_none=True)
             out = model(batch, geom=G)
-            loss = pop_losses(out, batch.scan_points, batch.scan_normals, model.config, normal_weight)
+            loss = pop_losses(out, batch.scan_points, batch.scan_normals, weights, normal_weight)
             loss.total.backward()
             opt.step()
             fit.losses.append(float(loss.total.detach()))

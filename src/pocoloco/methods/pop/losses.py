@@ -12,10 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pocoloco.models.pop import POPConfig, POPOutput
+from pocoloco.models.pop import POPLossWeights, POPOutput
 from pocoloco.ops import knn, knn_numpy
 
-__all__ = ["POPLosses", "check_scan", "normal_weight_at", "pop_losses", "pop_losses_reference"]
+__all__ = ["POPLossWeights", "POPLosses", "check_scan", "normal_weight_at", "pop_losses", "pop_losses_reference"]
 
 
 @dataclass
@@ -70,19 +70,19 @@ def _nearest(query: torch.Tensor, ref: torch.Tensor, backend: str) -> torch.Tens
     return torch.from_numpy(idx).to(query.device)
 
 
-def pop_losses(out: POPOutput, scan_points, scan_normals, config: POPConfig, normal_weight: float | None = None,
-               nn_backend: str = "auto") -> POPLosses:  # fmt: skip
+def pop_losses(out: POPOutput, scan_points, scan_normals, weights: POPLossWeights = POPLossWeights(),
+               normal_weight: float | None = None, nn_backend: str = "auto") -> POPLosses:  # fmt: skip
     """POP training loss (Eq. 3): w_s2m L_s2m + w_m2s L_m2s + w_n L_n + w_rd L_rd + w_rg L_rg.
 
     out: model output (points (B, P, 3)); scan_points, scan_normals: (B, N, 3).
-    normal_weight: w_n (None = ``config.w_normal``; 0 switches the normal term off).
+    weights: the w of Eq. 3. normal_weight: w_n (None = ``weights.normal``; 0 switches the normal term off).
     Nearest neighbours (``_nearest``: cKDTree on CPU, ``pocoloco.ops.knn`` otherwise) are
     chosen without gradient; distances are recomputed in torch for the chosen pairs, so
     gradients flow through them and the predicted normals, not the neighbour choice.
     """
     x, n = out.points, out.normals
     B = x.shape[0]
-    wn = config.w_normal if normal_weight is None else float(normal_weight)
+    wn = weights.normal if normal_weight is None else float(normal_weight)
     check_scan(scan_points, scan_normals, B, need_normals=True)
     y, ny = scan_points.to(x.dtype), scan_normals.to(x.dtype)
     idx_s = _nearest(y, x, nn_backend)  # (B, N) nearest predicted point of each scan point
@@ -94,16 +94,17 @@ def pop_losses(out: POPOutput, scan_points, scan_normals, config: POPConfig, nor
     normal = (n - n_nn).abs().sum(-1).mean() if wn > 0 else x.new_zeros(())
     disp = (out.displacement**2).sum(-1).mean()
     feat = (out.geom**2).mean()
-    total = config.w_s2m * s2m + config.w_m2s * m2s + wn * normal + config.w_displacement * disp + config.w_feature * feat
+    w = weights
+    total = w.s2m * s2m + w.m2s * m2s + wn * normal + w.displacement * disp + w.feature * feat
     return POPLosses(total, s2m, m2s, normal, disp, feat)
 
 
-def pop_losses_reference(out: POPOutput, scan_points, scan_normals, config: POPConfig,
+def pop_losses_reference(out: POPOutput, scan_points, scan_normals, weights: POPLossWeights = POPLossWeights(),
                          normal_weight: float | None = None) -> POPLosses:  # fmt: skip
     """Slow reference for ``pop_losses``: explicit loops over frames and points."""
     x, n = out.points, out.normals
     B, P, _ = x.shape
-    wn = config.w_normal if normal_weight is None else float(normal_weight)
+    wn = weights.normal if normal_weight is None else float(normal_weight)
     s2m, m2s, normal = [], [], []
     for b in range(B):
         y, ny = scan_points[b].to(x.dtype), scan_normals[b].to(x.dtype)
@@ -116,10 +117,11 @@ def pop_losses_reference(out: POPOutput, scan_points, scan_normals, config: POPC
     normal_t = torch.stack(normal).mean() if wn > 0 else x.new_zeros(())
     disp = torch.stack([(out.displacement[b, i] ** 2).sum() for b in range(B) for i in range(P)]).mean()
     feat = torch.stack([(g**2).sum() / g.numel() for g in out.geom]).mean()
-    total = config.w_s2m * s2m_t + config.w_m2s * m2s_t + wn * normal_t + config.w_displacement * disp + config.w_feature * feat
+    w = weights
+    total = w.s2m * s2m_t + w.m2s * m2s_t + wn * normal_t + w.displacement * disp + w.feature * feat
     return POPLosses(total, s2m_t, m2s_t, normal_t, disp, feat)
 
 
-def normal_weight_at(config: POPConfig, step: int) -> float:
-    """w_n at a training step: 0 before ``config.normal_start``, ``config.w_normal`` after."""
-    return config.w_normal if step >= config.normal_start else 0.0
+def normal_weight_at(weights: POPLossWeights, normal_start: int, step: int) -> float:
+    """w_n at a training step: 0 before ``normal_start``, ``weights.normal`` from it on."""
+    return weights.normal if step >= normal_start else 0.0

@@ -82,8 +82,8 @@ class POPMethod(SkinnedMethod):
     fit_needs_normals = True
 
     def fit_points(self) -> int:
-        """Scan points the fit uses by default: the model's ``num_scan_points``."""
-        return int(self.model.config.num_scan_points)
+        """Scan points the fit uses by default: as many as the model saw per frame in training."""
+        return int(self.config.num_points)
 
     def fit_outfit(self, scans, steps: int = 400, lr: float | None = None, progress=None, shape=None,
                    seed: int = 0, init: torch.Tensor | None = None, anchor: float = 0.0) -> POPFit:  # fmt: skip
@@ -100,7 +100,8 @@ class POPMethod(SkinnedMethod):
         root = np.asarray(pose.joints[0], np.float32)
         pv = pose.mean_shape if self.needs_mean_shape else pose.body_vertices - root
         return fit_unseen_outfit(self.model, scan_points - root, scan_normals, pv, pose.body_vertices - root,
-                                 pose.vtransf, steps=steps, lr=lr, init=init, progress=progress)  # fmt: skip
+                                 pose.vtransf, steps=steps, lr=self.config.lr_codes if lr is None else lr, init=init,
+                                 progress=progress, weights=self.config.pop_loss_weights())  # fmt: skip
 
     def mean_outfit_code(self) -> torch.Tensor:
         """The mean of the trained outfits' feature tensors (1, Cg, Ri, Ri): ``fit --start mean``."""
@@ -138,7 +139,7 @@ class POPTask(SkinnedTask):
         return POP(self.config.net_config(), surface, len(self.assets), int(first.template.shape[0]))
 
     def make_optimizer(self, model: nn.Module) -> torch.optim.Optimizer:
-        return make_optimizer(model)
+        return make_optimizer(model, self.config.lr, self.config.lr_codes)
 
     def make_batch(self, items, step: int):
         c = self.config
@@ -152,11 +153,11 @@ class POPTask(SkinnedTask):
         return collate_pop(samples)
 
     def loss(self, net: nn.Module, batch: POPBatch, step: int, rank: int):
-        config = self.model.config
-        wn = normal_weight_at(config, step)
+        weights = self.config.pop_loss_weights()
+        wn = normal_weight_at(weights, self.config.normal_start, step)
         check_scan(batch.scan_points, batch.scan_normals, batch.body_vertices.shape[0], need_normals=True)
         out = net(batch)
-        losses = pop_losses(out, batch.scan_points, batch.scan_normals, config, normal_weight=wn)
+        losses = pop_losses(out, batch.scan_points, batch.scan_normals, weights, normal_weight=wn)
         logs = losses.as_floats()
         total = losses.total
         if wn == 0 and isinstance(net, DistributedDataParallel):
