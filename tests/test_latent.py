@@ -231,9 +231,14 @@ def test_config_round_trip_and_presets():
     assert cfg.num_latents == 5 and cfg.replace(num_latents=8) == LATENT_PRESETS["tiny"]
     assert cfg.num_tokens == 5 + 1 + 24 and LATENT_PRESETS["paper"].point_dim == 128
     assert LatentDenoiserConfig(point_width=None).point_dim == 512
-    # the diffusion code reads these fields like PocoLocoDenoiserConfig's
-    model = LatentDenoiser(latent_preset("tiny", prediction_type="v_prediction"))
-    assert model.prediction_type == "v_prediction" and model.config.point_channels == 3
+    # the diffusion code reads these fields like PocoLocoDenoiserConfig's; the parametrisation is not
+    # the network's (an older checkpoint's stored one is dropped on read, nothing else is)
+    model = LatentDenoiser(latent_preset("tiny"))
+    assert model.config.point_channels == 3 and not hasattr(model, "prediction_type")
+    old = {**LATENT_PRESETS["tiny"].to_dict(), "prediction_type": "epsilon"}
+    assert LatentDenoiserConfig.from_dict(old) == LATENT_PRESETS["tiny"]
+    with pytest.raises(ValueError, match="unknown LatentDenoiserConfig field"):
+        LatentDenoiserConfig.from_dict({**old, "prediction": "epsilon"})
 
 
 def test_preset_parameter_counts():
@@ -256,7 +261,6 @@ def test_preset_parameter_counts():
         ("point_mlp_ratio", -1.0, "point_mlp_ratio must be > 0"),
         ("posenc", "fourier", "posenc must be one of"),
         ("attention", "flash3", "attention must be one of"),
-        ("prediction_type", "score", "prediction_type must be one of"),
         ("point_channels", 4, "point_channels must be 3"),
         ("dropout", 1.0, "dropout must be in"),
     ],
@@ -302,7 +306,7 @@ def test_plugs_into_diffusion_loss_and_samplers():
     model = LatentDenoiser(LATENT_PRESETS["tiny"])
     schedule = NoiseSchedule.from_kind("four", 1000)
     x0, _, joints = inputs(N=64)
-    loss, logs = diffusion_loss(model, x0, joints, schedule, model.config.prediction_type,
+    loss, logs = diffusion_loss(model, x0, joints, schedule, "epsilon",
                                 generator=torch.Generator().manual_seed(0))  # fmt: skip
     loss.backward()
     assert math.isfinite(logs["loss"]) and model.out.weight.grad.abs().sum() > 0

@@ -165,10 +165,6 @@ class OutfitBound(nn.Module):
         self.code = code  # (D,): an outfit embedding used instead of ``outfit``
 
     @property
-    def prediction_type(self) -> str:
-        return self.model.prediction_type
-
-    @property
     def config(self):
         return self.model.config
 

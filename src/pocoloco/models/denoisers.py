@@ -6,7 +6,9 @@
   latent tokens (O(N M + M^2) per layer).
 
 Both take ``forward(x (B, N, C), t (B,), joints (B, J, 3)) -> (B, N, C)`` and configs with the same
-conventions (``point_channels``, ``num_joints``, ``prediction_type``, ``replace``, ``to_dict``).
+conventions (``point_channels``, ``num_joints``, ``replace``, ``to_dict``). What the output means
+(noise, x0 or v) is the diffusion's business, not the network's: the training config's
+``prediction_type``, handed to the loss and the samplers by the method.
 """
 
 from __future__ import annotations
@@ -33,14 +35,10 @@ def _check(architecture: str) -> None:
 
 
 def denoiser_config_from_dict(architecture: str, d: dict[str, Any]):
-    """The denoiser config of ``architecture`` from its ``to_dict()`` (unknown keys: one-line error)."""
+    """The denoiser config of ``architecture`` from its ``to_dict()`` (unknown keys: one-line error;
+    an older checkpoint's legacy fields are dropped, :meth:`pocoloco.utils.config.Config.from_dict`)."""
     _check(architecture)
-    cls = ARCHITECTURES[architecture][0]
-    names = set(cls.__dataclass_fields__)
-    unknown = sorted(set(d) - names)
-    if unknown:
-        raise ValueError(f"unknown {cls.__name__} field(s): {', '.join(unknown)}")
-    return cls(**d)
+    return ARCHITECTURES[architecture][0].from_dict(d)
 
 
 def build_denoiser(architecture: str, config: Any) -> nn.Module:

@@ -71,7 +71,7 @@ Parameter counts (3-channel points, ``LATENT_PRESETS``): ``paper`` 29,655,043 (P
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import nn
@@ -87,7 +87,7 @@ from pocoloco.models.layers import (
     positional_encoding,
     positional_encoding_dim,
 )
-from pocoloco.models.pocoloco import PREDICTION_TYPES, joint_offset_features
+from pocoloco.models.pocoloco import joint_offset_features
 from pocoloco.utils.config import Config
 
 
@@ -102,7 +102,7 @@ class LatentDenoiserConfig(Config):
     width // heads). rw_heads: heads of the read and write cross-attentions; their inner width is
     P, i.e. P // rw_heads channels per head. mlp_ratio / point_mlp_ratio: hidden width of the
     latent and per-point MLPs, in multiples of D and P.
-    posenc, num_freqs, posenc_include_input, point_channels, num_joints, prediction_type, dropout,
+    posenc, num_freqs, posenc_include_input, point_channels, num_joints, dropout,
     attention, joint_offsets, num_outfits, shape_dim: as in
     :class:`~pocoloco.models.pocoloco.PocoLocoDenoiserConfig` (outfit and body-shape tokens join the
     latent stream). body_points: K posed-body vertices given with the condition, one token each in
@@ -129,7 +129,6 @@ class LatentDenoiserConfig(Config):
     posenc_include_input: bool = False
     point_channels: int = 3
     num_joints: int = 24
-    prediction_type: str = "epsilon"
     dropout: float = 0.0
     attention: str = "sdpa"
     joint_offsets: bool = True
@@ -138,13 +137,14 @@ class LatentDenoiserConfig(Config):
     body_points: int = 0
     joint_velocity: bool = False
 
+    #: older checkpoints stored the diffusion parametrisation here; it is the training config's
+    legacy_fields: ClassVar[frozenset[str]] = frozenset({"prediction_type"})
+
     def __post_init__(self):
         if self.posenc not in POSENC_KINDS:
             raise ValueError(f"posenc must be one of {POSENC_KINDS}, got {self.posenc!r}")
         if self.attention not in ATTENTION_IMPLS:
             raise ValueError(f"attention must be one of {ATTENTION_IMPLS}, got {self.attention!r}")
-        if self.prediction_type not in PREDICTION_TYPES:
-            raise ValueError(f"prediction_type must be one of {PREDICTION_TYPES}, got {self.prediction_type!r}")
         if self.point_channels not in (3, 6):
             raise ValueError(f"point_channels must be 3 (xyz) or 6 (xyz + normals), got {self.point_channels}")
         for name in ("width", "depth", "compute_layers", "num_latents", "heads", "rw_heads", "num_freqs", "num_joints"):
@@ -290,11 +290,6 @@ class LatentDenoiser(nn.Module):
         nn.init.zeros_(self.out.bias)
         self.set_attention_impl(cfg.attention)
 
-    @property
-    def prediction_type(self) -> str:
-        """What the output means (read by the samplers when they are not told)."""
-        return self.config.prediction_type
-
     def set_attention_impl(self, impl: str) -> LatentDenoiser:
         """Switch every attention layer to ``"sdpa"`` or ``"dense"`` (same weights, same maths)."""
         if impl not in ATTENTION_IMPLS:
@@ -346,7 +341,7 @@ class LatentDenoiser(nn.Module):
         return body
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | PoseCondition) -> torch.Tensor:
-        """Predict the noise (or whatever ``config.prediction_type`` says) for every point.
+        """Predict the noise (or x0 or v: the training config's ``prediction_type``) for every point.
 
         x: (B, N, C) noisy points (C = config.point_channels), any N >= 1.
         t: (B,) diffusion timesteps (integer or float), or a scalar for the whole batch.

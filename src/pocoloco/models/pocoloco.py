@@ -26,6 +26,7 @@ cross-attention has its own projections (standard attention, paper Eq. 5).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -43,8 +44,6 @@ from pocoloco.models.layers import (
 )
 from pocoloco.utils.config import Config
 
-PREDICTION_TYPES = ("epsilon", "sample", "v_prediction")
-
 
 @dataclass(frozen=True)
 class PocoLocoDenoiserConfig(Config):
@@ -57,8 +56,6 @@ class PocoLocoDenoiserConfig(Config):
     paper). num_freqs: L (7 -> 42 channels per 3D coordinate).
     posenc_include_input: also feed the raw coordinates (the original code does not).
     point_channels: 3 (xyz) or 6 (xyz + normals; normals are fed raw, not encoded).
-    prediction_type: what the output means (``"epsilon"`` in the paper); read by the
-    diffusion code, the network itself does not depend on it.
     attention: ``"sdpa"`` (fused, memory linear in N) or ``"dense"`` (materialised
     N x N softmax as in the original code; the slow reference).
     joint_offsets: also feed every point its offsets to all J joints and their lengths
@@ -80,20 +77,20 @@ class PocoLocoDenoiserConfig(Config):
     posenc_include_input: bool = False
     point_channels: int = 3
     num_joints: int = 24
-    prediction_type: str = "epsilon"
     dropout: float = 0.0
     attention: str = "sdpa"
     joint_offsets: bool = False
     num_outfits: int = 0
     shape_dim: int = 0
 
+    #: older checkpoints stored the diffusion parametrisation here; it is the training config's
+    legacy_fields: ClassVar[frozenset[str]] = frozenset({"prediction_type"})
+
     def __post_init__(self):
         if self.posenc not in POSENC_KINDS:
             raise ValueError(f"posenc must be one of {POSENC_KINDS}, got {self.posenc!r}")
         if self.attention not in ATTENTION_IMPLS:
             raise ValueError(f"attention must be one of {ATTENTION_IMPLS}, got {self.attention!r}")
-        if self.prediction_type not in PREDICTION_TYPES:
-            raise ValueError(f"prediction_type must be one of {PREDICTION_TYPES}, got {self.prediction_type!r}")
         if self.point_channels not in (3, 6):
             raise ValueError(f"point_channels must be 3 (xyz) or 6 (xyz + normals), got {self.point_channels}")
         for name in ("width", "depth", "heads", "num_freqs", "num_joints"):
@@ -205,13 +202,8 @@ class PocoLocoDenoiser(nn.Module):
         check_finite_inputs(x, joints, t)
         return t
 
-    @property
-    def prediction_type(self) -> str:
-        """What the output means (read by the samplers when they are not told)."""
-        return self.config.prediction_type
-
     def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | PoseCondition) -> torch.Tensor:
-        """Predict the noise (or whatever ``config.prediction_type`` says) for every point.
+        """Predict the noise (or x0 or v: the training config's ``prediction_type``) for every point.
 
         x: (B, N, C) noisy points (C = config.point_channels), any N.
         t: (B,) diffusion timesteps (integer or float), or a scalar for the whole batch.

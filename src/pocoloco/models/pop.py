@@ -45,7 +45,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 import torch
@@ -71,6 +71,14 @@ DECODER_IMPLS = ("linear_valid", "conv1d_all_pixels")
 # ---------------------------------------------------------------------------
 # configuration
 # ---------------------------------------------------------------------------
+
+
+#: POPConfig fields of checkpoints written before the network and training configs were split
+#: (loss weight names -> POPLossWeights fields; the rest are SkinnedTrainConfig's)
+LEGACY_LOSS_WEIGHTS = {"w_s2m": "s2m", "w_m2s": "m2s", "w_normal": "normal", "w_displacement": "displacement",
+                       "w_feature": "feature"}  # fmt: skip
+LEGACY_TRAINING_FIELDS = frozenset({*LEGACY_LOSS_WEIGHTS, "num_scan_points", "normal_start", "lr", "lr_features",
+                                    "batch_size"})  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -106,6 +114,7 @@ class POPConfig(Config):
     decoder_impl: Literal["linear_valid", "conv1d_all_pixels"] = "linear_valid"
     transform_mode: Literal["blend", "polar"] = "blend"
     pose_input: Literal["mean_shape", "subject"] = "mean_shape"
+    legacy_fields: ClassVar[frozenset[str]] = LEGACY_TRAINING_FIELDS
 
     def __post_init__(self):
         def pos_int(name):
@@ -137,22 +146,6 @@ class POPConfig(Config):
             raise ValueError(f"POPConfig.geom_init_std must be >= 0, got {self.geom_init_std!r}")
         if not self.displacement_scale > 0:
             raise ValueError(f"POPConfig.displacement_scale must be > 0, got {self.displacement_scale!r}")
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> POPConfig:
-        """As :meth:`Config.from_dict`; the training fields that older checkpoints stored in the network
-        config (:data:`LEGACY_TRAINING_FIELDS`, now the run's and :class:`POPLossWeights`) are dropped."""
-        if isinstance(d, dict):
-            d = {k: v for k, v in d.items() if k not in LEGACY_TRAINING_FIELDS}
-        return super().from_dict(d)
-
-
-#: POPConfig fields of checkpoints written before the network and training configs were split
-#: (loss weight names -> POPLossWeights fields; the rest are SkinnedTrainConfig's)
-LEGACY_LOSS_WEIGHTS = {"w_s2m": "s2m", "w_m2s": "m2s", "w_normal": "normal", "w_displacement": "displacement",
-                       "w_feature": "feature"}  # fmt: skip
-LEGACY_TRAINING_FIELDS = frozenset({*LEGACY_LOSS_WEIGHTS, "num_scan_points", "normal_start", "lr", "lr_features",
-                                    "batch_size"})  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,8 @@
 ``from_dict`` written once, with the unknown-field check every one of them needs.
 
 A config is a dataclass that inherits :class:`Config`; its own ``__post_init__`` validates values
-(``replace`` and ``from_dict`` run it again). ``to_dict`` gives plain JSON types (tuples become
+(``replace`` and ``from_dict`` run it again). ``legacy_fields`` names fields that older checkpoints
+stored and the config no longer has (moved elsewhere); ``from_dict`` drops them, and only them. ``to_dict`` gives plain JSON types (tuples become
 lists), so what a checkpoint stores compares equal to what it reads back; ``from_dict`` turns the
 lists back into the tuples, nested configs and nested dataclasses the fields are annotated with.
 """
@@ -14,7 +15,7 @@ import functools
 import json
 import types
 import typing
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 __all__ = ["Config"]
 
@@ -23,6 +24,9 @@ C = TypeVar("C", bound="Config")
 
 class Config:
     """Mixin for config dataclasses (see the module docstring)."""
+
+    #: fields of older stored configs that ``from_dict`` drops (see the module docstring)
+    legacy_fields: ClassVar[frozenset[str]] = frozenset()
 
     def replace(self: C, **changes: Any) -> C:
         """A copy with some fields changed (validated again); an unknown field is a one-line ValueError."""
@@ -39,6 +43,7 @@ class Config:
         annotations name; a missing key takes its default; an unknown key is a one-line ValueError."""
         if not isinstance(d, dict):
             raise ValueError(f"{cls.__name__}: expected a mapping of fields, got {type(d).__name__}")
+        d = {k: v for k, v in d.items() if k not in cls.legacy_fields}
         _check_fields(cls, d)
         hints = _type_hints(cls)
         return cls(**{k: _coerce(hints.get(k), v) for k, v in d.items()})

@@ -145,8 +145,6 @@ class PocoLocoTrainConfig(Config):
             raise ValueError(f"min_snr_gamma must be > 0 or None, got {self.min_snr_gamma}")
         if self.sample_steps > self.num_timesteps:
             raise ValueError(f"sample_steps ({self.sample_steps}) must be <= num_timesteps ({self.num_timesteps})")
-        if self.denoiser.prediction_type != self.prediction_type:  # keep the two in sync
-            object.__setattr__(self, "denoiser", self.denoiser.replace(prediction_type=self.prediction_type))
         object.__setattr__(self, "adam_betas", tuple(float(b) for b in self.adam_betas))
         if self.subjects is not None:
             if isinstance(self.subjects, str) or not self.subjects or len(set(self.subjects)) != len(self.subjects):

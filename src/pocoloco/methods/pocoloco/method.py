@@ -153,9 +153,6 @@ class PocoLocoMethod(Method):
             model.load_state_dict(ck.ema_state if ema else ck.model_state)
         except RuntimeError as e:
             raise ValueError(f"{ck.path}: weights do not match the stored config ({one_line(e)})") from None
-        if model.config.prediction_type != config.prediction_type:  # the config keeps them in sync
-            raise ValueError(f"{ck.path}: the network predicts {model.config.prediction_type!r} but the training "
-                             f"config says {config.prediction_type!r}")  # fmt: skip
         weights = "ema" if use_ema else "raw"
         return cls(model.to(device).eval(), config, ck.normalisation, ck.path, ck.step, ck.meta, weights=weights)
 
