@@ -82,9 +82,8 @@ from pocoloco.models.layers import (
     MLP,
     POSENC_KINDS,
     MultiHeadAttention,
+    PointDenoiserBase,
     TimestepEmbedder,
-    check_finite_inputs,
-    positional_encoding,
     positional_encoding_dim,
 )
 from pocoloco.models.pocoloco import joint_offset_features
@@ -251,7 +250,7 @@ class LatentBlock(nn.Module):
         return z, p
 
 
-class LatentDenoiser(nn.Module):
+class LatentDenoiser(PointDenoiserBase):
     """Pose-conditioned point-cloud denoiser f(X_t, t, K) with cost linear in N (module docstring)."""
 
     def __init__(self, config: LatentDenoiserConfig | None = None):
@@ -289,41 +288,6 @@ class LatentDenoiser(nn.Module):
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
         self.set_attention_impl(cfg.attention)
-
-    def set_attention_impl(self, impl: str) -> LatentDenoiser:
-        """Switch every attention layer to ``"sdpa"`` or ``"dense"`` (same weights, same maths)."""
-        if impl not in ATTENTION_IMPLS:
-            raise ValueError(f"attention impl must be one of {ATTENTION_IMPLS}, got {impl!r}")
-        for m in self.modules():
-            if isinstance(m, MultiHeadAttention):
-                m.impl = impl
-        self.attention_impl = impl
-        return self
-
-    def num_parameters(self) -> int:
-        """Number of trainable parameters."""
-        return sum(p.numel() for p in self.parameters() if p.requires_grad)
-
-    def _encode(self, xyz: torch.Tensor) -> torch.Tensor:
-        cfg = self.config
-        return positional_encoding(xyz, cfg.posenc, cfg.num_freqs, cfg.posenc_include_input)
-
-    def _validate(self, x: torch.Tensor, t: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
-        cfg = self.config
-        if x.ndim != 3 or x.shape[-1] != cfg.point_channels or x.shape[1] < 1:
-            raise ValueError(f"x must have shape (B, N, {cfg.point_channels}) with N >= 1, got {tuple(x.shape)}")
-        B = x.shape[0]
-        if joints.ndim != 3 or joints.shape[0] != B or joints.shape[2] != 3:
-            raise ValueError(f"joints must have shape ({B}, {cfg.num_joints}, 3), got {tuple(joints.shape)}")
-        if joints.shape[1] != cfg.num_joints:
-            raise ValueError(f"joints must have {cfg.num_joints} joints (config.num_joints), got {joints.shape[1]}")
-        t = torch.as_tensor(t, device=x.device)
-        if t.ndim == 0:
-            t = t.expand(B)
-        if t.shape != (B,):
-            raise ValueError(f"t must have shape ({B},) or be a scalar, got {tuple(t.shape)}")
-        check_finite_inputs(x, joints, t)
-        return t
 
     def _check_body(self, body: torch.Tensor | None, B: int) -> torch.Tensor | None:
         """The (B, K, 3) posed body the config asks for (one-line errors otherwise)."""

@@ -17,6 +17,7 @@ Attention has two implementations with identical maths (``attention``):
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -250,3 +251,48 @@ class DenoiserBlock(nn.Module):
         h = h + self.drop(self.self_attn(self.ln_self(h)))
         h = h + self.drop(self.cross_attn(self.ln_cross(h), joints))
         return h + self.mlp(self.ln_mlp(h))
+
+
+class PointDenoiserBase(nn.Module):
+    """What both point denoisers share (:mod:`pocoloco.models.denoisers`): the attention switch, the
+    parameter count, the point encoding and the input checks. Subclasses set ``self.config`` with
+    ``point_channels``, ``num_joints``, ``posenc``, ``num_freqs`` and ``posenc_include_input``."""
+
+    config: Any
+
+    def set_attention_impl(self, impl: str):
+        """Switch every attention layer to ``"sdpa"`` or ``"dense"`` (same weights, same maths)."""
+        if impl not in ATTENTION_IMPLS:
+            raise ValueError(f"attention impl must be one of {ATTENTION_IMPLS}, got {impl!r}")
+        for m in self.modules():
+            if isinstance(m, MultiHeadAttention):
+                m.impl = impl
+        self.attention_impl = impl
+        return self
+
+    def num_parameters(self) -> int:
+        """Number of trainable parameters."""
+        return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+    def _encode(self, xyz: torch.Tensor) -> torch.Tensor:
+        """(..., 3) coordinates -> their positional encoding (``config.posenc``)."""
+        cfg = self.config
+        return positional_encoding(xyz, cfg.posenc, cfg.num_freqs, cfg.posenc_include_input)
+
+    def _validate(self, x: torch.Tensor, t: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+        """Shapes of x (B, N, C), joints (B, J, 3), t (B,) or scalar (one-line errors); t as (B,)."""
+        cfg = self.config
+        if x.ndim != 3 or x.shape[-1] != cfg.point_channels or x.shape[1] < 1:
+            raise ValueError(f"x must have shape (B, N, {cfg.point_channels}) with N >= 1, got {tuple(x.shape)}")
+        B = x.shape[0]
+        if joints.ndim != 3 or joints.shape[0] != B or joints.shape[2] != 3:
+            raise ValueError(f"joints must have shape ({B}, {cfg.num_joints}, 3), got {tuple(joints.shape)}")
+        if joints.shape[1] != cfg.num_joints:
+            raise ValueError(f"joints must have {cfg.num_joints} joints (config.num_joints), got {joints.shape[1]}")
+        t = torch.as_tensor(t, device=x.device)
+        if t.ndim == 0:
+            t = t.expand(B)
+        if t.shape != (B,):
+            raise ValueError(f"t must have shape ({B},) or be a scalar, got {tuple(t.shape)}")
+        check_finite_inputs(x, joints, t)
+        return t
