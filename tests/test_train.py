@@ -340,6 +340,39 @@ def test_cli_trains_and_resumes_with_checkpoint_config(tiny_dataset, tmp_path):
     assert ck.step == 3 and ck.config["min_snr_gamma"] == 5.0 and ck.config["sample_every"] == 0
 
 
+def test_cli_init_from_fine_tunes_from_a_checkpoints_weights(tiny_dataset, tmp_path, capsys, monkeypatch):
+    """--init-from: a fresh run (step 0, new optimiser) that starts from another run's EMA weights with
+    that run's config; the source is recorded; another network or model kind is one line, nothing kept."""
+    src, out = str(tmp_path / "src"), str(tmp_path / "ft")
+    base = ["--data", str(tiny_dataset), "--no-progress", "--device", "cpu", "--threads", "1"]
+    assert cli_main(["train", *base, "--out", src, "--preset", "tiny", "--steps", "3", "--sample-every", "0",
+                     "--min-snr", "5"]) == 0  # fmt: skip
+    source = ckpt_io.load_checkpoint(src)
+    from pocoloco.engine import trainer as trainer_mod
+
+    real, seen = trainer_mod.load_initial_weights, {}
+
+    def capture(model, path, kind):
+        r = real(model, path, kind)
+        seen["state"] = {k: v.clone() for k, v in model.state_dict().items()}
+        return r
+
+    monkeypatch.setattr(trainer_mod, "load_initial_weights", capture)
+    assert cli_main(["train", *base, "--out", out, "--init-from", src, "--steps", "2", "--no-bf16"]) == 0
+    for k, v in source.ema_state.items():  # started from the source's EMA weights
+        torch.testing.assert_close(seen["state"][k], v.to(seen["state"][k].dtype), msg=k)
+    ck = ckpt_io.load_checkpoint(out)
+    assert ck.step == 2 and ck.config["min_snr_gamma"] == 5.0  # the source's config, a fresh step count
+    assert ck.meta["init_from"] == str(source.path) and json.loads((Path(out) / "config.json").read_text())["init_from"]
+    capsys.readouterr()
+    bad = str(tmp_path / "bad")
+    code = cli_main(["train", *base, "--out", bad, "--init-from", src, "--preset", "tiny", "--steps", "1"]
+                    + ["--outfit-codes"])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "--init-from" in err and "differs" in err, err
+    assert not Path(bad).exists() or not any(p.name != ".lock" for p in Path(bad).rglob("*") if p.is_file())
+
+
 # ---------------------------------------------------------------------------------- DDP (gloo)
 def _free_port() -> int:
     with socket.socket() as s:

@@ -44,12 +44,13 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 def run_command(func, args: argparse.Namespace, prog: str = "pocoloco") -> int:
     """Run one command; a user error becomes one line ``PROG: error: ...`` and exit code 2
     (``POCOLOCO_DEBUG=1`` shows the traceback instead); library warnings print as one line.
-    ``--ckpt`` options naming a shipped model (``default``, ``default:pop`` ...) are resolved first."""
+    ``--ckpt`` / ``--init-from`` options naming a shipped model (``default``, ``default:pop`` ...) are
+    resolved first."""
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning
             for name, value in vars(args).items():  # --ckpt[-pop|...] default / default:pop / default:closet
-                if (name == "ckpt" or name.startswith("ckpt_")) and isinstance(value, str):
+                if (name in ("ckpt", "init_from") or name.startswith("ckpt_")) and isinstance(value, str):
                     setattr(args, name, str(resolve_ckpt_arg(value)))
             apply_threads(getattr(args, "threads", None))
             check_seeds(args)

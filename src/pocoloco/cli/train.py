@@ -17,7 +17,14 @@ from pocoloco.cli.common import add_threads_argument, console
 from pocoloco.data.dataset import OpenedDataset
 from pocoloco.data.pack import is_pack, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
-from pocoloco.engine.trainer import LR_SCALING_RULES, check_run_folder, dist_info, init_distributed, scaled_lr
+from pocoloco.engine.trainer import (
+    LR_SCALING_RULES,
+    check_run_folder,
+    dist_info,
+    init_distributed,
+    load_initial_weights,
+    scaled_lr,
+)
 from pocoloco.engine.trainer import train as run_training
 from pocoloco.engine.checkpoint import latest_checkpoint
 from pocoloco.methods import METHODS, method_class
@@ -58,14 +65,14 @@ def _applies_to(field: str) -> str:
 
 
 def _config_from_args(args: argparse.Namespace):
-    """The run's config: the preset (or, with ``--resume`` and no ``--preset``, the checkpoint's) with
-    the options given; an option the method has no use for is a one-line error."""
+    """The run's config: the preset (or, with ``--resume`` or ``--init-from`` and no ``--preset``, the
+    checkpoint's) with the options given; an option the method has no use for is a one-line error."""
     cls = method_class(args.model)
     have = _fields(args.model)
     overrides = {}
     for option, field in FIELD_OPTIONS.items():
         value = getattr(args, option, None)
-        if value is None or value is False:
+        if value is None:  # not given (flags default to None; --no-bf16 gives False)
             continue
         if field not in have:
             raise ValueError(f"--{option.replace('_', '-')} applies to --model {_applies_to(field)} only")
@@ -83,6 +90,10 @@ def _config_from_args(args: argparse.Namespace):
         if extra:
             raise ValueError("--no-decomposition cannot change on --resume (it comes from the checkpoint)")
         return config_from_checkpoint(root, args.model, **overrides)
+    if args.preset is None and args.init_from is not None and not args.resume:
+        if extra:
+            raise ValueError("--no-decomposition cannot change with --init-from (the network comes from the checkpoint)")
+        return config_from_checkpoint(args.init_from, args.model, **overrides)
     if "batch_size" in overrides and "lr" not in overrides and args.lr_scaling != "none":
         base = cls.preset(args.preset or "small", **extra)
         overrides["lr"] = scaled_lr(base.lr, overrides["batch_size"], base.batch_size, args.lr_scaling)
@@ -108,6 +119,8 @@ def cmd_train(args: argparse.Namespace) -> None:
     task = method_class(config.model).training_task(config, data)
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")
+    if args.init_from is not None and not args.resume:  # the weights fit this run's network (one line, before work)
+        load_initial_weights(task.build_model(), args.init_from, config.model)
     if int(os.environ.get("RANK", "0")) != 0:  # torchrun: rank 0 holds the run folder's lock
         _train(args, config, task)
         return
@@ -149,7 +162,8 @@ def _train(args: argparse.Namespace, config, task) -> None:
         result = run_training(task, args.out, device=device, resume=args.resume,
                               progress=not args.no_progress,
                               time_budget_s=None if args.time_budget is None else 60.0 * args.time_budget,
-                              compile_model=args.compile, export_to=Path(args.out) / "model")  # fmt: skip
+                              compile_model=args.compile, export_to=Path(args.out) / "model",
+                              init_from=None if args.resume else args.init_from)  # fmt: skip
         if rank == 0:
             n_params = sum(p.numel() for p in result.model.parameters())
             why = " (time budget reached)" if result.stopped_by_budget else ""
@@ -190,8 +204,13 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ckpt-every", type=int, help="checkpoint period in steps, 0: only at the end" + d("ckpt_every"))
     parser.add_argument("--sample-every", type=int, help="rendered-preview period in steps, 0: never" + d("sample_every"))
     parser.add_argument("--log-every", type=int, help="metrics period in steps" + d("log_every"))
-    parser.add_argument("--bf16", action="store_true", default=None,
-                        help="bf16 autocast of the forward pass (pocoloco, closet; default off)")  # fmt: skip
+    parser.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
+                        help="bf16 autocast of the forward pass (pocoloco, closet; default off; --no-bf16 turns "
+                             "off a checkpoint's bf16 with --resume / --init-from)")  # fmt: skip
+    parser.add_argument("--init-from", metavar="CKPT",
+                        help="fine-tune: start from this checkpoint's weights (e.g. default), with its training config "
+                             "unless --preset is given (the network must match); step, optimiser and schedule start "
+                             "afresh")  # fmt: skip
     parser.add_argument("--ema-decay", type=float, help="EMA decay of the weights" + d("ema_decay"))
     parser.add_argument("--grad-clip", type=float, help="max gradient L2 norm" + d("grad_clip"))
     g = parser.add_argument_group("pocoloco only")

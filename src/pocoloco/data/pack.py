@@ -138,6 +138,7 @@ def write_pack(
     subjects: Sequence[str] | None = None,
     velocity: bool = False,
     seed: int = 0,
+    select: Callable[[str, Path], np.ndarray] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Pack the dataset folder ``data`` into the file ``out`` (atomic; module docstring).
@@ -146,8 +147,10 @@ def write_pack(
     (previews, validation) every ``eval_every``-th. points: P points per frame, drawn from
     ``default_rng([seed, split id, frame position])`` without replacement. resolution_mm: the
     positions' quantisation step. velocity: also store each frame's joint velocities
-    (:func:`~pocoloco.data.dataset.frame_velocity`, from the full dataset). progress(done, total):
-    called after each frame. Returns the pack's meta (sizes in ``bytes``). One-line ValueErrors for
+    (:func:`~pocoloco.data.dataset.frame_velocity`, from the full dataset). select(subject, frame
+    path) -> (N,) bool: draw the points among these only (a region of the body, e.g. the hybrid
+    method's free region); frames with fewer than ``points`` selected points are left out (their
+    count is the meta's ``skipped``). progress(done, total): called after each frame. Returns the pack's meta (sizes in ``bytes``). One-line ValueErrors for
     a damaged dataset, a frame with fewer than ``points`` points, or bad options.
     """
     for name, value in (("every", every), ("eval_every", eval_every), ("points", points)):
@@ -179,6 +182,7 @@ def write_pack(
     sequences: list[str] = []
     seq_id: dict[str, int] = {}
     members: dict[str, np.ndarray] = {}
+    skipped: dict[str, int] = {}
     for split_id, (split, frames) in enumerate(plan.items()):
         F = len(frames)
         index = np.zeros((F, 3), np.int32)
@@ -186,6 +190,7 @@ def write_pack(
         joints_rel = np.zeros((F, 24, 3), np.float32)
         rel = np.zeros((F, points, 3), np.float32)
         vel = np.zeros((F, 24, 3), np.float32) if velocity else None
+        kept = np.ones(F, bool)
         for k, (subject, seq, path) in enumerate(frames):
             fr = fmt.read_frame(path, ["points", "joints", "frame_index"])
             n = fr.points.shape[0]
@@ -197,7 +202,18 @@ def write_pack(
             if key not in seq_id:
                 seq_id[key] = len(sequences)
                 sequences.append(key)
-            sel = np.random.default_rng([seed, split_id, k]).choice(n, points, replace=False)
+            if select is None:
+                sel = np.random.default_rng([seed, split_id, k]).choice(n, points, replace=False)
+            else:
+                pool = np.flatnonzero(np.asarray(select(subject, Path(path)), bool))
+                if len(pool) < points:
+                    kept[k] = False
+                    skipped[split] = skipped.get(split, 0) + 1
+                    done += 1
+                    if progress is not None:
+                        progress(done, total)
+                    continue
+                sel = np.sort(np.random.default_rng([seed, split_id, k]).choice(pool, points, replace=False))
             root = fr.joints[norm.root_joint]
             index[k] = (names.index(subject), seq_id[key], int(fr.frame_index))
             roots[k] = root
@@ -208,6 +224,11 @@ def write_pack(
             done += 1
             if progress is not None:
                 progress(done, total)
+        if not kept.any():
+            raise ValueError(f"{data}: no {split} frame has {points} selected points")
+        index, roots, joints_rel, rel = index[kept], roots[kept], joints_rel[kept], rel[kept]
+        vel = None if vel is None else vel[kept]
+        plan[split] = [f for f, keep in zip(frames, kept, strict=True) if keep]
         members[f"{split}_index"] = index
         members[f"{split}_root"] = roots
         members[f"{split}_joints"] = _bytes_member(_encode_int16(joints_rel, JOINT_RESOLUTION_M, f"{split} joints"))
@@ -221,7 +242,7 @@ def write_pack(
         "normalisation": card["normalisation"], "fps": fps, "resolution_m": resolution,
         "joint_resolution_m": JOINT_RESOLUTION_M, "points_per_frame": points, "seed": seed, "every": every,
         "eval_every": eval_every, "velocity": bool(velocity), "sequences": sequences,
-        "splits": {sp: len(fr) for sp, fr in plan.items()},
+        "splits": {sp: len(fr) for sp, fr in plan.items()}, "skipped": skipped,
         "crc32": {k: zlib.crc32(np.ascontiguousarray(v).tobytes()) for k, v in members.items()},
     }  # fmt: skip
     members["meta"] = _bytes_member(json.dumps(meta).encode())

@@ -454,6 +454,23 @@ def _grad_norm(model: nn.Module) -> torch.Tensor:
     return torch.stack(grads).norm() if grads else torch.zeros(())
 
 
+def load_initial_weights(model: nn.Module, path: str | os.PathLike, kind: str) -> str:
+    """Load the weights of the checkpoint ``path`` (EMA if it has them) into ``model`` for fine-tuning;
+    one-line errors for another model kind or another network. Returns the checkpoint folder."""
+    ck = ckpt_io.load_checkpoint(path, expect_model=kind, training_state=False)
+    state = ck.ema_state if ck.ema_state is not None else ck.model_state
+    own = model.state_dict()
+    missing, extra = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+    shapes = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
+    if missing or extra or shapes:
+        what = (f"{len(missing)} tensor(s) missing, e.g. {missing[0]}" if missing else
+                f"{len(extra)} tensor(s) this network lacks, e.g. {extra[0]}" if extra else
+                f"{shapes[0]} is {tuple(state[shapes[0]].shape)}, this run's is {tuple(own[shapes[0]].shape)}")
+        raise ValueError(f"--init-from {path}: its network differs from this run's ({what})")
+    model.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()})
+    return os.fspath(ck.path)
+
+
 def train(
     task: TrainingTask,
     out: str | os.PathLike,
@@ -465,6 +482,7 @@ def train(
     time_budget_s: float | None = None,
     compile_model: bool = False,
     export_to: str | os.PathLike | None = None,
+    init_from: str | os.PathLike | None = None,
 ) -> TrainResult:
     """Run ``task`` into the run folder ``out`` (its ``data`` is recorded in config.json and checkpoints).
 
@@ -480,6 +498,10 @@ def train(
         compile_model: run the forward pass through ``torch.compile`` (single process only).
         export_to: after training, write a sampling-only copy of the last checkpoint there
             (:func:`pocoloco.engine.checkpoint.export_for_sampling`, replacing an older copy).
+        init_from: start a fresh run from the weights of this checkpoint (its EMA weights if it has
+            them) instead of a random network: fine-tuning. It must be of the task's model kind with
+            the same network; optimiser, step and schedule start afresh. Recorded in config.json and
+            in every checkpoint's meta (``init_from``); ignored on ``resume`` (the run's own weights).
         resume: continue from the newest intact checkpoint in ``out``, which must have the same
             config (``task.resumable_changes`` excepted) and pass ``task.check_resume``;
             without it, an existing checkpoint is an error.
@@ -518,8 +540,11 @@ def train(
                          f"about {fits:.0%} of it fits: lower --batch-size or --num-points")  # fmt: skip
     torch.manual_seed(config.seed)
     model = task.build_model()
+    init_source = None if ck is None else ck.meta.get("init_from")
     if ck is not None:
         model.load_state_dict(ck.model_state)
+    elif init_from is not None:
+        init_source = load_initial_weights(model, init_from, task.kind)
     model.to(device)
     ema = EMA(model, config.ema_decay) if config.ema_decay is not None else None
     if ema is not None and ck is not None and ck.ema_state is not None:
@@ -552,6 +577,7 @@ def train(
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         write_json_atomic(out / "config.json", {"data": data, "world_size": world,
+                                                **({"init_from": init_source} if init_source else {}),
                                                 **task.config.to_dict()})  # fmt: skip
         logger = Logger(out, start_step if ck is not None else None)
 
@@ -561,7 +587,8 @@ def train(
             normalisation=task.normalisation, model_state=model.state_dict(),
             ema_state=None if ema is None else ema.state_dict(), optimizer_state=optimizer.state_dict(),
             rng_state=ckpt_io.capture_rng_state(),
-            extra={"world_size": world, "data": data, **task.checkpoint_extra(model)},
+            extra={"world_size": world, "data": data, **({"init_from": init_source} if init_source else {}),
+                   **task.checkpoint_extra(model)},
             keep=config.keep_checkpoints,
         )  # fmt: skip
 

@@ -1,0 +1,182 @@
+"""Where the cloth follows the body and where it hangs free, learned per outfit from the training
+data: the free-region map of the hybrid method (the "clothing-cut map" of FreeCloth, Ye et al.
+CVPR 2025, which draws it by hand; here it is estimated from labelled captures).
+
+For every vertex v of the body surface and every sampled training frame of an outfit, the posed
+vertex votes *free* when its nearest captured point is loose garment (``LABEL_GARMENT``) or lies
+farther than ``margin`` from it (the cloth has left the body there). The vertex's free share is the
+fraction of frames that voted free; vertices with a share above ``threshold`` form the free
+region. A scan point belongs to the region of its nearest posed body vertex, so the same rule
+splits training scans and generated clouds. The outfit's free point share is the mean fraction of
+its scan points in the free region: how many of N output points the generator draws.
+
+Shapes: V body vertices, O outfits, N points.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame, read_subject
+from pocoloco.utils.atomic import atomic_open
+
+__all__ = ["FreeRegionMaps", "learn_free_maps", "point_regions", "render_free_maps"]
+
+
+@dataclass(frozen=True)
+class FreeRegionMaps:
+    """Per-outfit free-region maps.
+
+    outfits: outfit (subject) names, ids in this order. vertex_share: (O, V) float32 share of
+    frames in which each body vertex was free. point_share: (O,) float32 mean share of an outfit's
+    scan points in its free region. margin (m) / threshold: the rule that made them.
+    frames: (O,) int32 frames each outfit's map was estimated from.
+    """
+
+    outfits: tuple[str, ...]
+    vertex_share: np.ndarray
+    point_share: np.ndarray
+    margin: float
+    threshold: float
+    frames: np.ndarray
+
+    def __post_init__(self):
+        O = len(self.outfits)
+        if self.vertex_share.ndim != 2 or self.vertex_share.shape[0] != O:
+            raise ValueError(f"vertex_share must have shape ({O}, V), got {self.vertex_share.shape}")
+        if self.point_share.shape != (O,) or self.frames.shape != (O,):
+            raise ValueError(f"point_share and frames must have shape ({O},)")
+        if not (np.isfinite(self.vertex_share).all() and np.isfinite(self.point_share).all()):
+            raise ValueError("free-region maps hold NaN or infinite values")
+
+    def free(self, outfit: int) -> np.ndarray:
+        """(V,) bool: the outfit's free vertices."""
+        return self.vertex_share[int(outfit)] > self.threshold
+
+    def free_share_of(self, outfit: int) -> float:
+        return float(self.point_share[int(outfit)])
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write as ``.npz`` (atomic)."""
+        with atomic_open(path, "wb") as f:
+            np.savez(f, outfits=np.array(self.outfits), vertex_share=self.vertex_share.astype(np.float32),
+                     point_share=self.point_share.astype(np.float32), margin=np.float32(self.margin),
+                     threshold=np.float32(self.threshold), frames=self.frames.astype(np.int32))  # fmt: skip
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> FreeRegionMaps:
+        """Read a ``.npz`` written by :meth:`save` (one-line errors for missing or damaged files)."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return cls(tuple(str(s) for s in z["outfits"]), z["vertex_share"].astype(np.float32),
+                           z["point_share"].astype(np.float32), float(z["margin"]), float(z["threshold"]),
+                           z["frames"].astype(np.int32))  # fmt: skip
+        except FileNotFoundError:
+            raise ValueError(f"{path}: no such free-region map file") from None
+        except (KeyError, ValueError, OSError, EOFError) as e:
+            raise ValueError(f"{path}: not a free-region map file ({type(e).__name__}: {e})") from None
+
+
+def point_regions(points: np.ndarray, body_vertices: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(N,) bool: whether each point (N, 3) lies in the free region, i.e. its nearest posed body
+    vertex (V, 3) is free (``free`` (V,) bool)."""
+    _, nearest = cKDTree(np.asarray(body_vertices, np.float64)).query(np.asarray(points, np.float64))
+    return np.asarray(free, bool)[nearest]
+
+
+def learn_free_maps(
+    data: str | os.PathLike,
+    subjects: Sequence[str] | None = None,
+    *,
+    margin: float = 0.03,
+    threshold: float = 0.5,
+    every: int = 60,
+    progress: Callable[[int, int], None] | None = None,
+) -> FreeRegionMaps:
+    """Estimate the free-region maps of ``subjects`` (default: all) from every ``every``-th frame of
+    their train split (module docstring); the point share from every third of those frames.
+
+    One-line ValueErrors: a subject without train frames, frames without labels or posed body."""
+    if not margin > 0:
+        raise ValueError(f"margin must be > 0 metres, got {margin}")
+    if not 0 < threshold < 1:
+        raise ValueError(f"threshold must be in (0, 1), got {threshold}")
+    if not (isinstance(every, int) and every >= 1):
+        raise ValueError(f"every must be an integer >= 1, got {every!r}")
+    layout = DatasetLayout(data)
+    names = sorted(subjects) if subjects is not None else layout.subjects()
+    plan: dict[str, list[Path]] = {}
+    for s in names:
+        paths = [layout.frame_path(s, "train", q, i) for q in layout.sequences(s, "train")
+                 for i in layout.frame_indices(s, "train", q)]  # fmt: skip
+        if not paths:
+            raise ValueError(f"{data}: subject {s!r} has no train frames")
+        plan[s] = paths[::every]
+    total, done = sum(len(p) for p in plan.values()), 0
+    shares, point_shares, counts = [], [], []
+    for s, paths in plan.items():
+        votes: np.ndarray | None = None
+        bodies = []
+        for path in paths:
+            fr = read_frame(path, ("points", "labels", "body_vertices"), allow_missing=True)
+            if fr.labels is None or fr.body_vertices is None:
+                raise ValueError(f"{path}: the free-region map needs point labels and the posed body (synthetic data)")
+            dist, idx = cKDTree(fr.points).query(fr.body_vertices)
+            vote = (fr.labels[idx] == LABEL_GARMENT) | (dist > margin)
+            votes = vote.astype(np.int32) if votes is None else votes + vote
+            bodies.append((fr.points, fr.body_vertices))
+            done += 1
+            if progress is not None:
+                progress(done, total)
+        share = votes.astype(np.float32) / len(paths)
+        free = share > threshold
+        point_shares.append(np.mean([point_regions(p, b, free).mean() for p, b in bodies[::3]]))
+        shares.append(share)
+        counts.append(len(paths))
+    if len({len(x) for x in shares}) != 1:
+        raise ValueError(f"{data}: subjects have bodies with different vertex counts")
+    return FreeRegionMaps(tuple(plan), np.stack(shares), np.asarray(point_shares, np.float32), float(margin),
+                          float(threshold), np.asarray(counts, np.int32))  # fmt: skip
+
+
+def render_free_maps(maps: FreeRegionMaps, data: str | os.PathLike, path: str | os.PathLike,
+                     outfits: Sequence[str] | None = None) -> str:  # fmt: skip
+    """A PNG of each outfit's map on its rest-pose body, front and back: vertices coloured from blue
+    (attached: the cloth follows the body) to red (free in every frame), titled with the outfit's
+    free point share. Returns ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pocoloco.viz.render import render_points
+
+    layout = DatasetLayout(data)
+    chosen = list(outfits) if outfits is not None else list(maps.outfits)
+    unknown = [o for o in chosen if o not in maps.outfits]
+    if unknown:
+        raise ValueError(f"no free-region map for {unknown}; the maps have {list(maps.outfits)}")
+    cols = len(chosen)
+    fig, axes = plt.subplots(2, cols, figsize=(1.6 * cols, 4.2), squeeze=False)
+    blue, red = np.array([0.25, 0.45, 0.85]), np.array([0.85, 0.2, 0.15])
+    for c, name in enumerate(chosen):
+        o = maps.outfits.index(name)
+        verts = np.asarray(read_subject(layout.subject_path(name)).template, np.float32)
+        share = maps.vertex_share[o][:, None]
+        colors = (1 - share) * blue + share * red
+        for r, view in enumerate(("front", "back")):
+            render_points(axes[r, c], verts, colors=colors, view=view, shade=False, cull=False)
+        axes[0, c].set_title(f"{name}\nfree {100 * maps.point_share[o]:.0f} %", fontsize=8)
+    fig.suptitle(f"free-region maps (margin {100 * maps.margin:.0f} cm, threshold {maps.threshold:g})", fontsize=9)
+    fig.tight_layout()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+    plt.close(fig)
+    return str(path)

@@ -1,0 +1,83 @@
+"""The hybrid method's free-region maps (pocoloco.methods.hybrid.regions) and the region pack its
+generator trains on: checked against a per-vertex loop and on the tiny dataset's skirt and tight
+subjects."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame
+from pocoloco.data.pack import PackedDataset, write_pack
+from pocoloco.methods.hybrid import FreeRegionMaps, learn_free_maps, point_regions, render_free_maps
+
+
+def _reference_share(data, subject: str, every: int, margin: float) -> np.ndarray:
+    """Slow reference: per frame, per vertex, the nearest point by a full distance scan."""
+    layout = DatasetLayout(data)
+    paths = [layout.frame_path(subject, "train", q, i) for q in layout.sequences(subject, "train")
+             for i in layout.frame_indices(subject, "train", q)][::every]  # fmt: skip
+    votes = None
+    for p in paths:
+        fr = read_frame(p, ("points", "labels", "body_vertices"), allow_missing=True)
+        vote = np.zeros(len(fr.body_vertices), bool)
+        for v, x in enumerate(fr.body_vertices.astype(np.float64)):
+            d = np.linalg.norm(fr.points.astype(np.float64) - x, axis=1)
+            j = int(d.argmin())
+            vote[v] = fr.labels[j] == LABEL_GARMENT or d[j] > margin
+        votes = vote.astype(int) if votes is None else votes + vote
+    return votes / len(paths)
+
+
+def test_free_maps_match_a_per_vertex_loop_and_separate_skirt_from_tight(tiny_dataset, tmp_path):
+    maps = learn_free_maps(tiny_dataset, margin=0.03, threshold=0.5, every=4)
+    assert maps.outfits == ("skirt", "tight")
+    for o, name in enumerate(maps.outfits):
+        np.testing.assert_allclose(maps.vertex_share[o], _reference_share(tiny_dataset, name, 4, 0.03), atol=1e-6)
+    skirt, tight = (maps.outfits.index(n) for n in ("skirt", "tight"))
+    # the skirt hangs free over hips and legs; nothing of the tight outfit leaves the body
+    assert maps.point_share[skirt] > 0.25 and maps.point_share[tight] < 0.02, maps.point_share
+    assert maps.free(skirt).mean() > 5 * max(maps.free(tight).mean(), 1e-3)
+    # save / load round trip; a damaged file is one line
+    back = FreeRegionMaps.load(maps.save(tmp_path / "maps.npz"))
+    assert back.outfits == maps.outfits and np.array_equal(back.vertex_share, maps.vertex_share)
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="not a free-region map file"):
+        FreeRegionMaps.load(tmp_path / "bad.npz")
+    png = render_free_maps(maps, tiny_dataset, tmp_path / "maps.png")
+    assert (tmp_path / "maps.png").stat().st_size > 5000 and png.endswith("maps.png")
+    with pytest.raises(ValueError, match="margin"):
+        learn_free_maps(tiny_dataset, margin=0.0)
+
+
+def test_point_regions_take_the_region_of_the_nearest_body_vertex():
+    body = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    free = np.array([False, True, False])
+    pts = np.array([[0.9, 0.1, 0], [0.1, 0.8, 0], [0.2, 0.1, 0.3], [1.5, 0, 0]], np.float32)
+    assert point_regions(pts, body, free).tolist() == [True, False, False, True]
+
+
+def test_a_region_pack_holds_only_selected_points_and_keeps_outfit_ids(tiny_dataset, tmp_path):
+    maps = learn_free_maps(tiny_dataset, every=4)
+    free = maps.free(maps.outfits.index("skirt"))
+
+    def select(subject, path):
+        fr = read_frame(path, ("points", "body_vertices"))
+        return point_regions(fr.points, fr.body_vertices, free)
+
+    meta = write_pack(tiny_dataset, tmp_path / "free.pack", points=128, subjects=["skirt"], select=select)
+    assert meta["subject_names"] == ["skirt", "tight"] and meta["skipped"] == {}
+    ds = PackedDataset(tmp_path / "free.pack", "train")
+    layout = DatasetLayout(tiny_dataset)
+    assert len(ds) == sum(len(layout.frame_indices("skirt", "train", q)) for q in layout.sequences("skirt", "train"))
+    for i in (0, len(ds) - 1):
+        item = ds[i]
+        assert int(item["subject"]) == 0  # the card's id of "skirt", as in the full dataset
+        pts = ds.normalisation.denormalise(item["points"].numpy(), item["root"].numpy(), item["angle"].numpy())
+        subject, split, seq, index = ds.frame_key(i).split("/")
+        fr = read_frame(layout.frame_path(subject, split, seq, int(index)), ("points", "body_vertices"))
+        assert point_regions(pts, fr.body_vertices, free).mean() > 0.97  # quantised to 1 mm
+    # a selection no frame can fill is one line
+    with pytest.raises(ValueError, match="selected points"):
+        write_pack(tiny_dataset, tmp_path / "none.pack", points=128, subjects=["tight"],
+                   select=lambda s, p: np.zeros(4000, bool))  # fmt: skip
