@@ -352,8 +352,8 @@ def test_cli_init_from_fine_tunes_from_a_checkpoints_weights(tiny_dataset, tmp_p
 
     real, seen = trainer_mod.load_initial_weights, {}
 
-    def capture(model, path, kind):
-        r = real(model, path, kind)
+    def capture(model, path, task):
+        r = real(model, path, task)
         seen["state"] = {k: v.clone() for k, v in model.state_dict().items()}
         return r
 
@@ -371,6 +371,19 @@ def test_cli_init_from_fine_tunes_from_a_checkpoints_weights(tiny_dataset, tmp_p
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "--init-from" in err and "differs" in err, err
     assert not Path(bad).exists() or not any(p.name != ".lock" for p in Path(bad).rglob("*") if p.is_file())
+
+
+def test_init_from_matches_outfit_codes_by_name(tiny_dataset, tmp_path):
+    """Fine-tuning on a subset of outfits starts each outfit from the source's code of the same name."""
+    src, out = tmp_path / "src", tmp_path / "ft"
+    train(tiny(steps=2, outfit_codes=True), tiny_dataset, src, progress=False)
+    res = train(tiny(steps=1, lr=1e-12, outfit_codes=True, subjects=["tight"]), tiny_dataset, out, progress=False,
+                init_from=src)  # fmt: skip
+    source = ckpt_io.load_checkpoint(src)
+    names = [o["name"] for o in source.meta["outfits"]]
+    (key,) = [k for k in source.ema_state if k.endswith("outfit_embed.weight")]
+    start = source.ema_state[key][names.index("tight")]
+    torch.testing.assert_close(res.model.state_dict()[key][0], start.to(torch.float32), atol=1e-6, rtol=0)
 
 
 # ---------------------------------------------------------------------------------- DDP (gloo)

@@ -40,8 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "workers", None) is not None and args.workers < 1:
-        parser.error("--workers must be >= 1")
+    least = 0 if getattr(args, "func", None) is train.cmd_train else 1  # train: 0 loads in the main process
+    if getattr(args, "workers", None) is not None and args.workers < least:
+        parser.error(f"--workers must be >= {least}")
     return run_command(args.func, args)
 
 

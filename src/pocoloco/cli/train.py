@@ -120,7 +120,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")
     if args.init_from is not None and not args.resume:  # the weights fit this run's network (one line, before work)
-        load_initial_weights(task.build_model(), args.init_from, config.model)
+        load_initial_weights(task.build_model(), args.init_from, task)
     if int(os.environ.get("RANK", "0")) != 0:  # torchrun: rank 0 holds the run folder's lock
         _train(args, config, task)
         return

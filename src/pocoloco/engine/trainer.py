@@ -268,6 +268,11 @@ class TrainingTask(ABC):
         """More JSON metadata for every checkpoint's ``meta.json``."""
         return {}
 
+    def initial_state(self, state: dict[str, torch.Tensor], ck: ckpt_io.Checkpoint) -> dict[str, torch.Tensor]:
+        """The weights of ``ck`` as this run starts from them (``--init-from``); e.g. per-outfit rows
+        matched by outfit name when the run trains another set of outfits. Default: unchanged."""
+        return state
+
     def log_extra(self, step: int) -> dict[str, Any]:
         """More fields for the metrics record of (0-based) ``step``."""
         return {}
@@ -454,11 +459,12 @@ def _grad_norm(model: nn.Module) -> torch.Tensor:
     return torch.stack(grads).norm() if grads else torch.zeros(())
 
 
-def load_initial_weights(model: nn.Module, path: str | os.PathLike, kind: str) -> str:
-    """Load the weights of the checkpoint ``path`` (EMA if it has them) into ``model`` for fine-tuning;
-    one-line errors for another model kind or another network. Returns the checkpoint folder."""
-    ck = ckpt_io.load_checkpoint(path, expect_model=kind, training_state=False)
-    state = ck.ema_state if ck.ema_state is not None else ck.model_state
+def load_initial_weights(model: nn.Module, path: str | os.PathLike, task: TrainingTask) -> str:
+    """Load the weights of the checkpoint ``path`` (EMA if it has them, through
+    ``task.initial_state``) into ``model`` for fine-tuning; one-line errors for another model kind or
+    another network. Returns the checkpoint folder."""
+    ck = ckpt_io.load_checkpoint(path, expect_model=task.kind, training_state=False)
+    state = task.initial_state(ck.ema_state if ck.ema_state is not None else ck.model_state, ck)
     own = model.state_dict()
     missing, extra = sorted(set(own) - set(state)), sorted(set(state) - set(own))
     shapes = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
@@ -544,7 +550,7 @@ def train(
     if ck is not None:
         model.load_state_dict(ck.model_state)
     elif init_from is not None:
-        init_source = load_initial_weights(model, init_from, task.kind)
+        init_source = load_initial_weights(model, init_from, task)
     model.to(device)
     ema = EMA(model, config.ema_decay) if config.ema_decay is not None else None
     if ema is not None and ck is not None and ck.ema_state is not None:

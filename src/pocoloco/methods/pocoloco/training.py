@@ -72,6 +72,17 @@ class PocoLocoTask(TrainingTask):
         self.generator: torch.Generator | None = None
         self._preview_frames: list[dict[str, Any]] | None = None
 
+    def initial_state(self, state: dict[str, torch.Tensor], ck) -> dict[str, torch.Tensor]:
+        """``--init-from`` a checkpoint with other outfits: the outfit codes of this run's outfits are
+        the source's codes of the same names (new names: the source's mean code)."""
+        source = [o["name"] for o in ck.meta.get("outfits", [])]
+        mine = [o["name"] for o in self.outfits]
+        out = dict(state)
+        for key, codes in state.items():
+            if key.endswith("outfit_embed.weight") and source != mine and len(codes) == len(source):
+                out[key] = torch.stack([codes[source.index(n)] if n in source else codes.mean(0) for n in mine])
+        return out
+
     def step_bytes(self) -> int | None:
         per_point = training_point_bytes(self.config)
         return None if per_point is None else per_point * self.config.batch_size * self.config.num_points
