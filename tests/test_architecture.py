@@ -69,7 +69,8 @@ def test_layer_contracts_hold():
 @pytest.mark.parametrize("victim, injected, broken", [
     ("ops/knn.py", "import pocoloco.cli  # noqa", "layers"),               # the lowest layer reaching the top
     ("data/dataset.py", "from pocoloco.methods import load_method  # noqa", "layers"),
-    ("methods/pop/losses.py", "import pocoloco.methods.closet.losses  # noqa", "independent"),
+    ("methods/pop/losses.py", "import pocoloco.methods.closet.losses  # noqa", "methods"),
+    ("methods/pop/data.py", "import pocoloco.methods.hybrid.regions  # noqa", "methods"),
 ])  # fmt: skip
 def test_contracts_fail_on_an_upward_import(tmp_path, victim, injected, broken):
     """The contracts are not vacuous: one injected import into a copy of the package breaks them."""

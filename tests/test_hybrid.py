@@ -7,9 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pocoloco.cli import main
 from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame
 from pocoloco.data.pack import PackedDataset, write_pack
-from pocoloco.methods.hybrid import FreeRegionMaps, learn_free_maps, point_regions, render_free_maps
+from pocoloco.methods import load_method, train
+from pocoloco.methods.base import SamplerOptions
+from pocoloco.methods.hybrid import FreeRegionMaps, HybridMethod, learn_free_maps, point_regions, render_free_maps
+from pocoloco.methods.skinned import skinned_preset
 
 
 def _reference_share(data, subject: str, every: int, margin: float) -> np.ndarray:
@@ -81,3 +85,65 @@ def test_a_region_pack_holds_only_selected_points_and_keeps_outfit_ids(tiny_data
     with pytest.raises(ValueError, match="selected points"):
         write_pack(tiny_dataset, tmp_path / "none.pack", points=128, subjects=["tight"],
                    select=lambda s, p: np.zeros(4000, bool))  # fmt: skip
+
+
+# ------------------------------------------------------------------------------- the method
+@pytest.fixture(scope="module")
+def hybrid(tiny_dataset, tiny_run, tmp_path_factory):
+    """A hybrid assembled from a 2-step tiny POP and the 2-step tiny PocoLoco (through the CLI)."""
+    root = tmp_path_factory.mktemp("hybrid")
+    cfg = skinned_preset("pop", "tiny", steps=2, ckpt_every=0, sample_every=0, log_every=1)
+    train(cfg, tiny_dataset, root / "pop", progress=False)
+    out = root / "hybrid"
+    assert main(["hybrid", "--attached", str(root / "pop"), "--free", str(tiny_run), "--data", str(tiny_dataset),
+                 "--out", str(out), "--every", "4"]) == 0  # fmt: skip
+    return out
+
+
+def _frame(tiny_dataset, subject):
+    s, seq, path = next(f for f in DatasetLayout(tiny_dataset).iter_frames("test") if f[0] == subject)
+    return s, seq, path
+
+
+def test_hybrid_splits_points_by_region_and_hypotheses_differ_only_where_free(hybrid, tiny_dataset):
+    m = load_method(hybrid)
+    assert isinstance(m, HybridMethod) and (hybrid / "maps.png").is_file()
+    for subject in ("skirt", "tight"):
+        _, _, path = _frame(tiny_dataset, subject)
+        fr = read_frame(path, allow_missing=True)
+        pose = m.pose_from_frame(path, subject, frame=fr)
+        o = m.outfit_id(subject)
+        clouds = m.predict(pose, 300, seeds=(0, 1), outfit=o, options=SamplerOptions(steps=2))
+        assert clouds.points.shape == (2, 300, 3) and clouds.normals is None
+        n_att, n_free = m.split(o, 300)
+        assert n_free == round(m.maps.point_share[o] * 300)
+        free = m.maps.free(o)
+        for pts in clouds.points:
+            assert not point_regions(pts[:n_att], fr.body_vertices, free).any()
+            assert point_regions(pts[n_att:], fr.body_vertices, free).all()
+        np.testing.assert_array_equal(clouds.points[0, :n_att], clouds.points[1, :n_att])  # attached: shared
+        if subject == "skirt":
+            assert n_free > 60 and not np.array_equal(clouds.points[0, n_att:], clouds.points[1, n_att:])
+        else:
+            assert n_free == 0
+
+
+def test_hybrid_through_the_cli_and_its_one_line_errors(hybrid, tiny_dataset, tiny_run, tmp_path, capsys):
+    s, seq, path = _frame(tiny_dataset, "skirt")
+    idx = int(read_frame(path, ["frame_index"]).frame_index)
+    spec = f"{tiny_dataset}:{s}/test/{seq}/{idx}"
+    out = tmp_path / "sample"
+    assert main(["sample", "--ckpt", str(hybrid), "--joints", spec, "--num", "2", "--points", "200", "--steps", "2",
+                 "--no-render", "--out", str(out)]) == 0  # fmt: skip
+    assert len(list(out.glob("*.ply"))) == 2
+    capsys.readouterr()
+    for argv, message in (
+        (["hybrid", "--attached", str(tiny_run), "--free", str(tiny_run), "--data", str(tiny_dataset),
+          "--out", str(tmp_path / "x")], "expected 'pop'"),
+        (["hybrid", "--attached", str(hybrid), "--free", str(tiny_run), "--data", str(tiny_dataset),
+          "--out", str(tmp_path / "y"), "--margin", "nan"], "--margin"),
+        (["train", "--model", "hybrid", "--data", str(tiny_dataset), "--out", str(tmp_path / "z")], "assembled"),
+    ):  # fmt: skip
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and message in err, err

@@ -29,6 +29,7 @@ from pocoloco.evaluation.evaluate import (
 from pocoloco.evaluation.quality import (
     PER_SUBJECT_ROWS,
     QUALITY_ROWS,
+    UNTRAINED_ROWS,
     bench_quality,
     check_quality_inputs,
     garment_table_markdown,
@@ -136,7 +137,7 @@ def cmd_bench_quality(args: argparse.Namespace) -> None:
     trained = []
     if args.train_steps is not None:
         for key in QUALITY_ROWS:
-            if ckpts.get(key) is None and key not in PER_SUBJECT_ROWS:
+            if ckpts.get(key) is None and key not in UNTRAINED_ROWS:
                 con.print(f"[bold]training {QUALITY_ROWS[key][0]} for {args.train_steps} steps in {Path(args.work) / key}")
                 ckpts[key] = _train_missing(key, args.data, Path(args.work), args.train_steps, args.preset)
                 trained.append(key)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import shutil
 from pathlib import Path
@@ -13,7 +14,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
-from pocoloco.cli.common import add_threads_argument, console
+from pocoloco.cli.common import add_threads_argument, console, progress_bar
 from pocoloco.data.dataset import OpenedDataset
 from pocoloco.data.pack import is_pack, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
@@ -28,6 +29,7 @@ from pocoloco.engine.trainer import (
 from pocoloco.engine.trainer import train as run_training
 from pocoloco.engine.checkpoint import latest_checkpoint
 from pocoloco.methods import METHODS, method_class
+from pocoloco.methods.hybrid import assemble_hybrid
 from pocoloco.methods.pocoloco.config import SCHEDULE_KINDS
 from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.methods.registry import config_from_checkpoint
@@ -257,7 +259,44 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def cmd_hybrid(args: argparse.Namespace) -> None:
+    """``pocoloco hybrid``: learn the free-region maps and write the hybrid checkpoint."""
+    for name in ("margin", "threshold"):
+        if not math.isfinite(getattr(args, name)):
+            raise ValueError(f"--{name} must be a finite number, got {getattr(args, name)}")
+    if args.every < 1:
+        raise ValueError(f"--every must be >= 1, got {args.every}")
+    out = output_folder(args.out)
+    if latest_checkpoint(out / "checkpoints") is not None:
+        raise ValueError(f"--out {out}: already holds a checkpoint (choose a new folder)")
+    with progress_bar("free-region maps", total=None) as update:
+        ck = assemble_hybrid(args.attached, args.free, args.data, out, margin=args.margin, threshold=args.threshold,
+                             every=args.every, maps=args.maps, progress=lambda done, total: update(done, total=total))  # fmt: skip
+    print(f"wrote {ck} and the free-region maps {out / 'maps.npz'}, {out / 'maps.png'}; sample it with "
+          f"`pocoloco sample --ckpt {out} --joints DATASET:subject/split/sequence/index`")  # fmt: skip
+
+
+def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--attached", required=True, metavar="CKPT", help="POP checkpoint: the attached region")
+    parser.add_argument("--free", required=True, metavar="CKPT",
+                        help="PocoLoco checkpoint: the free region (e.g. default, or one fine-tuned on a free-region "
+                             "pack)")  # fmt: skip
+    parser.add_argument("--data", required=True, help="the dataset both were trained on (the maps are learnt from it)")
+    parser.add_argument("--out", required=True, help="run folder to write (checkpoints/, maps.npz, maps.png)")
+    parser.add_argument("--maps", help="free-region maps .npz to use instead of learning them")
+    parser.add_argument("--margin", type=float, default=0.03,
+                        help="a body vertex is free in a frame when its nearest captured point is loose garment or "
+                             "farther than this (metres; default 0.03)")  # fmt: skip
+    parser.add_argument("--threshold", type=float, default=0.5,
+                        help="free region: vertices free in more than this share of frames (default 0.5)")
+    parser.add_argument("--every", type=int, default=60, help="learn the maps from every K-th train frame (default 60)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("train", help="train a model on a dataset (PocoLoco diffusion, or POP / CloSET)")
     add_train_arguments(s)
     s.set_defaults(func=cmd_train)
+    s = sub.add_parser("hybrid", help="assemble a hybrid model: POP where the cloth follows the body, PocoLoco where "
+                                      "it hangs free (maps learnt from the data)")  # fmt: skip
+    add_hybrid_arguments(s)
+    s.set_defaults(func=cmd_hybrid)

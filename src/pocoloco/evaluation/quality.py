@@ -45,7 +45,7 @@ from pocoloco.utils.atomic import (
 )
 from pocoloco.viz.render import render_grid
 
-__all__ = ["BASELINE_ROWS", "COLUMNS", "GARMENT_COLUMNS", "PER_SUBJECT_ROWS", "QUALITY_ROWS", "TARGETS", "bench_quality",
+__all__ = ["BASELINE_ROWS", "COLUMNS", "GARMENT_COLUMNS", "PER_SUBJECT_ROWS", "QUALITY_ROWS", "TARGETS", "UNTRAINED_ROWS", "bench_quality",
            "check_claims", "check_targets", "garment_table_markdown", "quality_markdown", "table_markdown"]
 
 #: model rows: key -> (title, model kind, decomposition)
@@ -55,11 +55,14 @@ QUALITY_ROWS: dict[str, tuple[str, str, bool | None]] = {
     "pop": ("POP", "pop", None),
     "closet": ("CloSET", "closet", True),
     "closet_nodecomp": ("CloSET (no decomposition)", "closet", False),
+    "hybrid": ("Hybrid (POP attached + PocoLoco free)", "hybrid", None),
 }
 BASELINE_ROWS = {"nearest_frame": "nearest training frame", "posed_body": "posed body (no clothes)",
                  "gt_resample": "GT resample (noise floor)"}  # fmt: skip
 #: rows given as several checkpoints, one per subject (each trained with ``--subjects``)
 PER_SUBJECT_ROWS = ("pocoloco_per_subject",)
+#: rows ``bench quality --train-steps`` does not train (a hybrid is assembled: ``pocoloco hybrid``)
+UNTRAINED_ROWS = (*PER_SUBJECT_ROWS, "hybrid")
 #: columns of quality.md: evaluate's (same keys, headers, formats) minus the split diversity, plus
 #: time (finer: the peers take fractions of a second) and parameter count; the second table
 #: (garment / rest split, F-scores at 1 and 2 cm) has evaluate's ``GARMENT_COLUMNS``

@@ -22,6 +22,7 @@ from pocoloco.engine.checkpoint import (
 from pocoloco.engine.trainer import TrainResult
 from pocoloco.methods.base import Method
 from pocoloco.methods.closet.method import CloSETMethod
+from pocoloco.methods.hybrid.method import HybridMethod
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
 from pocoloco.methods.pop.method import POPMethod
 
@@ -32,6 +33,7 @@ METHODS: dict[str, type[Method]] = {
     "pocoloco": PocoLocoMethod,
     "pop": POPMethod,
     "closet": CloSETMethod,
+    "hybrid": HybridMethod,
 }
 
 

@@ -198,7 +198,7 @@ def render_points(
 def render_grid(
     clouds: Sequence[tuple], path: str | os.PathLike, views: Sequence[str] = ("front", "side"),
     ncols: int | None = None, mode: str = "label", panel_size: float = 3.0, dpi: int = 100,
-    point_size: float | None = None,
+    point_size: float | None = None, colors: Sequence[np.ndarray | None] | None = None,
 ) -> str:
     """Render several clouds, each from several views, into one PNG (atomic write).
 
@@ -209,6 +209,7 @@ def render_grid(
         ncols: clouds per row (default: all in one row, at most 4).
         mode: colour mode, see :func:`colors_for` (``normal`` needs normals).
         panel_size: inches per panel; dpi: pixels per inch.
+        colors: per cloud, (N, 3) RGB in [0, 1] used instead of ``mode`` (None entries keep it).
     All panels share one scale (metres per pixel) so sizes are comparable.
     Returns: ``path`` as a string.
     """
@@ -237,8 +238,13 @@ def render_grid(
     cols = ncols * len(views)
     fig = new_figure(panel_size * cols, panel_size * nrows + 0.35 * nrows, dpi)
     fig.patch.set_facecolor("white")
+    if colors is not None and len(colors) != len(items):
+        raise ValueError(f"colors must have one entry per cloud ({len(items)}), got {len(colors)}")
     for k, (pts, lab, nrm, title) in enumerate(items):
-        colors = colors_for(pts, normals=nrm, labels=lab, mode=mode)
+        given = None if colors is None else colors[k]
+        if given is not None and np.shape(given) != (len(pts), 3):
+            raise ValueError(f"colors[{k}] must have shape ({len(pts)}, 3), got {np.shape(given)}")
+        rgb = colors_for(pts, normals=nrm, labels=lab, mode=mode) if given is None else np.asarray(given, np.float32)
         r, c0 = divmod(k, ncols)
         for j, v in enumerate(views):
             ax = fig.add_subplot(nrows, cols, r * cols + c0 * len(views) + j + 1)
@@ -247,7 +253,7 @@ def render_grid(
                 cu, cw = (u.min() + u.max()) / 2, (w.min() + w.max()) / 2
             else:
                 cu = cw = 0.0
-            render_points(ax, pts, colors=colors, normals=nrm, view=v, point_size=point_size,
+            render_points(ax, pts, colors=rgb, normals=nrm, view=v, point_size=point_size,
                           extent=(cu - half, cu + half, cw - half, cw + half))
             ax.set_title(f"{title} ({v})" if title else v, fontsize=9)
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - 0.3 / (panel_size * nrows + 0.35 * nrows),

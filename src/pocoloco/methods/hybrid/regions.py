@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame, read_subject
 from pocoloco.utils.atomic import atomic_open
+from pocoloco.viz.render import render_grid
 
 __all__ = ["FreeRegionMaps", "learn_free_maps", "point_regions", "render_free_maps"]
 
@@ -151,32 +152,18 @@ def render_free_maps(maps: FreeRegionMaps, data: str | os.PathLike, path: str | 
     """A PNG of each outfit's map on its rest-pose body, front and back: vertices coloured from blue
     (attached: the cloth follows the body) to red (free in every frame), titled with the outfit's
     free point share. Returns ``path``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from pocoloco.viz.render import render_points
-
     layout = DatasetLayout(data)
     chosen = list(outfits) if outfits is not None else list(maps.outfits)
     unknown = [o for o in chosen if o not in maps.outfits]
     if unknown:
         raise ValueError(f"no free-region map for {unknown}; the maps have {list(maps.outfits)}")
-    cols = len(chosen)
-    fig, axes = plt.subplots(2, cols, figsize=(1.6 * cols, 4.2), squeeze=False)
     blue, red = np.array([0.25, 0.45, 0.85]), np.array([0.85, 0.2, 0.15])
-    for c, name in enumerate(chosen):
+    clouds, colors = [], []
+    for name in chosen:
         o = maps.outfits.index(name)
-        verts = np.asarray(read_subject(layout.subject_path(name)).template, np.float32)
+        clouds.append((np.asarray(read_subject(layout.subject_path(name)).template, np.float32), None, None,
+                       f"{name} {100 * maps.point_share[o]:.0f}% free"))  # fmt: skip
         share = maps.vertex_share[o][:, None]
-        colors = (1 - share) * blue + share * red
-        for r, view in enumerate(("front", "back")):
-            render_points(axes[r, c], verts, colors=colors, view=view, shade=False, cull=False)
-        axes[0, c].set_title(f"{name}\nfree {100 * maps.point_share[o]:.0f} %", fontsize=8)
-    fig.suptitle(f"free-region maps (margin {100 * maps.margin:.0f} cm, threshold {maps.threshold:g})", fontsize=9)
-    fig.tight_layout()
-    with atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=110)
-    plt.close(fig)
-    return str(path)
+        colors.append((1 - share) * blue + share * red)
+    return render_grid(clouds, path, views=("front", "back"), ncols=min(len(chosen), 7), colors=colors,
+                       panel_size=2.2, dpi=80)  # fmt: skip

@@ -1,0 +1,76 @@
+"""Assemble a hybrid checkpoint from a trained POP (attached region), a trained PocoLoco denoiser
+(free region) and free-region maps learnt from the dataset (``pocoloco hybrid``)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pocoloco.engine.checkpoint import load_checkpoint, save_checkpoint
+from pocoloco.methods.hybrid.method import HybridConfig
+from pocoloco.methods.hybrid.regions import FreeRegionMaps, learn_free_maps, render_free_maps
+from pocoloco.methods.pocoloco.method import PocoLocoMethod
+from pocoloco.methods.pop.method import POPMethod
+
+__all__ = ["assemble_hybrid"]
+
+
+def assemble_hybrid(
+    attached: str | os.PathLike,
+    free: str | os.PathLike,
+    data: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    margin: float = 0.03,
+    threshold: float = 0.5,
+    every: int = 60,
+    maps: str | os.PathLike | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> Path:
+    """Write the hybrid of the POP checkpoint ``attached`` and the PocoLoco checkpoint ``free`` into
+    the run folder ``out`` (``out/checkpoints``, ``out/maps.npz``, ``out/maps.png``). The maps are
+    learnt from ``data``'s train split for POP's outfits (``margin``, ``threshold``, ``every``:
+    :func:`~pocoloco.methods.hybrid.regions.learn_free_maps`), or read from ``maps``. Returns the
+    checkpoint folder. One-line errors: wrong checkpoint kinds, outfits the maps or the free-region
+    model do not know, a free-region model that needs the posed body."""
+    pop = POPMethod.from_checkpoint(load_checkpoint(attached, expect_model="pop", training_state=False))
+    gen = PocoLocoMethod.from_checkpoint(load_checkpoint(free, expect_model="pocoloco", training_state=False))
+    if gen.needs_body:
+        raise ValueError(f"{free}: a free-region model trained with --body-points cannot be assembled yet")
+    names = pop.outfit_names()
+    if maps is None:
+        region = learn_free_maps(data, names, margin=margin, threshold=threshold, every=every, progress=progress)
+    else:
+        region = FreeRegionMaps.load(maps)
+        missing = [n for n in names if n not in region.outfits]
+        if missing:
+            raise ValueError(f"{maps}: no free-region map for outfits {missing}")
+        rows = [region.outfits.index(n) for n in names]
+        region = FreeRegionMaps(tuple(names), region.vertex_share[rows], region.point_share[rows], region.margin,
+                                region.threshold, region.frames[rows])  # fmt: skip
+    if region.vertex_share.shape[1] != int(pop.model.num_vertices):
+        raise ValueError(f"the maps are over {region.vertex_share.shape[1]} body vertices, POP's body has "
+                         f"{int(pop.model.num_vertices)}")  # fmt: skip
+    known = gen.outfit_names()
+    lacking = [n for i, n in enumerate(names) if region.point_share[i] > 0 and known and n not in known]
+    if lacking:
+        raise ValueError(f"{free}: the free-region model never learnt outfits {lacking}, which hang free")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    region.save(out / "maps.npz")
+    render_free_maps(region, data, out / "maps.png")
+    state = {**{f"attached.{k}": v for k, v in pop.model.state_dict().items()},
+             **{f"free.{k}": v for k, v in gen.model.state_dict().items()},
+             "vertex_share": torch.from_numpy(region.vertex_share.astype(np.float32)),
+             "point_share": torch.from_numpy(region.point_share.astype(np.float32))}  # fmt: skip
+    config = HybridConfig(attached=pop.config.to_dict(), free=gen.config.to_dict(), margin=region.margin,
+                          threshold=region.threshold, sources={"attached": str(pop.path), "free": str(gen.path)})  # fmt: skip
+    return save_checkpoint(out / "checkpoints", 0, model_kind="hybrid", preset=config.preset, config=config.to_dict(),
+                           normalisation=gen.normalisation, model_state=state,
+                           extra={"outfits": pop.outfits, "num_vertices": int(pop.model.num_vertices),
+                                  "free_outfits": gen.outfits, "map_frames": region.frames.tolist(),
+                                  "data": os.fspath(data)})  # fmt: skip

@@ -1,0 +1,242 @@
+"""The hybrid method behind the :class:`~pocoloco.methods.base.Method` interface: skinned where the
+cloth follows the body, generated where it hangs free (the idea of FreeCloth, Ye et al. CVPR 2025,
+with a learnt map and a generative free region; implemented from the idea, no code copied).
+
+A hybrid checkpoint holds a POP network (the attached region: a deterministic residual on the
+posed body), a PocoLoco point denoiser (the free region) and the per-outfit free-region maps
+(:mod:`pocoloco.methods.hybrid.regions`). For N points of outfit o it draws
+``round(point_share[o] * N)`` points from the denoiser that fall in the outfit's free region (their
+nearest posed body vertex is free) and the rest from POP's points in the attached region, so the
+hypotheses of one pose differ in the free region only.
+
+This first version is *assembled* from trained checkpoints (``pocoloco hybrid``): the denoiser may
+be one trained on the whole body or one fine-tuned on free-region packs
+(``benchmarks/experiments/hybrid_free_pack.py``); training both parts in one loop is not built yet.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from pocoloco.data.poses import MeanShapeCache, Pose
+from pocoloco.engine.checkpoint import Checkpoint, one_line
+from pocoloco.engine.trainer import TrainingTask
+from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
+from pocoloco.methods.hybrid.regions import FreeRegionMaps, point_regions
+from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
+from pocoloco.methods.pocoloco.method import PocoLocoMethod
+from pocoloco.methods.pop.method import POPMethod
+from pocoloco.methods.skinned import SkinnedTrainConfig
+from pocoloco.models.denoisers import build_denoiser
+from pocoloco.utils.config import Config
+
+__all__ = ["HybridConfig", "HybridMethod", "HybridModel"]
+
+#: draws of the free-region generator per cloud before its points are topped up by repetition
+FREE_DRAWS = 4
+
+
+@dataclass(frozen=True)
+class HybridConfig(Config):
+    """What a hybrid checkpoint was made of. attached / free: the POP and PocoLoco training configs
+    (``to_dict``) of its two networks; margin / threshold: the free-region rule; sources: the
+    checkpoints it was assembled from (provenance)."""
+
+    model: str = "hybrid"
+    preset: str = "assembled"
+    attached: dict[str, Any] = field(default_factory=dict)
+    free: dict[str, Any] = field(default_factory=dict)
+    margin: float = 0.03
+    threshold: float = 0.5
+    sources: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.model != "hybrid":
+            raise ValueError(f"a HybridConfig is of model 'hybrid', got {self.model!r}")
+
+    def attached_config(self) -> SkinnedTrainConfig:
+        return SkinnedTrainConfig.from_dict(self.attached)
+
+    def free_config(self) -> PocoLocoTrainConfig:
+        return PocoLocoTrainConfig.from_dict(self.free)
+
+
+class HybridModel(nn.Module):
+    """The hybrid's networks and maps: ``attached`` (POP), ``free`` (a PocoLoco denoiser), buffers
+    ``vertex_share`` (O, V) and ``point_share`` (O,) of :class:`FreeRegionMaps`."""
+
+    def __init__(self, attached: nn.Module, free: nn.Module, vertex_share: torch.Tensor, point_share: torch.Tensor):
+        super().__init__()
+        self.attached, self.free = attached, free
+        self.register_buffer("vertex_share", torch.as_tensor(vertex_share, dtype=torch.float32))
+        self.register_buffer("point_share", torch.as_tensor(point_share, dtype=torch.float32))
+
+
+class HybridMethod(Method):
+    """A hybrid model (module docstring): ``attached`` (a :class:`POPMethod`) and ``free`` (a
+    :class:`PocoLocoMethod`) over the networks of :class:`HybridModel`, and the maps."""
+
+    kind = "hybrid"
+    needs_body = True
+    train_config = HybridConfig
+
+    def __init__(self, model: HybridModel, config: HybridConfig, normalisation, path: Path, step: int,
+                 meta: dict[str, Any]):  # fmt: skip
+        super().__init__(model, config, normalisation, path, step, meta)
+        self.outfits = list(meta.get("outfits", []))
+        self.attached = POPMethod(model.attached, config.attached_config(), normalisation, path, step,
+                                  {"outfits": self.outfits, "num_vertices": meta.get("num_vertices")})  # fmt: skip
+        self.free = PocoLocoMethod(model.free, config.free_config(), normalisation, path, step,
+                                   {k: meta[k] for k in ("free_outfits", "body_point_ids") if k in meta}
+                                   | {"outfits": meta.get("free_outfits", [])})  # fmt: skip
+        self.maps = FreeRegionMaps(tuple(o["name"] for o in self.outfits), model.vertex_share.cpu().numpy(),
+                                   model.point_share.cpu().numpy(), config.margin, config.threshold,
+                                   np.asarray(meta.get("map_frames", [0] * len(self.outfits)), np.int32))  # fmt: skip
+
+    # ------------------------------------------------------------------ loading and training
+    @classmethod
+    def from_checkpoint(cls, ck: Checkpoint, device: str = "cpu", use_ema: bool = True) -> HybridMethod:
+        state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
+        try:
+            config = HybridConfig.from_dict(ck.config)
+            att_cfg, free_cfg = config.attached_config(), config.free_config()
+            part = lambda prefix: {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}  # noqa: E731
+            attached = POPMethod._model_from_state(att_cfg, part("attached."), ck.meta)
+            free = build_denoiser(free_cfg.architecture, free_cfg.denoiser)
+            free.load_state_dict({k: v.float() for k, v in part("free.").items()})
+            model = HybridModel(attached, free, state["vertex_share"].float(), state["point_share"].float())
+        except (KeyError, TypeError, RuntimeError, ValueError) as e:
+            raise ValueError(f"{ck.path}: corrupt hybrid checkpoint ({one_line(e)})") from None
+        if len(ck.meta.get("outfits", [])) != model.vertex_share.shape[0]:
+            raise ValueError(f"{ck.path}: meta lists {len(ck.meta.get('outfits', []))} outfits but the maps hold "
+                             f"{model.vertex_share.shape[0]}")  # fmt: skip
+        return cls(model.to(device).eval(), config, ck.normalisation, ck.path, ck.step, ck.meta)
+
+    @classmethod
+    def presets(cls) -> dict[str, Any]:
+        return {}
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> Any:
+        raise ValueError("a hybrid model is assembled from a trained POP and a trained PocoLoco: "
+                         "`pocoloco hybrid --attached POP_CKPT --free POCOLOCO_CKPT --data DATA --out DIR`")  # fmt: skip
+
+    @classmethod
+    def training_task(cls, config: Any, data: str | Path) -> TrainingTask:
+        cls.preset("")
+        raise AssertionError  # pragma: no cover - preset raises
+
+    # -------------------------------------------------------------------------- description
+    @property
+    def title(self) -> str:
+        return "Hybrid"
+
+    def info(self) -> dict[str, Any]:
+        return {**super().info(), "free_point_share": {o["name"]: round(float(s), 4)
+                                                       for o, s in zip(self.outfits, self.maps.point_share, strict=True)}}  # fmt: skip
+
+    def outfit_names(self) -> list[str]:
+        return [o["name"] for o in self.outfits]
+
+    # -------------------------------------------------------------------------------- poses
+    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
+                  any_pose: bool = False) -> Pose:  # fmt: skip
+        return self.attached.load_pose(spec, outfit, frame_id, any_pose)
+
+    def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
+        return self.attached.pose_from_frame(path, subject, frame=frame, cache=cache)
+
+    # ---------------------------------------------------------------------------- predicting
+    def check_options(self, options: SamplerOptions) -> None:
+        self.free.check_options(options)
+
+    def bytes_per_point(self) -> int:
+        return max(self.attached.bytes_per_point(), self.free.bytes_per_point())
+
+    def split(self, outfit: int, num_points: int) -> tuple[int, int]:
+        """(attached, free) point counts of a cloud of ``num_points`` of ``outfit``."""
+        free = int(round(self.maps.free_share_of(outfit) * num_points))
+        return num_points - free, free
+
+    def _free_outfit(self, outfit: int) -> int | None:
+        names = self.free.outfit_names()
+        if not names:
+            return None  # a joints-only denoiser serves every outfit
+        name = self.outfits[outfit]["name"]
+        if name not in names:
+            raise ValueError(f"{self.path}: outfit {name!r} has a free region but the free-region model never learnt it")
+        return names.index(name)
+
+    @torch.no_grad()
+    def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
+                options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
+        """One cloud per seed: the attached points (the same for every seed) and the free points of
+        that seed, in the frame of ``pose`` (metres); no normals (the free region has none)."""
+        if num_points < 1:
+            raise ValueError(f"num_points must be >= 1, got {num_points}")
+        if not pose.has_body:
+            raise ValueError(f"{pose.source}: the hybrid needs the posed body (body_vertices / vtransf)")
+        outfit = self.default_outfit(pose) if outfit is None else self.outfit_id(outfit)
+        free = self.maps.free(outfit)
+        n_att, n_free = self.split(outfit, num_points)
+        attached = self._attached_points(pose, outfit, free, n_att)
+        clouds = [attached] * len(seeds)
+        if n_free:
+            region = self._free_points(pose, outfit, free, n_free, seeds, options)
+            clouds = [np.concatenate([attached, r]) for r in region]
+        return SampledClouds(np.stack(clouds).astype(np.float32), None)
+
+    def _attached_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int) -> np.ndarray:
+        """(n, 3) POP points whose nearest posed body vertex is attached (deterministic)."""
+        if n == 0:
+            return np.zeros((0, 3), np.float32)
+        share = max(1e-3, 1.0 - float(free.mean()))
+        m = max(len(self.attached.model.query_points()), math.ceil(1.2 * n / share))
+        for _ in range(FREE_DRAWS):
+            pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit).points[0]
+            keep = pts[~point_regions(pts, pose.body_vertices, free)]
+            if len(keep) >= n:
+                break
+            m = math.ceil(1.5 * m * n / max(len(keep), 1))
+        return _exactly(keep, n, np.random.default_rng([0, 7]))
+
+    def _free_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int, seeds: Sequence[int],
+                     options: SamplerOptions) -> list[np.ndarray]:  # fmt: skip
+        """Per seed, (n, 3) generated points whose nearest posed body vertex is free: the generator's
+        clouds are filtered by region and drawn again (new seeds derived from the seed) until n."""
+        fo = self._free_outfit(outfit)
+        found: list[list[np.ndarray]] = [[] for _ in seeds]
+        m, rate = n, 1.0
+        for attempt in range(FREE_DRAWS):
+            todo = [k for k in range(len(seeds)) if sum(len(x) for x in found[k]) < n]
+            if not todo:
+                break
+            m = math.ceil(1.15 * n / max(rate, 0.05))
+            draw = [int(seeds[k]) if attempt == 0 else int(seeds[k]) * 1000 + attempt for k in todo]
+            clouds = self.free.predict(pose, m, seeds=draw, outfit=fo, options=options).points
+            kept = 0
+            for k, pts in zip(todo, clouds, strict=True):
+                inside = pts[point_regions(pts, pose.body_vertices, free)]
+                found[k].append(inside)
+                kept += len(inside)
+            rate = kept / (m * len(todo))
+        return [_exactly(np.concatenate(f), n, np.random.default_rng([int(s), 8])) for f, s in zip(found, seeds, strict=True)]
+
+    def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
+        return {"free": self.free.sample_settings(options, num_points), "margin": self.config.margin,
+                "threshold": self.config.threshold}  # fmt: skip
+
+
+def _exactly(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n of ``points`` without replacement (with replacement only when there are fewer)."""
+    if len(points) == 0:
+        raise ValueError("the hybrid's region holds no point for this pose (check the free-region maps)")
+    return points[np.sort(rng.choice(len(points), n, replace=len(points) < n))].astype(np.float32)
