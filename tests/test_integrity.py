@@ -148,6 +148,16 @@ def test_eval_refuses_a_missing_frame(data, tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("command", ["export", "preview"])
+def test_export_and_preview_refuse_a_damaged_split_writing_nothing(data, tmp_path, capsys, command):
+    """They used to skip the missing frame with no word (and export left a partial folder)."""
+    bad = _test_frame(data)
+    bad.write_bytes(bad.read_bytes()[:200])  # truncated
+    out = tmp_path / ("ply" if command == "export" else "preview.png")
+    err, _ = _one_line_error(capsys, ["data", command, str(data), "--split", "test", "--out", str(out)])
+    assert str(bad) in err and not out.exists()
+
+
 @pytest.mark.parametrize("model", ["pocoloco", "pop", "closet"])
 def test_train_refuses_a_truncated_frame(data, tmp_path, capsys, model):
     bad = _test_frame(data, 0)

@@ -99,10 +99,13 @@ def learn_free_maps(
     margin: float = 0.03,
     threshold: float = 0.5,
     every: int = 60,
+    labels: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> FreeRegionMaps:
     """Estimate the free-region maps of ``subjects`` (default: all) from every ``every``-th frame of
     their train split (module docstring); the point share from every third of those frames.
+    ``labels=False``: a vertex votes free on distance alone (garment that hugs the body, such as
+    trousers, stays attached).
 
     One-line ValueErrors: a subject without train frames, frames without labels or posed body."""
     if not margin > 0:
@@ -130,7 +133,7 @@ def learn_free_maps(
             if fr.labels is None or fr.body_vertices is None:
                 raise ValueError(f"{path}: the free-region map needs point labels and the posed body (synthetic data)")
             dist, idx = cKDTree(fr.points).query(fr.body_vertices)
-            vote = (fr.labels[idx] == LABEL_GARMENT) | (dist > margin)
+            vote = ((fr.labels[idx] == LABEL_GARMENT) if labels else False) | (dist > margin)
             votes = vote.astype(np.int32) if votes is None else votes + vote
             bodies.append((fr.points, fr.body_vertices))
             done += 1

@@ -1,0 +1,96 @@
+"""Paired pilot of the hybrid's free-region rule (issue 26): for each map variant, the hybrid of the
+shipped POP and PocoLoco on the same test frames and seeds, against POP; Chamfer, loose share,
+garment S2M and far points, with the paired difference to POP (mean +- standard error).
+
+    python benchmarks/experiments/hybrid_map_pilot.py --data ~/.cache/pocoloco/data/medium \
+        --split test --out benchmarks/results/hybrid_map_pilot_test.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import numpy as np
+import torch
+
+from pocoloco.data.format import DatasetLayout, read_frame
+from pocoloco.engine.shipped import resolve_ckpt_arg
+from pocoloco.evaluation.metrics import evaluate_frame
+from pocoloco.methods import load_method
+from pocoloco.methods.base import SamplerOptions
+from pocoloco.methods.hybrid import learn_free_maps, point_regions
+
+KEYS = ("chamfer_cm", "loose_pred_pct", "loose_gt_pct", "s2m_garment_cm", "outlier_10cm_pct")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--free", default="default", help="PocoLoco checkpoint of the free region")
+    p.add_argument("--points", type=int, default=2048)
+    p.add_argument("--steps", type=int, default=10, help="SDE steps of the free region")
+    p.add_argument("--per-subject", type=int, default=2, help="frames per subject")
+    p.add_argument("--out", required=True)
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    pop = load_method(resolve_ckpt_arg("default:pop"))
+    gen = load_method(resolve_ckpt_arg(args.free))
+    variants = {"labels or 3 cm": dict(margin=0.03, labels=True), "3 cm": dict(margin=0.03, labels=False),
+                "2 cm": dict(margin=0.02, labels=False), "5 cm": dict(margin=0.05, labels=False)}  # fmt: skip
+    maps = {name: learn_free_maps(args.data, pop.outfit_names(), **kw) for name, kw in variants.items()}
+    frames = {}
+    for s, _, path in DatasetLayout(args.data).iter_frames(args.split):
+        frames.setdefault(s, []).append(path)
+    opt = SamplerOptions(steps=args.steps)
+    N, rows = args.points, []
+    for s in sorted(frames):
+        ps = frames[s]
+        for path in (ps[len(ps) // 4], ps[3 * len(ps) // 4])[: args.per_subject]:
+            fr = read_frame(path, allow_missing=True)
+            pose = pop.pose_from_frame(path, s, frame=fr)
+            o = pop.outfit_id(s)
+            pop_pts = pop.predict(pose, N, seeds=(0,), outfit=o).points[0]
+            pop_all = pop.predict(pose, len(pop.model.query_points()), seeds=(0,), outfit=o).points[0]
+            for seed in (0, 1):
+                gen_pts = gen.predict(pose, 3 * N, seeds=(seed,), outfit=gen.outfit_id(s), options=opt).points[0]
+                row = {"subject": s, "frame": str(path), "seed": seed}
+                row.update({f"pop:{k}": v for k, v in _metrics(pop_pts, fr).items()})
+                rng = np.random.default_rng(seed)
+                for name, m in maps.items():
+                    free = m.free(o)
+                    nf = int(round(m.free_share_of(o) * N))
+                    att = pop_all[~point_regions(pop_all, fr.body_vertices, free)]
+                    fre = gen_pts[point_regions(gen_pts, fr.body_vertices, free)]
+                    parts = [att[rng.choice(len(att), N - nf, replace=len(att) < N - nf)]]
+                    if nf:
+                        parts.append(fre[rng.choice(len(fre), nf, replace=len(fre) < nf)])
+                    row.update({f"{name}:{k}": v for k, v in _metrics(np.concatenate(parts), fr).items()})
+                rows.append(row)
+                print(s, seed, {n: round(row[f"{n}:chamfer_cm"], 2) for n in ("pop", *maps)}, flush=True)
+    summary = {}
+    for name in ("pop", *maps):
+        summary[name] = {k: float(np.nanmean([r[f"{name}:{k}"] for r in rows])) for k in KEYS}
+        d = np.array([r[f"{name}:chamfer_cm"] - r["pop:chamfer_cm"] for r in rows])
+        summary[name]["chamfer_minus_pop"] = float(d.mean())
+        summary[name]["chamfer_minus_pop_se"] = float(d.std(ddof=1) / math.sqrt(len(d)))
+        if name in maps:
+            summary[name]["free_share"] = {o: float(x) for o, x in zip(maps[name].outfits, maps[name].point_share, strict=True)}
+    print(f"| map | Chamfer cm | minus POP | loose % (scan {summary['pop']['loose_gt_pct']:.1f}) | garment S2M cm | >10 cm % |")
+    print("|---|---|---|---|---|---|")
+    for name, m in summary.items():
+        print(f"| {name} | {m['chamfer_cm']:.2f} | {m['chamfer_minus_pop']:+.2f} +- {m['chamfer_minus_pop_se']:.2f} | "
+              f"{m['loose_pred_pct']:.1f} | {m['s2m_garment_cm']:.2f} | {m['outlier_10cm_pct']:.2f} |")
+    with open(args.out, "w") as f:
+        json.dump({"settings": vars(args), "summary": summary, "rows": rows}, f, indent=1)
+
+
+def _metrics(points: np.ndarray, fr) -> dict[str, float]:
+    m = evaluate_frame(points, None, fr.points, fr.normals, fr.labels)
+    return {k: m[k] for k in KEYS}
+
+
+if __name__ == "__main__":
+    main()
