@@ -1,6 +1,8 @@
 """Paired pilot of the hybrid's free-region rule (issue 26): for each map variant, the hybrid of the
-shipped POP and PocoLoco on the same test frames and seeds, against POP; Chamfer, loose share,
-garment S2M and far points, with the paired difference to POP (mean +- standard error).
+shipped POP and a PocoLoco (``--free``) on the same test frames and seeds, against POP; Chamfer,
+loose share, garment S2M and far points, with the paired difference to POP (mean +- standard
+error). Row "oracle": the first map's split with the scan's own free-region points in place of the
+generator's (what a perfect generator would score).
 
     python benchmarks/experiments/hybrid_map_pilot.py --data ~/.cache/pocoloco/data/medium \
         --split test --out benchmarks/results/hybrid_map_pilot_test.json
@@ -68,10 +70,15 @@ def main() -> None:
                     if nf:
                         parts.append(fre[rng.choice(len(fre), nf, replace=len(fre) < nf)])
                     row.update({f"{name}:{k}": v for k, v in _metrics(np.concatenate(parts), fr).items()})
+                    if name == "labels or 3 cm":  # the same split with the scan's own free-region points
+                        scan = fr.points[point_regions(fr.points, fr.body_vertices, free)]
+                        if nf:
+                            parts[1] = scan[rng.choice(len(scan), nf, replace=len(scan) < nf)]
+                        row.update({f"oracle:{k}": v for k, v in _metrics(np.concatenate(parts), fr).items()})
                 rows.append(row)
                 print(s, seed, {n: round(row[f"{n}:chamfer_cm"], 2) for n in ("pop", *maps)}, flush=True)
     summary = {}
-    for name in ("pop", *maps):
+    for name in ("pop", *maps, "oracle"):
         summary[name] = {k: float(np.nanmean([r[f"{name}:{k}"] for r in rows])) for k in KEYS}
         d = np.array([r[f"{name}:chamfer_cm"] - r["pop:chamfer_cm"] for r in rows])
         summary[name]["chamfer_minus_pop"] = float(d.mean())

@@ -168,5 +168,5 @@ def render_free_maps(maps: FreeRegionMaps, data: str | os.PathLike, path: str | 
                        f"{name} {100 * maps.point_share[o]:.0f}% free"))  # fmt: skip
         share = maps.vertex_share[o][:, None]
         colors.append((1 - share) * blue + share * red)
-    return render_grid(clouds, path, views=("front", "back"), ncols=min(len(chosen), 7), colors=colors,
-                       panel_size=2.2, dpi=80)  # fmt: skip
+    return render_grid(clouds, path, views=("front", "back"), ncols=min(len(chosen), 4), colors=colors,
+                       panel_size=2.0, dpi=70)  # fmt: skip
