@@ -4,6 +4,8 @@ subjects."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -136,6 +138,11 @@ def test_hybrid_through_the_cli_and_its_one_line_errors(hybrid, tiny_dataset, ti
     assert main(["sample", "--ckpt", str(hybrid), "--joints", spec, "--num", "2", "--points", "200", "--steps", "2",
                  "--no-render", "--out", str(out)]) == 0  # fmt: skip
     assert len(list(out.glob("*.ply"))) == 2
+    ev = tmp_path / "eval"
+    assert main(["eval", "--ckpt", str(hybrid), "--data", str(tiny_dataset), "--frames", "2", "--points", "64",
+                 "--seeds", "0", "1", "--steps", "2", "--no-baselines", "--out", str(ev)]) == 0  # fmt: skip
+    report = json.loads((ev / "eval.json").read_text())
+    assert report["settings"]["model_kind"] == "hybrid" and report["settings"]["free_point_share"]["tight"] == 0
     capsys.readouterr()
     for argv, message in (
         (["hybrid", "--attached", str(tiny_run), "--free", str(tiny_run), "--data", str(tiny_dataset),
