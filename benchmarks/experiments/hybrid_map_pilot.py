@@ -1,7 +1,8 @@
 """Paired pilot of the hybrid's free-region rule (issue 26): for each map variant, the hybrid of the
 shipped POP and a PocoLoco (``--free``) on the same test frames and seeds, against POP; Chamfer,
 loose share, garment S2M and far points, with the paired difference to POP (mean +- standard
-error). Row "oracle": the first map's split with the scan's own free-region points in place of the
+error). Rows "mix a": the first map, with the generator drawing a share a of the free region's
+points and POP the rest (its own points in that region). Row "oracle": the first map's split with the scan's own free-region points in place of the
 generator's (what a perfect generator would score).
 
     python benchmarks/experiments/hybrid_map_pilot.py --data ~/.cache/pocoloco/data/medium \
@@ -24,6 +25,8 @@ from pocoloco.methods import load_method
 from pocoloco.methods.base import SamplerOptions
 from pocoloco.methods.hybrid import learn_free_maps, point_regions
 
+#: generator shares of the free region (POP draws the rest of it)
+MIX = (0.25, 0.5, 0.75)
 KEYS = ("chamfer_cm", "loose_pred_pct", "loose_gt_pct", "s2m_garment_cm", "outlier_10cm_pct")
 
 
@@ -70,7 +73,18 @@ def main() -> None:
                     if nf:
                         parts.append(fre[rng.choice(len(fre), nf, replace=len(fre) < nf)])
                     row.update({f"{name}:{k}": v for k, v in _metrics(np.concatenate(parts), fr).items()})
-                    if name == "labels or 3 cm":  # the same split with the scan's own free-region points
+                    if name == "labels or 3 cm":
+                        # generator share: the generator draws a * nf of the free region's points, POP the rest
+                        pop_free = pop_all[point_regions(pop_all, fr.body_vertices, free)]
+                        for a in MIX:
+                            ng = int(round(a * nf))
+                            mix = [parts[0]]
+                            if ng:
+                                mix.append(fre[rng.choice(len(fre), ng, replace=len(fre) < ng)])
+                            if nf - ng:
+                                mix.append(pop_free[rng.choice(len(pop_free), nf - ng, replace=len(pop_free) < nf - ng)])
+                            row.update({f"mix {a:g}:{k}": v for k, v in _metrics(np.concatenate(mix), fr).items()})
+                        # the same split with the scan's own free-region points
                         scan = fr.points[point_regions(fr.points, fr.body_vertices, free)]
                         if nf:
                             parts[1] = scan[rng.choice(len(scan), nf, replace=len(scan) < nf)]
@@ -78,7 +92,7 @@ def main() -> None:
                 rows.append(row)
                 print(s, seed, {n: round(row[f"{n}:chamfer_cm"], 2) for n in ("pop", *maps)}, flush=True)
     summary = {}
-    for name in ("pop", *maps, "oracle"):
+    for name in ("pop", *maps, *(f"mix {a:g}" for a in MIX), "oracle"):
         summary[name] = {k: float(np.nanmean([r[f"{name}:{k}"] for r in rows])) for k in KEYS}
         d = np.array([r[f"{name}:chamfer_cm"] - r["pop:chamfer_cm"] for r in rows])
         summary[name]["chamfer_minus_pop"] = float(d.mean())
@@ -90,8 +104,20 @@ def main() -> None:
     for name, m in summary.items():
         print(f"| {name} | {m['chamfer_cm']:.2f} | {m['chamfer_minus_pop']:+.2f} +- {m['chamfer_minus_pop_se']:.2f} | "
               f"{m['loose_pred_pct']:.1f} | {m['s2m_garment_cm']:.2f} | {m['outlier_10cm_pct']:.2f} |")
+    for r in rows:
+        r["frame"] = r["frame"].split("/subjects/")[-1]
     with open(args.out, "w") as f:
-        json.dump({"settings": vars(args), "summary": summary, "rows": rows}, f, indent=1)
+        json.dump(_rounded({"settings": vars(args), "summary": summary, "rows": rows}), f, separators=(",", ":"))
+
+
+def _rounded(x):
+    if isinstance(x, float):
+        return round(x, 4)
+    if isinstance(x, dict):
+        return {k: _rounded(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_rounded(v) for v in x]
+    return x
 
 
 def _metrics(points: np.ndarray, fr) -> dict[str, float]:
