@@ -6,7 +6,10 @@
 #   bash scripts/gpu_job.sh PACK OUT [SECONDS]      # SECONDS: wall-clock for the whole job (default 560)
 #
 # Needs only torch, numpy, safetensors, rich and matplotlib (pocoloco runs from src/, not installed).
-# Environment: SEARCH_SECONDS (per candidate, default 30), CANDIDATES (default below), SKIP_BENCH=1.
+# Environment: SEARCH_SECONDS (per candidate, default 30), CANDIDATES (default below), SKIP_BENCH=1,
+# BEST="PRESET BATCH STEPS_PER_S" (skip the search), INIT_FROM=CKPT (fine-tune from that checkpoint
+# with its config, e.g. the hybrid's free-region generator from src/pocoloco/assets/pocoloco_medium on
+# a free-region pack), LR (the run's peak learning rate).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PACK=$1
@@ -61,8 +64,9 @@ LEFT=$(( TOTAL - $(elapsed) - 45 ))  # start-up, final checkpoint, export and pa
 SCHEDULE=$($PY -c "s=$SPS; n=max(200, int(s * $LEFT * 1.2)) if s > 0 else 1000000; print(f'--steps {n} --lr-schedule wsd --decay-steps {n // 5}')")
 MINUTES=$($PY -c "print(round($LEFT / 60, 3))")
 echo "== train $PRESET B=$BATCH: $SCHEDULE, budget $MINUTES min ($(elapsed) s)"
+if [ -n "${INIT_FROM:-}" ]; then START_ARGS="--init-from $INIT_FROM"; else START_ARGS="--preset $PRESET"; fi
 # shellcheck disable=SC2086
-$PY -m pocoloco train --data "$PACK" --out "$OUT/run" --preset "$PRESET" --batch-size "$BATCH" --outfit-codes \
+$PY -m pocoloco train --data "$PACK" --out "$OUT/run" $START_ARGS ${LR:+--lr $LR} --batch-size "$BATCH" --outfit-codes \
   --body-shape --bf16 --device "$DEVICE" --workers "$WORKERS" $SCHEDULE --ckpt-every 1000 --sample-every 0 \
   --log-every 50 --time-budget "$MINUTES" --no-progress || echo "train failed"
 
