@@ -38,12 +38,14 @@ def _reference_share(data, subject: str, every: int, margin: float) -> np.ndarra
 def test_free_maps_match_a_per_vertex_loop_and_separate_skirt_from_tight(tiny_dataset, tmp_path):
     maps = learn_free_maps(tiny_dataset, margin=0.03, threshold=0.5, every=4)
     assert maps.outfits == ("skirt", "tight")
-    for o, name in enumerate(maps.outfits):
-        np.testing.assert_allclose(maps.vertex_share[o], _reference_share(tiny_dataset, name, 4, 0.03), atol=1e-6)
     skirt, tight = (maps.outfits.index(n) for n in ("skirt", "tight"))
-    # the skirt hangs free over hips and legs; nothing of the tight outfit leaves the body
-    assert maps.point_share[skirt] > 0.25 and maps.point_share[tight] < 0.02, maps.point_share
-    assert maps.free(skirt).mean() > 5 * max(maps.free(tight).mean(), 1e-3)
+    np.testing.assert_allclose(maps.vertex_share[skirt], _reference_share(tiny_dataset, "skirt", 4, 0.03), atol=1e-6)
+    # the skirt hangs free over hips and legs; nothing of the tight outfit leaves the body (a few
+    # uncaptured vertices are far from every point, but a share below MIN_FREE_SHARE is no region)
+    assert maps.point_share[skirt] > 0.25 and maps.point_share[tight] == 0, maps.point_share
+    assert maps.free(skirt).mean() > 0.05 and not maps.free(tight).any()
+    raw = _reference_share(tiny_dataset, "tight", 4, 0.03)
+    assert raw.max() > 0  # what was dropped
     # save / load round trip; a damaged file is one line
     back = FreeRegionMaps.load(maps.save(tmp_path / "maps.npz"))
     assert back.outfits == maps.outfits and np.array_equal(back.vertex_share, maps.vertex_share)

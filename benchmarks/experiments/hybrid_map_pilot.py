@@ -60,7 +60,11 @@ def main() -> None:
             pop_pts = pop.predict(pose, N, seeds=(0,), outfit=o).points[0]
             pop_all = pop.predict(pose, len(pop.model.query_points()), seeds=(0,), outfit=o).points[0]
             for seed in (0, 1):
-                gen_pts = gen.predict(pose, 3 * N, seeds=(seed,), outfit=gen.outfit_id(s), options=opt).points[0]
+                if s in gen.outfit_names() or not gen.outfit_names():
+                    go = gen.outfit_id(s) if gen.outfit_names() else None
+                    gen_pts = gen.predict(pose, 3 * N, seeds=(seed,), outfit=go, options=opt).points[0]
+                else:  # a generator trained on free regions only never saw a wholly attached outfit
+                    gen_pts = np.zeros((0, 3), np.float32)
                 row = {"subject": s, "frame": str(path), "seed": seed}
                 row.update({f"pop:{k}": v for k, v in _metrics(pop_pts, fr).items()})
                 rng = np.random.default_rng(seed)

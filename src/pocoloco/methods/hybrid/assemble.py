@@ -51,7 +51,7 @@ def assemble_hybrid(
             raise ValueError(f"{maps}: no free-region map for outfits {missing}")
         rows = [region.outfits.index(n) for n in names]
         region = FreeRegionMaps(tuple(names), region.vertex_share[rows], region.point_share[rows], region.margin,
-                                region.threshold, region.frames[rows])  # fmt: skip
+                                region.threshold, region.frames[rows]).without_small_regions()  # fmt: skip
     if region.vertex_share.shape[1] != int(pop.model.num_vertices):
         raise ValueError(f"the maps are over {region.vertex_share.shape[1]} body vertices, POP's body has "
                          f"{int(pop.model.num_vertices)}")  # fmt: skip

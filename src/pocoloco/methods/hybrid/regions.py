@@ -27,7 +27,10 @@ from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame, read_
 from pocoloco.utils.atomic import atomic_open
 from pocoloco.viz.render import render_grid
 
-__all__ = ["FreeRegionMaps", "learn_free_maps", "point_regions", "render_free_maps"]
+__all__ = ["MIN_FREE_SHARE", "FreeRegionMaps", "learn_free_maps", "point_regions", "render_free_maps"]
+
+#: an outfit with a smaller free point share has no free region (wholly attached)
+MIN_FREE_SHARE = 0.02
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,15 @@ class FreeRegionMaps:
     def free(self, outfit: int) -> np.ndarray:
         """(V,) bool: the outfit's free vertices."""
         return self.vertex_share[int(outfit)] > self.threshold
+
+    def without_small_regions(self, min_share: float = MIN_FREE_SHARE) -> FreeRegionMaps:
+        """These maps with every outfit whose free point share is below ``min_share`` made wholly
+        attached (a few stray vertices, e.g. an uncaptured sole, are no free region)."""
+        small = self.point_share < min_share
+        share = self.vertex_share.copy()
+        share[small] = 0.0
+        return FreeRegionMaps(self.outfits, share, np.where(small, 0.0, self.point_share).astype(np.float32),
+                              self.margin, self.threshold, self.frames)  # fmt: skip
 
     def free_share_of(self, outfit: int) -> float:
         return float(self.point_share[int(outfit)])
@@ -105,7 +117,8 @@ def learn_free_maps(
     """Estimate the free-region maps of ``subjects`` (default: all) from every ``every``-th frame of
     their train split (module docstring); the point share from every third of those frames.
     ``labels=False``: a vertex votes free on distance alone (garment that hugs the body, such as
-    trousers, stays attached).
+    trousers, stays attached). Outfits with a free point share below ``MIN_FREE_SHARE`` come out
+    wholly attached (:meth:`FreeRegionMaps.without_small_regions`).
 
     One-line ValueErrors: a subject without train frames, frames without labels or posed body."""
     if not margin > 0:
@@ -147,7 +160,7 @@ def learn_free_maps(
     if len({len(x) for x in shares}) != 1:
         raise ValueError(f"{data}: subjects have bodies with different vertex counts")
     return FreeRegionMaps(tuple(plan), np.stack(shares), np.asarray(point_shares, np.float32), float(margin),
-                          float(threshold), np.asarray(counts, np.int32))  # fmt: skip
+                          float(threshold), np.asarray(counts, np.int32)).without_small_regions()  # fmt: skip
 
 
 def render_free_maps(maps: FreeRegionMaps, data: str | os.PathLike, path: str | os.PathLike,
