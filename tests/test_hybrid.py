@@ -156,3 +156,23 @@ def test_hybrid_through_the_cli_and_its_one_line_errors(hybrid, tiny_dataset, ti
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and message in err, err
+
+
+def test_a_generator_share_splits_the_free_region_between_pop_and_the_generator(hybrid, tiny_dataset, tmp_path):
+    """generator_share 0.5: half the free region's points are POP's (shared by the hypotheses), half generated."""
+    ck = load_method(hybrid)
+    half = HybridMethod(ck.model, ck.config.replace(generator_share=0.5), ck.normalisation, ck.path, ck.step, ck.meta)
+    _, _, path = _frame(tiny_dataset, "skirt")
+    fr = read_frame(path, allow_missing=True)
+    pose = half.pose_from_frame(path, "skirt", frame=fr)
+    o = half.outfit_id("skirt")
+    clouds = half.predict(pose, 300, seeds=(0, 1), outfit=o, options=SamplerOptions(steps=2)).points
+    n_att, n_free = half.split(o, 300)
+    n_gen = round(0.5 * n_free)
+    shared = 300 - n_gen
+    np.testing.assert_array_equal(clouds[0, :shared], clouds[1, :shared])
+    assert not np.array_equal(clouds[0, shared:], clouds[1, shared:])
+    region = point_regions(clouds[0], fr.body_vertices, half.maps.free(o))
+    assert not region[:n_att].any() and region[n_att:].all()
+    with pytest.raises(ValueError, match="generator share"):
+        ck.config.replace(generator_share=1.5)

@@ -261,9 +261,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 def cmd_hybrid(args: argparse.Namespace) -> None:
     """``pocoloco hybrid``: learn the free-region maps and write the hybrid checkpoint."""
-    for name in ("margin", "threshold"):
+    for name in ("margin", "threshold", "generator_share"):
         if not math.isfinite(getattr(args, name)):
-            raise ValueError(f"--{name} must be a finite number, got {getattr(args, name)}")
+            raise ValueError(f"--{name.replace('_', '-')} must be a finite number, got {getattr(args, name)}")
     if args.every < 1:
         raise ValueError(f"--every must be >= 1, got {args.every}")
     out = output_folder(args.out)
@@ -271,7 +271,7 @@ def cmd_hybrid(args: argparse.Namespace) -> None:
         raise ValueError(f"--out {out}: already holds a checkpoint (choose a new folder)")
     with progress_bar("free-region maps", total=None) as update:
         ck = assemble_hybrid(args.attached, args.free, args.data, out, margin=args.margin, threshold=args.threshold,
-                             every=args.every, maps=args.maps, progress=lambda done, total: update(done, total=total))  # fmt: skip
+                             every=args.every, maps=args.maps, generator_share=args.generator_share, progress=lambda done, total: update(done, total=total))  # fmt: skip
     print(f"wrote {ck} and the free-region maps {out / 'maps.npz'}, {out / 'maps.png'}; sample it with "
           f"`pocoloco sample --ckpt {out} --joints DATASET:subject/split/sequence/index`")  # fmt: skip
 
@@ -290,6 +290,9 @@ def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threshold", type=float, default=0.5,
                         help="free region: vertices free in more than this share of frames (default 0.5)")
     parser.add_argument("--every", type=int, default=60, help="learn the maps from every K-th train frame (default 60)")
+    parser.add_argument("--generator-share", type=float, default=1.0,
+                        help="of the free region's points, the share PocoLoco draws; POP draws the rest there "
+                             "(default 1: the free region is wholly generated)")  # fmt: skip
 
 
 def register(sub: argparse._SubParsersAction) -> None:

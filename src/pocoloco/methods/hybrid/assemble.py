@@ -29,14 +29,18 @@ def assemble_hybrid(
     threshold: float = 0.5,
     every: int = 60,
     maps: str | os.PathLike | None = None,
+    generator_share: float = 1.0,
     progress: Callable[[int, int], None] | None = None,
 ) -> Path:
     """Write the hybrid of the POP checkpoint ``attached`` and the PocoLoco checkpoint ``free`` into
     the run folder ``out`` (``out/checkpoints``, ``out/maps.npz``, ``out/maps.png``). The maps are
     learnt from ``data``'s train split for POP's outfits (``margin``, ``threshold``, ``every``:
-    :func:`~pocoloco.methods.hybrid.regions.learn_free_maps`), or read from ``maps``. Returns the
+    :func:`~pocoloco.methods.hybrid.regions.learn_free_maps`), or read from ``maps``.
+    ``generator_share``: of the free region's points, the share the denoiser draws (POP the rest). Returns the
     checkpoint folder. One-line errors: wrong checkpoint kinds, outfits the maps or the free-region
     model do not know, a free-region model that needs the posed body."""
+    if not 0.0 <= generator_share <= 1.0:
+        raise ValueError(f"--generator-share must be in [0, 1], got {generator_share}")
     pop = POPMethod.from_checkpoint(load_checkpoint(attached, expect_model="pop", training_state=False))
     gen = PocoLocoMethod.from_checkpoint(load_checkpoint(free, expect_model="pocoloco", training_state=False))
     if gen.needs_body:
@@ -68,7 +72,8 @@ def assemble_hybrid(
              "vertex_share": torch.from_numpy(region.vertex_share.astype(np.float32)),
              "point_share": torch.from_numpy(region.point_share.astype(np.float32))}  # fmt: skip
     config = HybridConfig(attached=pop.config.to_dict(), free=gen.config.to_dict(), margin=region.margin,
-                          threshold=region.threshold, sources={"attached": str(pop.path), "free": str(gen.path)})  # fmt: skip
+                          threshold=region.threshold, sources={"attached": str(pop.path), "free": str(gen.path)},
+                          generator_share=float(generator_share))  # fmt: skip
     return save_checkpoint(out / "checkpoints", 0, model_kind="hybrid", preset=config.preset, config=config.to_dict(),
                            normalisation=gen.normalisation, model_state=state,
                            extra={"outfits": pop.outfits, "num_vertices": int(pop.model.num_vertices),

@@ -48,7 +48,9 @@ FREE_DRAWS = 4
 class HybridConfig(Config):
     """What a hybrid checkpoint was made of. attached / free: the POP and PocoLoco training configs
     (``to_dict``) of its two networks; margin / threshold: the free-region rule; sources: the
-    checkpoints it was assembled from (provenance)."""
+    checkpoints it was assembled from (provenance). generator_share: the share of the free region's
+    points the denoiser draws; POP draws the rest there (its own points in that region); 1 = the
+    free region is wholly generated."""
 
     model: str = "hybrid"
     preset: str = "assembled"
@@ -57,10 +59,13 @@ class HybridConfig(Config):
     margin: float = 0.03
     threshold: float = 0.5
     sources: dict[str, str] = field(default_factory=dict)
+    generator_share: float = 1.0
 
     def __post_init__(self):
         if self.model != "hybrid":
             raise ValueError(f"a HybridConfig is of model 'hybrid', got {self.model!r}")
+        if not 0.0 <= self.generator_share <= 1.0:
+            raise ValueError(f"generator share must be in [0, 1], got {self.generator_share}")
 
     def attached_config(self) -> SkinnedTrainConfig:
         return SkinnedTrainConfig.from_dict(self.attached)
@@ -187,26 +192,31 @@ class HybridMethod(Method):
         outfit = self.default_outfit(pose) if outfit is None else self.outfit_id(outfit)
         free = self.maps.free(outfit)
         n_att, n_free = self.split(outfit, num_points)
-        attached = self._attached_points(pose, outfit, free, n_att)
-        clouds = [attached] * len(seeds)
-        if n_free:
-            region = self._free_points(pose, outfit, free, n_free, seeds, options)
-            clouds = [np.concatenate([attached, r]) for r in region]
+        n_gen = int(round(self.config.generator_share * n_free))
+        skinned = self._skinned_points(pose, outfit, free, n_att, n_free - n_gen)  # shared by the hypotheses
+        clouds = [skinned] * len(seeds)
+        if n_gen:
+            region = self._free_points(pose, outfit, free, n_gen, seeds, options)
+            clouds = [np.concatenate([skinned, r]) for r in region]
         return SampledClouds(np.stack(clouds).astype(np.float32), None)
 
-    def _attached_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int) -> np.ndarray:
-        """(n, 3) POP points whose nearest posed body vertex is attached (deterministic)."""
-        if n == 0:
-            return np.zeros((0, 3), np.float32)
-        share = max(1e-3, 1.0 - float(free.mean()))
-        m = max(len(self.attached.model.query_points()), math.ceil(1.2 * n / share))
-        for _ in range(FREE_DRAWS):
-            pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit).points[0]
-            keep = pts[~point_regions(pts, pose.body_vertices, free)]
-            if len(keep) >= n:
-                break
-            m = math.ceil(1.5 * m * n / max(len(keep), 1))
-        return _exactly(keep, n, np.random.default_rng([0, 7]))
+    def _skinned_points(self, pose: Pose, outfit: int, free: np.ndarray, n_att: int, n_free: int) -> np.ndarray:
+        """(n_att + n_free, 3) POP points (deterministic): n_att whose nearest posed body vertex is
+        attached, then n_free whose nearest one is free. POP is queried at its training UV map's
+        pixels (or more, when that is too few): a finer map scores worse (BENCHMARKS)."""
+        parts = []
+        m = len(self.attached.model.query_points())
+        for want, region in ((n_att, False), (n_free, True)):
+            if want == 0:
+                continue
+            for _ in range(FREE_DRAWS):
+                pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit).points[0]
+                keep = pts[point_regions(pts, pose.body_vertices, free) == region]
+                if len(keep) >= want:
+                    break
+                m = math.ceil(1.5 * m * want / max(len(keep), 1))
+            parts.append(_exactly(keep, want, np.random.default_rng([0, 7, int(region)])))
+        return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
 
     def _free_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int, seeds: Sequence[int],
                      options: SamplerOptions) -> list[np.ndarray]:  # fmt: skip
@@ -232,7 +242,7 @@ class HybridMethod(Method):
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         return {"free": self.free.sample_settings(options, num_points), "margin": self.config.margin,
-                "threshold": self.config.threshold}  # fmt: skip
+                "threshold": self.config.threshold, "generator_share": self.config.generator_share}  # fmt: skip
 
 
 def _exactly(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
