@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 
 from pocoloco.cli import main
-from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame
+from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame, read_subject
 from pocoloco.data.pack import PackedDataset, write_pack
+from pocoloco.data.published import read_ply
 from pocoloco.methods import load_method, train
-from pocoloco.methods.base import SamplerOptions
+from pocoloco.methods.base import SampledClouds, SamplerOptions
 from pocoloco.methods.hybrid import FreeRegionMaps, HybridMethod, learn_free_maps, point_regions, render_free_maps
+from pocoloco.methods.hybrid.regions import inside_depth, vertex_normals
 from pocoloco.methods.skinned import skinned_preset
 
 
@@ -63,6 +65,28 @@ def test_point_regions_take_the_region_of_the_nearest_body_vertex():
     free = np.array([False, True, False])
     pts = np.array([[0.9, 0.1, 0], [0.1, 0.8, 0], [0.2, 0.1, 0.3], [1.5, 0, 0]], np.float32)
     assert point_regions(pts, body, free).tolist() == [True, False, False, True]
+
+
+def test_inside_depth_matches_a_per_point_loop_and_is_positive_inside_a_closed_body(tiny_dataset):
+    """Vertex normals of the posed body point outwards; a point's depth is minus its offset along the
+    normal of its nearest vertex (checked against a per-point loop)."""
+    _, _, path = _frame(tiny_dataset, "tight")
+    fr = read_frame(path, ("body_vertices",))
+    faces = read_subject(DatasetLayout(tiny_dataset).subject_path("tight")).faces
+    v = fr.body_vertices.astype(np.float64)
+    n = vertex_normals(v, faces)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    centre = v.mean(0)
+    f = np.asarray(faces, np.int64)
+    assert np.linalg.det(np.stack([v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]], axis=1)).sum() > 0  # faces wind outwards
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(v), 200, replace=False)
+    outside, inside = v[pick] + 0.002 * n[pick], v[pick] - 0.002 * n[pick]
+    pts = np.concatenate([outside, inside, centre + rng.normal(0, 0.3, (50, 3))])
+    depth = inside_depth(pts, v, n)
+    ref = np.array([-(p - v[j]) @ n[j] for p in pts for j in [int(np.argmin(np.linalg.norm(v - p, axis=1)))]])
+    np.testing.assert_allclose(depth, ref, atol=1e-6)
+    assert np.mean(depth[:200] < 0) > 0.9 and np.mean(depth[200:400] > 0) > 0.9
 
 
 def test_a_region_pack_holds_only_selected_points_and_keeps_outfit_ids(tiny_dataset, tmp_path):
@@ -176,3 +200,65 @@ def test_a_generator_share_splits_the_free_region_between_pop_and_the_generator(
     assert not region[:n_att].any() and region[n_att:].all()
     with pytest.raises(ValueError, match="generator share"):
         ck.config.replace(generator_share=1.5)
+
+
+def test_an_inside_tolerance_draws_again_the_generated_points_inside_the_body(hybrid, tiny_dataset):
+    """The generator is replaced by one that draws free-region body vertices moved 1 cm in or out
+    along their normals: with inside_tolerance 0.5 cm only the outer ones are kept."""
+    ck = load_method(hybrid)
+    strict = HybridMethod(ck.model, ck.config.replace(inside_tolerance=0.005), ck.normalisation, ck.path, ck.step,
+                          ck.meta)  # fmt: skip
+    _, _, path = _frame(tiny_dataset, "skirt")
+    fr = read_frame(path, allow_missing=True)
+    pose = strict.pose_from_frame(path, "skirt", frame=fr)
+    o = strict.outfit_id("skirt")
+    free = strict.maps.free(o)
+    normals = vertex_normals(fr.body_vertices, strict.attached.model.faces_np)
+    ids = np.flatnonzero(free)
+
+    def fake_predict(pose, m, seeds, outfit, options):
+        rng = np.random.default_rng(seeds[0])
+        pick = rng.choice(ids, (len(seeds), m))
+        side = rng.choice([-0.01, 0.01], (len(seeds), m, 1))
+        return SampledClouds((fr.body_vertices[pick] + side * normals[pick]).astype(np.float32), None)
+
+    for method in (ck, strict):
+        method.free.predict = fake_predict
+    n_att, _ = strict.split(o, 300)
+    loose = ck.predict(pose, 300, seeds=(0,), outfit=o).points[0, n_att:]
+    kept = strict.predict(pose, 300, seeds=(0,), outfit=o).points[0, n_att:]
+    assert (inside_depth(loose, fr.body_vertices, normals) > 0.005).mean() > 0.3
+    assert (inside_depth(kept, fr.body_vertices, normals) <= 0.005).all()
+    assert point_regions(kept, fr.body_vertices, free).all()
+    for bad in (-0.01, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="inside tolerance"):
+            ck.config.replace(inside_tolerance=bad)
+
+
+def test_the_hybrid_animates_a_dataset_sequence_and_refuses_bare_joints(hybrid, tiny_dataset, tmp_path, capsys):
+    """animate: the free region's generator runs the chain, each frame gets POP's points for its body."""
+    s, seq, _ = _frame(tiny_dataset, "skirt")
+    out = tmp_path / "anim"
+    assert main(["animate", "--ckpt", str(hybrid), "--motion", f"{tiny_dataset}:{s}/test/{seq}", "--frames", "0:3",
+                 "--points", "200", "--steps", "2", "--t", "100", "--no-render", "--out", str(out)]) == 0  # fmt: skip
+    info = json.loads((out / "animation.json").read_text())
+    assert len(info["metrics"]["flicker_cm"]) == 2 and len(list(out.glob("frame_*.ply"))) == 3
+    m = load_method(hybrid)
+    layout = DatasetLayout(tiny_dataset)
+    o = m.outfit_id("skirt")
+    n_att, _ = m.split(o, 200)
+    for k in range(3):
+        pts = read_ply(out / f"frame_{k:04d}.ply").points
+        path = layout.frame_path(s, "test", seq, layout.frame_indices(s, "test", seq)[k])
+        body = read_frame(path, ("body_vertices",)).body_vertices
+        region = point_regions(pts, body, m.maps.free(o))
+        assert len(pts) == 200 and not region[:n_att].any() and region[n_att:].all()
+    joints = tmp_path / "motion.npy"
+    np.save(joints, np.stack([read_frame(layout.frame_path(s, "test", seq, i), ["joints"]).joints
+                              for i in layout.frame_indices(s, "test", seq)[:2]]))  # fmt: skip
+    capsys.readouterr()
+    assert main(["animate", "--ckpt", str(hybrid), "--motion", str(joints), "--outfit", "skirt", "--points", "64",
+                 "--no-render", "--out", str(tmp_path / "bare")]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "dataset sequences" in err, err
+    assert not (tmp_path / "bare").exists()

@@ -145,13 +145,17 @@ def animate(
     seed: int = 0,
     seeds: Sequence[int] | None = None,
     anchor: str = "root",
+    finish: Callable[[int, np.ndarray, int], np.ndarray] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Animation:
     """Clouds (T, N, 3) for the poses ``joints`` (T, J, 3) (module docstring for the methods).
 
     seeds: per-frame seeds overriding the method's (``seed + k``, or ``seed`` for every frame
     with shared-noise). t: chain's renoising step in [1, T_train] (steps: that chain's steps,
-    at most t; from-scratch frames use the sampler's default or ``steps``).
+    at most t; from-scratch frames use the sampler's default or ``steps``). finish: ``(k,
+    points (num_points, 3) metres, seed) -> (N, 3)``, frame k's cloud made from the prior's (the
+    chain still carries the prior's clouds; :class:`~pocoloco.methods.base.AnimationPrior`); the
+    frames then have no normals.
     """
 
     if method not in METHODS:
@@ -177,6 +181,7 @@ def animate(
         raise ValueError(f"seeds must have one entry per frame ({F}), got {len(seeds)}")
     points = np.empty((F, num_points, 3), np.float32)
     normals = np.empty((F, num_points, 3), np.float32) if C == 6 else None
+    finished: list[np.ndarray] = []
     for k in range(F):
         if method != "chain" or k == 0:
             x = denoise_from(prior, joints[k], None, T, sampler, steps, [seeds[k]],
@@ -191,8 +196,12 @@ def animate(
         points[k] = p[0]
         if normals is not None:
             normals[k] = n[0]
+        if finish is not None:
+            finished.append(np.asarray(finish(k, points[k], seeds[k]), np.float32))
         if progress is not None:
             progress(k + 1, F)
+    if finish is not None:
+        return Animation(np.stack(finished), None, seeds)
     return Animation(points, normals, seeds)
 
 

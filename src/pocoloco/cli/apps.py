@@ -37,7 +37,7 @@ from pocoloco.cli.common import (
     pick_outfit,
     progress_bar,
 )
-from pocoloco.data.poses import load_joints
+from pocoloco.data.poses import load_joints, subject_of_spec
 from pocoloco.data.published import write_ply
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.methods import check_memory, checkpoint_kind
@@ -300,10 +300,20 @@ def cmd_animate(args: argparse.Namespace) -> None:
     if not 0 < args.fps <= 1000:
         raise ValueError(f"--fps must be in (0, 1000], got {args.fps}")
     method = load_method_from_args(args)
-    prior = method.point_prior(pick_outfit(method, args.outfit, args.motion))
+    outfit = pick_outfit(method, args.outfit, args.motion)
+    hook = method.animation_prior(outfit, args.points)
+    prior = hook.prior
     ckpt, step, T = method.path, method.step, prior.schedule.num_timesteps
     motion = load_motion(args.motion, prior.num_joints, any_pose=args.any_pose)
     chosen = _parse_frames(args.frames, len(motion.joints))
+    finish = None
+    if hook.finish is not None:  # the frames need their posed bodies (the hybrid)
+        if motion.frames is None:
+            raise ValueError(f"--motion {args.motion}: {method.title} animates dataset sequences only "
+                             "(DATASET:subject/split/sequence): it needs each frame's posed body")  # fmt: skip
+        subject = subject_of_spec(motion.name)
+        poses = {k: method.pose_from_frame(motion.frames[i], subject) for k, i in enumerate(chosen)}
+        finish = lambda k, points, seed: hook.finish(poses[k], points, seed)  # noqa: E731
     check_sampler(args.sampler, args.steps, T)
     if not 1 <= args.t <= T:
         raise ValueError(f"--t must be in [1, {T}] (the model's training timesteps), got {args.t}")
@@ -311,9 +321,9 @@ def cmd_animate(args: argparse.Namespace) -> None:
     check_memory(method, args.points, len(chosen))  # every frame is kept
     t0 = time.perf_counter()
     with progress_bar("animate", total=len(chosen)) as update:
-        anim = animate(prior, joints, args.points, method=args.method, t=args.t,
+        anim = animate(prior, joints, hook.prior_points, method=args.method, t=args.t,
                        sampler=args.sampler, steps=args.steps, seed=args.seed, anchor=args.anchor,
-                       progress=update)  # fmt: skip
+                       finish=finish, progress=update)  # fmt: skip
     seconds = time.perf_counter() - t0
     info: dict[str, Any] = {
         "checkpoint": str(ckpt), "step": step, "motion": motion.name, "frames": chosen, "method": args.method,

@@ -271,7 +271,8 @@ def cmd_hybrid(args: argparse.Namespace) -> None:
         raise ValueError(f"--out {out}: already holds a checkpoint (choose a new folder)")
     with progress_bar("free-region maps", total=None) as update:
         ck = assemble_hybrid(args.attached, args.free, args.data, out, margin=args.margin, threshold=args.threshold,
-                             every=args.every, maps=args.maps, generator_share=args.generator_share, progress=lambda done, total: update(done, total=total))  # fmt: skip
+                             every=args.every, maps=args.maps, generator_share=args.generator_share,
+                             inside_tolerance=args.inside_tolerance, progress=lambda done, total: update(done, total=total))  # fmt: skip
     print(f"wrote {ck} and the free-region maps {out / 'maps.npz'}, {out / 'maps.png'}; sample it with "
           f"`pocoloco sample --ckpt {out} --joints DATASET:subject/split/sequence/index`")  # fmt: skip
 
@@ -293,6 +294,9 @@ def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--generator-share", type=float, default=1.0,
                         help="of the free region's points, the share PocoLoco draws; POP draws the rest there "
                              "(default 1: the free region is wholly generated)")  # fmt: skip
+    parser.add_argument("--inside-tolerance", type=float, default=None, metavar="M",
+                        help="draw again generated points deeper than M metres inside the posed body (default: "
+                             "keep them)")  # fmt: skip
 
 
 def register(sub: argparse._SubParsersAction) -> None:

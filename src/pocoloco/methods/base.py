@@ -40,7 +40,7 @@ from pocoloco.engine.checkpoint import Checkpoint, save_checkpoint
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.utils.hardware import available_memory_bytes
 
-__all__ = ["MEMORY_SHARE", "Method", "PointPrior", "SampledClouds", "SamplerOptions", "check_memory", "fit_to_memory"]
+__all__ = ["MEMORY_SHARE", "AnimationPrior", "Method", "PointPrior", "SampledClouds", "SamplerOptions", "check_memory", "fit_to_memory"]
 
 #: meta.json entries that ``save_checkpoint`` writes itself
 _META_OWN = frozenset({"format", "version", "model_kind", "preset", "step", "config", "normalisation", "has_ema",
@@ -90,6 +90,18 @@ class PointPrior:
     prediction_type: str
     point_channels: int
     num_joints: int
+
+
+@dataclass(frozen=True)
+class AnimationPrior:
+    """What the animation app runs for a method: ``prior`` carries ``prior_points`` points from
+    frame to frame (the chain's state), and ``finish(pose, points (prior_points, 3) metres, seed)
+    -> (N, 3)`` makes a frame's cloud from them (None: the prior's cloud is the frame's cloud). A
+    method with a ``finish`` needs each frame's posed body (:attr:`Method.needs_body`)."""
+
+    prior: PointPrior
+    prior_points: int
+    finish: Callable[[Pose, np.ndarray, int], np.ndarray] | None = None
 
 
 class Method(ABC):
@@ -239,6 +251,11 @@ class Method(ABC):
         not generative point models answer with a one-line error."""
         raise ValueError(f"{self.title} cannot complete, edit or animate point clouds: these apps need a generative "
                          "point model (PocoLoco)")  # fmt: skip
+
+    def animation_prior(self, outfit: int | None, num_points: int) -> AnimationPrior:
+        """The animation app's hook (:class:`AnimationPrior`) for clouds of ``num_points``: by
+        default :meth:`point_prior`, whose clouds are the frames."""
+        return AnimationPrior(self.point_prior(outfit), int(num_points))
 
     def check_options(self, options: SamplerOptions) -> None:
         """One-line ValueError if ``options`` cannot be used with this model (before any work)."""

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -30,17 +31,21 @@ def assemble_hybrid(
     every: int = 60,
     maps: str | os.PathLike | None = None,
     generator_share: float = 1.0,
+    inside_tolerance: float | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Path:
     """Write the hybrid of the POP checkpoint ``attached`` and the PocoLoco checkpoint ``free`` into
     the run folder ``out`` (``out/checkpoints``, ``out/maps.npz``, ``out/maps.png``). The maps are
     learnt from ``data``'s train split for POP's outfits (``margin``, ``threshold``, ``every``:
     :func:`~pocoloco.methods.hybrid.regions.learn_free_maps`), or read from ``maps``.
-    ``generator_share``: of the free region's points, the share the denoiser draws (POP the rest). Returns the
+    ``generator_share``: of the free region's points, the share the denoiser draws (POP the rest);
+    ``inside_tolerance``: generated points deeper inside the posed body are drawn again (metres). Returns the
     checkpoint folder. One-line errors: wrong checkpoint kinds, outfits the maps or the free-region
     model do not know, a free-region model that needs the posed body."""
     if not 0.0 <= generator_share <= 1.0:
         raise ValueError(f"--generator-share must be in [0, 1], got {generator_share}")
+    if inside_tolerance is not None and not 0.0 <= inside_tolerance < math.inf:
+        raise ValueError(f"--inside-tolerance must be a distance >= 0 (metres), got {inside_tolerance}")
     pop = POPMethod.from_checkpoint(load_checkpoint(attached, expect_model="pop", training_state=False))
     gen = PocoLocoMethod.from_checkpoint(load_checkpoint(free, expect_model="pocoloco", training_state=False))
     if gen.needs_body:
@@ -73,7 +78,8 @@ def assemble_hybrid(
              "point_share": torch.from_numpy(region.point_share.astype(np.float32))}  # fmt: skip
     config = HybridConfig(attached=pop.config.to_dict(), free=gen.config.to_dict(), margin=region.margin,
                           threshold=region.threshold, sources={"attached": str(pop.path), "free": str(gen.path)},
-                          generator_share=float(generator_share))  # fmt: skip
+                          generator_share=float(generator_share),
+                          inside_tolerance=None if inside_tolerance is None else float(inside_tolerance))  # fmt: skip
     return save_checkpoint(out / "checkpoints", 0, model_kind="hybrid", preset=config.preset, config=config.to_dict(),
                            normalisation=gen.normalisation, model_state=state,
                            extra={"outfits": pop.outfits, "num_vertices": int(pop.model.num_vertices),

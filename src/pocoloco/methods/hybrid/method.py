@@ -29,8 +29,8 @@ from torch import nn
 from pocoloco.data.poses import MeanShapeCache, Pose
 from pocoloco.engine.checkpoint import Checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
-from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
-from pocoloco.methods.hybrid.regions import FreeRegionMaps, point_regions
+from pocoloco.methods.base import AnimationPrior, Method, SampledClouds, SamplerOptions
+from pocoloco.methods.hybrid.regions import FreeRegionMaps, inside_depth, point_regions, vertex_normals
 from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
 from pocoloco.methods.pop.method import POPMethod
@@ -42,6 +42,8 @@ __all__ = ["HybridConfig", "HybridMethod", "HybridModel"]
 
 #: draws of the free-region generator per cloud before its points are topped up by repetition
 FREE_DRAWS = 4
+#: the fewest points the animation's generator draws per frame (an outfit with no free region)
+ANIMATION_MIN_PRIOR_POINTS = 64
 
 
 @dataclass(frozen=True)
@@ -50,7 +52,8 @@ class HybridConfig(Config):
     (``to_dict``) of its two networks; margin / threshold: the free-region rule; sources: the
     checkpoints it was assembled from (provenance). generator_share: the share of the free region's
     points the denoiser draws; POP draws the rest there (its own points in that region); 1 = the
-    free region is wholly generated."""
+    free region is wholly generated. inside_tolerance: generated points deeper inside the posed
+    body than this (metres) are drawn again (None: kept; the scans hold none)."""
 
     model: str = "hybrid"
     preset: str = "assembled"
@@ -60,12 +63,15 @@ class HybridConfig(Config):
     threshold: float = 0.5
     sources: dict[str, str] = field(default_factory=dict)
     generator_share: float = 1.0
+    inside_tolerance: float | None = None
 
     def __post_init__(self):
         if self.model != "hybrid":
             raise ValueError(f"a HybridConfig is of model 'hybrid', got {self.model!r}")
         if not 0.0 <= self.generator_share <= 1.0:
             raise ValueError(f"generator share must be in [0, 1], got {self.generator_share}")
+        if self.inside_tolerance is not None and not 0.0 <= self.inside_tolerance < math.inf:
+            raise ValueError(f"inside tolerance must be a distance >= 0 (metres), got {self.inside_tolerance}")
 
     def attached_config(self) -> SkinnedTrainConfig:
         return SkinnedTrainConfig.from_dict(self.attached)
@@ -185,20 +191,69 @@ class HybridMethod(Method):
                 options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
         """One cloud per seed: the attached points (the same for every seed) and the free points of
         that seed, in the frame of ``pose`` (metres); no normals (the free region has none)."""
-        if num_points < 1:
-            raise ValueError(f"num_points must be >= 1, got {num_points}")
-        if not pose.has_body:
-            raise ValueError(f"{pose.source}: the hybrid needs the posed body (body_vertices / vtransf)")
-        outfit = self.default_outfit(pose) if outfit is None else self.outfit_id(outfit)
+        outfit, n_gen = self._plan(pose, outfit, num_points)
         free = self.maps.free(outfit)
-        n_att, n_free = self.split(outfit, num_points)
-        n_gen = int(round(self.config.generator_share * n_free))
-        skinned = self._skinned_points(pose, outfit, free, n_att, n_free - n_gen)  # shared by the hypotheses
+        skinned = self._skinned_for(pose, outfit, num_points)  # shared by the hypotheses
         clouds = [skinned] * len(seeds)
         if n_gen:
             region = self._free_points(pose, outfit, free, n_gen, seeds, options)
             clouds = [np.concatenate([skinned, r]) for r in region]
         return SampledClouds(np.stack(clouds).astype(np.float32), None)
+
+    def _plan(self, pose: Pose, outfit: int | None, num_points: int) -> tuple[int, int]:
+        """(outfit id, points the generator draws) of a cloud, after the input checks."""
+        if num_points < 1:
+            raise ValueError(f"num_points must be >= 1, got {num_points}")
+        if not pose.has_body:
+            raise ValueError(f"{pose.source}: the hybrid needs the posed body (body_vertices / vtransf)")
+        outfit = self.default_outfit(pose) if outfit is None else self.outfit_id(outfit)
+        return outfit, int(round(self.config.generator_share * self.split(outfit, num_points)[1]))
+
+    def _skinned_for(self, pose: Pose, outfit: int, num_points: int) -> np.ndarray:
+        """The POP part of a cloud of ``num_points``: the attached region's points and the free
+        region's share POP draws (:meth:`_skinned_points`)."""
+        n_att, n_free = self.split(outfit, num_points)
+        n_gen = int(round(self.config.generator_share * n_free))
+        return self._skinned_points(pose, outfit, self.maps.free(outfit), n_att, n_free - n_gen)
+
+    def _kept(self, pose: Pose, free: np.ndarray, points: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
+        """(M,) bool: which generated points (M, 3) the free region keeps (their nearest posed body
+        vertex is free and, with ``inside_tolerance``, they are no deeper inside the body)."""
+        keep = point_regions(points, pose.body_vertices, free)
+        if normals is not None:
+            keep &= inside_depth(points, pose.body_vertices, normals) <= self.config.inside_tolerance
+        return keep
+
+    def _normals(self, pose: Pose) -> np.ndarray | None:
+        """The posed body's vertex normals when the inside test is on, else None."""
+        if self.config.inside_tolerance is None:
+            return None
+        return vertex_normals(pose.body_vertices, self.attached.model.faces_np)
+
+    def point_prior(self, outfit: int | None):
+        raise ValueError("the hybrid cannot complete or edit point clouds (its generator draws the free region only); "
+                         "it samples, scores and animates dataset sequences")  # fmt: skip
+
+    def animation_prior(self, outfit: int | None, num_points: int) -> AnimationPrior:
+        """The free-region generator as the animation's prior (its chain carries the generated
+        points from frame to frame) and, per frame, the cloud made of its points that fall in the
+        free region (drawn to the free share) and POP's points for that frame's posed body."""
+        outfit = 0 if outfit is None else self.outfit_id(outfit)
+        _, n_free = self.split(outfit, num_points)
+        n_gen = int(round(self.config.generator_share * n_free))
+        free = self.maps.free(outfit)
+
+        def finish(pose: Pose, generated: np.ndarray, seed: int) -> np.ndarray:
+            self._plan(pose, outfit, num_points)
+            skinned = self._skinned_for(pose, outfit, num_points)
+            if not n_gen:
+                return skinned
+            kept = generated[self._kept(pose, free, generated, self._normals(pose))]
+            return np.concatenate([skinned, _exactly(kept, n_gen, np.random.default_rng([int(seed), 8]))])
+
+        # the generator draws half as many again as the free region keeps (it strays a little)
+        prior_points = max(math.ceil(1.5 * n_gen), ANIMATION_MIN_PRIOR_POINTS)
+        return AnimationPrior(self.free.point_prior(self._free_outfit(outfit)), prior_points, finish)
 
     def _skinned_points(self, pose: Pose, outfit: int, free: np.ndarray, n_att: int, n_free: int) -> np.ndarray:
         """(n_att + n_free, 3) POP points (deterministic): n_att whose nearest posed body vertex is
@@ -220,9 +275,11 @@ class HybridMethod(Method):
 
     def _free_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int, seeds: Sequence[int],
                      options: SamplerOptions) -> list[np.ndarray]:  # fmt: skip
-        """Per seed, (n, 3) generated points whose nearest posed body vertex is free: the generator's
-        clouds are filtered by region and drawn again (new seeds derived from the seed) until n."""
+        """Per seed, (n, 3) generated points whose nearest posed body vertex is free (and, with an
+        ``inside_tolerance``, that lie no deeper inside the body): the generator's clouds are
+        filtered and drawn again (new seeds derived from the seed) until n."""
         fo = self._free_outfit(outfit)
+        normals = self._normals(pose)
         found: list[list[np.ndarray]] = [[] for _ in seeds]
         m, rate = n, 1.0
         for attempt in range(FREE_DRAWS):
@@ -234,15 +291,16 @@ class HybridMethod(Method):
             clouds = self.free.predict(pose, m, seeds=draw, outfit=fo, options=options).points
             kept = 0
             for k, pts in zip(todo, clouds, strict=True):
-                inside = pts[point_regions(pts, pose.body_vertices, free)]
-                found[k].append(inside)
-                kept += len(inside)
+                keep = self._kept(pose, free, pts, normals)
+                found[k].append(pts[keep])
+                kept += int(keep.sum())
             rate = kept / (m * len(todo))
         return [_exactly(np.concatenate(f), n, np.random.default_rng([int(s), 8])) for f, s in zip(found, seeds, strict=True)]
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         return {"free": self.free.sample_settings(options, num_points), "margin": self.config.margin,
-                "threshold": self.config.threshold, "generator_share": self.config.generator_share}  # fmt: skip
+                "threshold": self.config.threshold, "generator_share": self.config.generator_share,
+                "inside_tolerance": self.config.inside_tolerance}  # fmt: skip
 
 
 def _exactly(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -27,7 +27,8 @@ from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame, read_
 from pocoloco.utils.atomic import atomic_open
 from pocoloco.viz.render import render_grid
 
-__all__ = ["MIN_FREE_SHARE", "FreeRegionMaps", "learn_free_maps", "point_regions", "render_free_maps"]
+__all__ = ["MIN_FREE_SHARE", "FreeRegionMaps", "inside_depth", "learn_free_maps", "point_regions", "render_free_maps",
+           "vertex_normals"]
 
 #: an outfit with a smaller free point share has no free region (wholly attached)
 MIN_FREE_SHARE = 0.02
@@ -102,6 +103,26 @@ def point_regions(points: np.ndarray, body_vertices: np.ndarray, free: np.ndarra
     vertex (V, 3) is free (``free`` (V,) bool)."""
     _, nearest = cKDTree(np.asarray(body_vertices, np.float64)).query(np.asarray(points, np.float64))
     return np.asarray(free, bool)[nearest]
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) unit vertex normals of a mesh (V, 3) / (F, 3): the area-weighted sum of its faces'
+    normals (outward for the body's counter-clockwise faces)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    face_normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2 x area
+    n = np.zeros_like(v)
+    for corner in range(3):
+        np.add.at(n, f[:, corner], face_normals)
+    return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+
+
+def inside_depth(points: np.ndarray, body_vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(N,) how deep each point (N, 3) lies inside the posed body (metres; > 0 inside, <= 0 on or
+    outside): minus its offset along the normal (V, 3) of its nearest body vertex (V, 3)."""
+    points = np.asarray(points, np.float64)
+    _, nearest = cKDTree(np.asarray(body_vertices, np.float64)).query(points)
+    return -np.einsum("nc,nc->n", points - body_vertices[nearest], normals[nearest])
 
 
 def learn_free_maps(
