@@ -8,15 +8,16 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from pocoloco.cli import main
 from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame, read_subject
 from pocoloco.data.pack import PackedDataset, write_pack
-from pocoloco.data.published import read_ply
+from pocoloco.data.published import read_ply, write_ply
 from pocoloco.methods import load_method, train
 from pocoloco.methods.base import SampledClouds, SamplerOptions
 from pocoloco.methods.hybrid import FreeRegionMaps, HybridMethod, learn_free_maps, point_regions, render_free_maps
-from pocoloco.methods.hybrid.regions import inside_depth, vertex_normals
+from pocoloco.methods.hybrid.regions import inside_depth, scan_vertex_votes, vertex_normals
 from pocoloco.methods.skinned import skinned_preset
 
 
@@ -216,7 +217,7 @@ def test_an_inside_tolerance_draws_again_the_generated_points_inside_the_body(hy
     normals = vertex_normals(fr.body_vertices, strict.attached.model.faces_np)
     ids = np.flatnonzero(free)
 
-    def fake_predict(pose, m, seeds, outfit, options):
+    def fake_predict(pose, m, seeds, outfit, options, code=None):
         rng = np.random.default_rng(seeds[0])
         pick = rng.choice(ids, (len(seeds), m))
         side = rng.choice([-0.01, 0.01], (len(seeds), m, 1))
@@ -262,3 +263,59 @@ def test_the_hybrid_animates_a_dataset_sequence_and_refuses_bare_joints(hybrid, 
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "dataset sequences" in err, err
     assert not (tmp_path / "bare").exists()
+
+
+@pytest.fixture(scope="module")
+def hybrid_with_codes(hybrid, tiny_dataset, tmp_path_factory):
+    """The tiny hybrid's POP with a 2-step tiny PocoLoco that has outfit codes and body shape."""
+    from pocoloco.methods.pocoloco import train_preset
+
+    root = tmp_path_factory.mktemp("hybrid_codes")
+    cfg = train_preset("tiny", steps=2, batch_size=2, num_points=128, ckpt_every=0, sample_every=0, log_every=1,
+                       outfit_codes=True, body_shape=True)  # fmt: skip
+    train(cfg, tiny_dataset, root / "gen", progress=False)
+    out = root / "hybrid"
+    assert main(["hybrid", "--attached", load_method(hybrid).config.sources["attached"], "--free", str(root / "gen"),
+                 "--data", str(tiny_dataset), "--maps", str(hybrid / "maps.npz"), "--out", str(out)]) == 0  # fmt: skip
+    return out
+
+
+@pytest.mark.parametrize("generator", ["joints only", "outfit codes"])
+def test_fit_adds_an_outfit_to_both_networks_and_the_maps(generator, hybrid, hybrid_with_codes, tiny_dataset, tmp_path,
+                                                          capsys):  # fmt: skip
+    """pocoloco fit on the hybrid: POP's features fitted to the scan, the generator's code (when it
+    has outfit codes) to the scan's free-region points; the map from the scan's labels (the outfit
+    codes case), else the start's (the mean map), with the scan's own free share; the new
+    checkpoint samples the outfit."""
+    ckpt = hybrid if generator == "joints only" else hybrid_with_codes
+    labelled = generator == "outfit codes"
+    s, seq, path = _frame(tiny_dataset, "skirt")
+    fr = read_frame(path)
+    idx = int(fr.frame_index)
+    scan = tmp_path / "scan.ply"
+    pick = np.sort(np.random.default_rng(0).choice(len(fr.points), 400, replace=False))  # a small scan: a fast test
+    write_ply(scan, fr.points[pick], normals=fr.normals[pick], labels=fr.labels[pick] if labelled else None)
+    out = tmp_path / "fitted"
+    spec = f"{tiny_dataset}:{s}/test/{seq}/{idx}"
+    assert main(["fit", "--model", "hybrid", "--ckpt", str(ckpt), "--scan", str(scan), "--frame", spec, "--steps", "3",
+                 "--name", "new_skirt", "--start", "mean", "--out", str(out)]) == 0, capsys.readouterr().err  # fmt: skip
+    old, new = load_method(ckpt), load_method(out)
+    assert isinstance(new, HybridMethod) and new.outfit_names() == ["skirt", "tight", "new_skirt"]
+    if labelled:
+        votes = scan_vertex_votes(fr.points[pick], fr.labels[pick], fr.body_vertices, old.maps.margin)
+        np.testing.assert_array_equal(new.maps.vertex_share[2], votes)
+        assert new.maps.point_share[2] > 0.2  # the skirt hangs free
+    else:
+        np.testing.assert_allclose(new.maps.vertex_share[2], old.maps.vertex_share.mean(0), atol=1e-6)  # the mean map
+    expect = point_regions(fr.points[pick], fr.body_vertices, new.maps.free(2)).mean()
+    assert new.maps.point_share[2] == pytest.approx(expect if expect >= 0.02 else 0.0, abs=1e-6)
+    assert new.model.attached.geom.shape[0] == 3  # POP's features grew; the trained ones are unchanged
+    assert torch.equal(new.model.attached.geom[:2], old.model.attached.geom)
+    if generator == "outfit codes":
+        assert new.free.outfit_names() == [*old.free.outfit_names(), "new_skirt"]
+        codes = new.model.free.who.outfit_embed.weight
+        assert not torch.allclose(codes[-1], old.model.free.who.outfit_embed.weight.mean(0))  # fitted from the mean
+    else:
+        assert new.free.outfit_names() == []
+    assert main(["sample", "--ckpt", str(out), "--outfit", "new_skirt", "--joints", spec, "--num", "2", "--points",
+                 "200", "--steps", "2", "--no-render", "--out", str(tmp_path / "s")]) == 0  # fmt: skip

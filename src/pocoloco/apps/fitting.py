@@ -55,19 +55,21 @@ def _score(pred_points, pred_normals, scan, scan_n) -> dict[str, float]:
     return {k: float(m[k]) for k in ("chamfer_cm", "s2m_cm", "m2s_cm", "pop_chamfer_e-4m2", "normal_l1_e-1") if k in m}
 
 
-def _read_scan(path: str | os.PathLike, need_normals: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def _read_scan(path: str | os.PathLike, need_normals: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(points, unit normals or None, per-point labels or None) of a scan PLY."""
     ply = read_ply(path, require_normals=need_normals)
     scan, scan_n = ply.points, ply.normals
+    labels = None if ply.labels is None else np.asarray(ply.labels, np.int64)
     if len(scan) < MIN_SCAN_POINTS:
         raise ValueError(f"{path}: scan has {len(scan)} points; fitting needs at least {MIN_SCAN_POINTS}")
     if scan_n is None:
-        return scan, None
+        return scan, None, labels
     lens = np.linalg.norm(scan_n, axis=1)
     if not (lens > 1e-6).all():
         if need_normals:
             raise ValueError(f"{path}: {int((lens <= 1e-6).sum())} normals are zero; the point-to-plane loss needs normals")
-        return scan, None
-    return scan, (scan_n / lens[:, None]).astype(np.float32)
+        return scan, None, labels
+    return scan, (scan_n / lens[:, None]).astype(np.float32), labels
 
 
 def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike, str]], out: str | os.PathLike,
@@ -109,14 +111,15 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
         raise ValueError(f"--name {name!r}: outfit names must not be plain integers (they would read as ids)")
     read = [_read_scan(path, loaded.fit_needs_normals) for path, _ in scans]
     n_fit = num_points or loaded.fit_points()
-    fit_scans, poses = [], []
-    for k, ((path, frame_spec), (scan, scan_n)) in enumerate(zip(scans, read, strict=True)):
+    fit_scans, poses, fit_labels = [], [], []
+    for k, ((path, frame_spec), (scan, scan_n, labels)) in enumerate(zip(scans, read, strict=True)):
         sel = np.sort(np.random.default_rng([seed, 6, k]).choice(len(scan), min(len(scan), n_fit), replace=False))
         subject = frame_spec.rpartition(":")[2].strip("/").split("/")[0]
         pose = loaded.pose_from_frame(dataset_frame_path(frame_spec), subject,
                                       frame=read_frame(dataset_frame_path(frame_spec)))  # fmt: skip
         check_scan(os.fspath(path), scan, pose.joints)  # units and frame, as completion checks them
         fit_scans.append((scan[sel], None if scan_n is None else scan_n[sel], pose))
+        fit_labels.append(None if labels is None else labels[sel])
         poses.append(pose)
     trained_names = loaded.outfit_names()
     subject = poses[0].subject
@@ -126,7 +129,7 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
     else:
         card_subject = read_card(scans[0][1].rpartition(":")[0]).get("subjects", {}).get(subject) or {}
         phenotype = dict(card_subject.get("phenotype") or loaded.outfits[0].get("phenotype", {}))
-    scan, scan_n = read[0]
+    scan, scan_n, _ = read[0]
     n_eval = min(len(scan), 10_000)
     esel = np.sort(np.random.default_rng([seed, 7]).choice(len(scan), n_eval, replace=False))
     gt, gt_n = scan[esel].astype(np.float64), None if scan_n is None else scan_n[esel].astype(np.float64)
@@ -140,7 +143,7 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
     start_code = loaded.outfit_code(best) if start == "nearest" else loaded.mean_outfit_code()
     t0 = time.perf_counter()
     fit = loaded.fit_outfit(fit_scans, steps=steps, lr=lr, progress=progress, shape=phenotype_vector(phenotype),
-                            seed=seed, init=start_code, anchor=anchor)  # fmt: skip
+                            seed=seed, init=start_code, anchor=anchor, labels=fit_labels)  # fmt: skip
     seconds = time.perf_counter() - t0
 
     sources = "; ".join(f"{os.fspath(p)} (body of {f})" for p, f in scans)

@@ -358,7 +358,7 @@ def cmd_animate(args: argparse.Namespace) -> None:
 # ----------------------------------------------------------------------------------------- fit
 def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco fit`` options."""
-    parser.add_argument("--model", choices=("pop", "pocoloco"),
+    parser.add_argument("--model", choices=("pop", "pocoloco", "hybrid"),
                         help="the kind --ckpt must be (checked; default: whatever it is): POP fits its geometric "
                              "features to one scan (paper Sec. 3.3), PocoLoco trained with --outfit-codes an outfit "
                              "code to one or a few scans")  # fmt: skip

@@ -16,6 +16,7 @@ be one trained on the whole body or one fine-tuned on free-region packs
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -30,7 +31,8 @@ from pocoloco.data.poses import MeanShapeCache, Pose
 from pocoloco.engine.checkpoint import Checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import AnimationPrior, Method, SampledClouds, SamplerOptions
-from pocoloco.methods.hybrid.regions import FreeRegionMaps, inside_depth, point_regions, vertex_normals
+from pocoloco.methods.hybrid.regions import (MIN_FREE_SHARE, FreeRegionMaps, inside_depth, point_regions,
+                                             scan_vertex_votes, vertex_normals)
 from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
 from pocoloco.methods.pop.method import POPMethod
@@ -89,6 +91,27 @@ class HybridModel(nn.Module):
         self.attached, self.free = attached, free
         self.register_buffer("vertex_share", torch.as_tensor(vertex_share, dtype=torch.float32))
         self.register_buffer("point_share", torch.as_tensor(point_share, dtype=torch.float32))
+
+
+@dataclass
+class HybridCode:
+    """One hybrid outfit as ``pocoloco fit`` handles it: POP's geometric features ``attached``
+    (1, Cg, Ri, Ri), the generator's outfit code ``free`` (D,) (None for a joints-only generator),
+    and the outfit's free-region map: ``vertex_share`` (V,) and ``point_share``."""
+
+    attached: torch.Tensor
+    free: torch.Tensor | None
+    vertex_share: np.ndarray
+    point_share: float
+
+
+@dataclass
+class HybridFit:
+    """A fitted hybrid outfit (``features``: :class:`HybridCode`) and the losses of both fits,
+    POP's steps then the generator's."""
+
+    features: HybridCode
+    losses: list[float]
 
 
 class HybridMethod(Method):
@@ -165,6 +188,95 @@ class HybridMethod(Method):
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
         return self.attached.pose_from_frame(path, subject, frame=frame, cache=cache)
 
+    # ------------------------------------------------------------------------- unseen outfits
+    fits_outfits = True
+    fit_needs_normals = True  # POP's point-to-plane loss
+
+    def fit_points(self) -> int:
+        return self.attached.fit_points()
+
+    def outfit_code(self, outfit: int) -> HybridCode:
+        """Outfit ``outfit``'s features, generator code and map: ``fit --start nearest``."""
+        o = self.outfit_id(outfit)
+        return HybridCode(self.attached.outfit_code(o), self._generator_code(o), self.maps.vertex_share[o].copy(),
+                          self.maps.free_share_of(o))  # fmt: skip
+
+    def mean_outfit_code(self) -> HybridCode:
+        """The mean of the trained outfits' features, codes and maps: ``fit --start mean``."""
+        return HybridCode(self.attached.mean_outfit_code(),
+                          self.free.mean_outfit_code() if self.free.outfit_names() else None,
+                          self.maps.vertex_share.mean(0), float(self.maps.point_share.mean()))  # fmt: skip
+
+    def _generator_code(self, outfit: int) -> torch.Tensor | None:
+        """The generator's code (D,) of ``outfit``; the mean of its codes when it never learnt this
+        one (an outfit without a free region); None for a joints-only generator."""
+        names = self.free.outfit_names()
+        if not names:
+            return None
+        name = self.outfits[outfit]["name"]
+        return self.free.outfit_code(names.index(name)) if name in names else self.free.mean_outfit_code()
+
+    def fit_outfit(self, scans, steps: int = 400, lr: float | None = None, progress=None, shape=None,
+                   seed: int = 0, init: HybridCode | None = None, anchor: float = 0.0,
+                   labels=None) -> HybridFit:  # fmt: skip
+        """Fit a new outfit to one scan ``[(points (P, 3), unit normals (P, 3), pose)]``, both networks
+        frozen: POP's geometric features to the whole scan (POP Eq. 7; ``lr`` applies to it), and
+        the generator's outfit code (diffusion loss, its own learning rate, ``anchor``) to the scan's
+        points in the free region. The free-region map comes from the scan's labels (``labels``:
+        [(P,) or None]; a body vertex is free when its nearest scan point is loose garment or
+        farther than the maps' margin, the rule of :func:`learn_free_maps` on one frame), else it
+        is the start's (``init``: the nearest trained outfit's, or the mean map); the free point
+        share is the scan's own. ``steps`` each."""
+        if len(scans) != 1:
+            raise ValueError(f"the hybrid fits an outfit to one scan (its POP part, paper Eq. 7), got {len(scans)}")
+        init = self.mean_outfit_code() if init is None else init
+        points, normals, pose = scans[0]
+        scan_labels = None if labels is None else labels[0]
+        if scan_labels is not None:
+            if len(scan_labels) != len(points):
+                raise ValueError(f"the scan has {len(points)} points but {len(scan_labels)} labels")
+            init = dataclasses.replace(init, vertex_share=scan_vertex_votes(points, scan_labels, pose.body_vertices,
+                                                                            self.maps.margin))  # fmt: skip
+        total = 2 * steps if init.free is not None else steps
+
+        def phase(offset: int):
+            if progress is None:
+                return None
+            return lambda done, n, loss: progress(offset + done, total, loss)
+
+        attached = self.attached.fit_outfit([(points, normals, pose)], steps=steps, lr=lr, progress=phase(0),
+                                            init=init.attached)  # fmt: skip
+        free_mask = init.vertex_share > self.maps.threshold
+        region = point_regions(points, pose.body_vertices, free_mask)
+        share = float(region.mean())
+        if share < MIN_FREE_SHARE:
+            share = 0.0
+        losses, code = list(attached.losses), init.free
+        if init.free is not None and share > 0:
+            fit = self.free.fit_outfit([(points[region], None, pose)], steps=steps, progress=phase(steps), shape=shape,
+                                       seed=seed, init=init.free, anchor=anchor)  # fmt: skip
+            losses += fit.losses
+            code = fit.features
+        return HybridFit(HybridCode(attached.features, code, np.asarray(init.vertex_share, np.float32), share), losses)
+
+    def add_outfit(self, code: HybridCode, entry: dict[str, Any]) -> int:
+        """Append a fitted outfit to both networks and the maps; returns its id."""
+        new_id = self.attached.add_outfit(code.attached, dict(entry))
+        if code.free is not None:
+            self.free.add_outfit(code.free, dict(entry))
+            self.meta["free_outfits"] = self.free.outfits
+            self.config = self.config.replace(free=self.free.config.to_dict())
+        self.outfits = self.attached.outfits
+        self.meta["outfits"] = self.outfits
+        m = self.model
+        m.vertex_share = torch.cat([m.vertex_share, torch.as_tensor(code.vertex_share, dtype=torch.float32)[None]])
+        m.point_share = torch.cat([m.point_share, torch.tensor([code.point_share], dtype=torch.float32)])
+        self.meta["map_frames"] = [*self.meta.get("map_frames", [0] * new_id), 1]
+        self.maps = FreeRegionMaps(tuple(self.outfit_names()), m.vertex_share.cpu().numpy(),
+                                   m.point_share.cpu().numpy(), self.maps.margin, self.maps.threshold,
+                                   np.asarray(self.meta["map_frames"], np.int32))  # fmt: skip
+        return new_id
+
     # ---------------------------------------------------------------------------- predicting
     def check_options(self, options: SamplerOptions) -> None:
         self.free.check_options(options)
@@ -172,10 +284,16 @@ class HybridMethod(Method):
     def bytes_per_point(self) -> int:
         return max(self.attached.bytes_per_point(), self.free.bytes_per_point())
 
-    def split(self, outfit: int, num_points: int) -> tuple[int, int]:
-        """(attached, free) point counts of a cloud of ``num_points`` of ``outfit``."""
-        free = int(round(self.maps.free_share_of(outfit) * num_points))
+    def split(self, outfit: int, num_points: int, code: HybridCode | None = None) -> tuple[int, int]:
+        """(attached, free) point counts of a cloud of ``num_points`` of ``outfit`` (or of a fitted
+        ``code``)."""
+        share = self.maps.free_share_of(outfit) if code is None else code.point_share
+        free = int(round(share * num_points))
         return num_points - free, free
+
+    def _free_mask(self, outfit: int, code: HybridCode | None = None) -> np.ndarray:
+        """(V,) bool: the free region of ``outfit`` (or of a fitted ``code``)."""
+        return self.maps.free(outfit) if code is None else code.vertex_share > self.maps.threshold
 
     def _free_outfit(self, outfit: int) -> int | None:
         names = self.free.outfit_names()
@@ -188,33 +306,36 @@ class HybridMethod(Method):
 
     @torch.no_grad()
     def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
-                options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
+                options: SamplerOptions = SamplerOptions(), code: HybridCode | None = None) -> SampledClouds:  # fmt: skip
         """One cloud per seed: the attached points (the same for every seed) and the free points of
-        that seed, in the frame of ``pose`` (metres); no normals (the free region has none)."""
-        outfit, n_gen = self._plan(pose, outfit, num_points)
-        free = self.maps.free(outfit)
-        skinned = self._skinned_for(pose, outfit, num_points)  # shared by the hypotheses
+        that seed, in the frame of ``pose`` (metres); no normals (the free region has none).
+        ``code``: a fitted outfit (:class:`HybridCode`) in place of ``outfit``'s features and map
+        (the body shape still comes from ``outfit``)."""
+        outfit, n_gen = self._plan(pose, outfit, num_points, code)
+        skinned = self._skinned_for(pose, outfit, num_points, code)  # shared by the hypotheses
         clouds = [skinned] * len(seeds)
         if n_gen:
-            region = self._free_points(pose, outfit, free, n_gen, seeds, options)
+            region = self._free_points(pose, outfit, self._free_mask(outfit, code), n_gen, seeds, options,
+                                       None if code is None else code.free)  # fmt: skip
             clouds = [np.concatenate([skinned, r]) for r in region]
         return SampledClouds(np.stack(clouds).astype(np.float32), None)
 
-    def _plan(self, pose: Pose, outfit: int | None, num_points: int) -> tuple[int, int]:
+    def _plan(self, pose: Pose, outfit: int | None, num_points: int, code: HybridCode | None = None) -> tuple[int, int]:
         """(outfit id, points the generator draws) of a cloud, after the input checks."""
         if num_points < 1:
             raise ValueError(f"num_points must be >= 1, got {num_points}")
         if not pose.has_body:
             raise ValueError(f"{pose.source}: the hybrid needs the posed body (body_vertices / vtransf)")
         outfit = self.default_outfit(pose) if outfit is None else self.outfit_id(outfit)
-        return outfit, int(round(self.config.generator_share * self.split(outfit, num_points)[1]))
+        return outfit, int(round(self.config.generator_share * self.split(outfit, num_points, code)[1]))
 
-    def _skinned_for(self, pose: Pose, outfit: int, num_points: int) -> np.ndarray:
+    def _skinned_for(self, pose: Pose, outfit: int, num_points: int, code: HybridCode | None = None) -> np.ndarray:
         """The POP part of a cloud of ``num_points``: the attached region's points and the free
         region's share POP draws (:meth:`_skinned_points`)."""
-        n_att, n_free = self.split(outfit, num_points)
+        n_att, n_free = self.split(outfit, num_points, code)
         n_gen = int(round(self.config.generator_share * n_free))
-        return self._skinned_points(pose, outfit, self.maps.free(outfit), n_att, n_free - n_gen)
+        return self._skinned_points(pose, outfit, self._free_mask(outfit, code), n_att, n_free - n_gen,
+                                    None if code is None else code.attached)  # fmt: skip
 
     def _kept(self, pose: Pose, free: np.ndarray, points: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
         """(M,) bool: which generated points (M, 3) the free region keeps (their nearest posed body
@@ -249,13 +370,14 @@ class HybridMethod(Method):
             if not n_gen:
                 return skinned
             kept = generated[self._kept(pose, free, generated, self._normals(pose))]
-            return np.concatenate([skinned, _exactly(kept, n_gen, np.random.default_rng([int(seed), 8]))])
+            return np.concatenate([skinned, _exactly(kept, n_gen, np.random.default_rng([int(seed), 8]), generated)])
 
         # the generator draws half as many again as the free region keeps (it strays a little)
         prior_points = max(math.ceil(1.5 * n_gen), ANIMATION_MIN_PRIOR_POINTS)
         return AnimationPrior(self.free.point_prior(self._free_outfit(outfit)), prior_points, finish)
 
-    def _skinned_points(self, pose: Pose, outfit: int, free: np.ndarray, n_att: int, n_free: int) -> np.ndarray:
+    def _skinned_points(self, pose: Pose, outfit: int, free: np.ndarray, n_att: int, n_free: int,
+                        code: torch.Tensor | None = None) -> np.ndarray:  # fmt: skip
         """(n_att + n_free, 3) POP points (deterministic): n_att whose nearest posed body vertex is
         attached, then n_free whose nearest one is free. POP is queried at its training UV map's
         pixels (or more, when that is too few): a finer map scores worse (BENCHMARKS)."""
@@ -265,22 +387,23 @@ class HybridMethod(Method):
             if want == 0:
                 continue
             for _ in range(FREE_DRAWS):
-                pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit).points[0]
+                pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit, code=code).points[0]
                 keep = pts[point_regions(pts, pose.body_vertices, free) == region]
                 if len(keep) >= want:
                     break
                 m = math.ceil(1.5 * m * want / max(len(keep), 1))
-            parts.append(_exactly(keep, want, np.random.default_rng([0, 7, int(region)])))
+            parts.append(_exactly(keep, want, np.random.default_rng([0, 7, int(region)]), pts))
         return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
 
     def _free_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int, seeds: Sequence[int],
-                     options: SamplerOptions) -> list[np.ndarray]:  # fmt: skip
+                     options: SamplerOptions, code: torch.Tensor | None = None) -> list[np.ndarray]:  # fmt: skip
         """Per seed, (n, 3) generated points whose nearest posed body vertex is free (and, with an
         ``inside_tolerance``, that lie no deeper inside the body): the generator's clouds are
         filtered and drawn again (new seeds derived from the seed) until n."""
         fo = self._free_outfit(outfit)
         normals = self._normals(pose)
         found: list[list[np.ndarray]] = [[] for _ in seeds]
+        last: list[np.ndarray] = [np.zeros((0, 3), np.float32)] * len(seeds)
         m, rate = n, 1.0
         for attempt in range(FREE_DRAWS):
             todo = [k for k in range(len(seeds)) if sum(len(x) for x in found[k]) < n]
@@ -288,14 +411,16 @@ class HybridMethod(Method):
                 break
             m = math.ceil(1.15 * n / max(rate, 0.05))
             draw = [int(seeds[k]) if attempt == 0 else int(seeds[k]) * 1000 + attempt for k in todo]
-            clouds = self.free.predict(pose, m, seeds=draw, outfit=fo, options=options).points
+            clouds = self.free.predict(pose, m, seeds=draw, outfit=fo, options=options, code=code).points
             kept = 0
             for k, pts in zip(todo, clouds, strict=True):
                 keep = self._kept(pose, free, pts, normals)
                 found[k].append(pts[keep])
+                last[k] = pts
                 kept += int(keep.sum())
             rate = kept / (m * len(todo))
-        return [_exactly(np.concatenate(f), n, np.random.default_rng([int(s), 8])) for f, s in zip(found, seeds, strict=True)]
+        return [_exactly(np.concatenate(f), n, np.random.default_rng([int(s), 8]), x)
+                for f, s, x in zip(found, seeds, last, strict=True)]  # fmt: skip
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         return {"free": self.free.sample_settings(options, num_points), "margin": self.config.margin,
@@ -303,8 +428,10 @@ class HybridMethod(Method):
                 "inside_tolerance": self.config.inside_tolerance}  # fmt: skip
 
 
-def _exactly(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n of ``points`` without replacement (with replacement only when there are fewer)."""
+def _exactly(points: np.ndarray, n: int, rng: np.random.Generator, fallback: np.ndarray) -> np.ndarray:
+    """n of ``points`` without replacement (with replacement only when there are fewer); of
+    ``fallback`` (the unfiltered draw) when a region caught no point at all (a sliver of a region,
+    e.g. a fitted outfit's mean map)."""
     if len(points) == 0:
-        raise ValueError("the hybrid's region holds no point for this pose (check the free-region maps)")
+        points = fallback
     return points[np.sort(rng.choice(len(points), n, replace=len(points) < n))].astype(np.float32)

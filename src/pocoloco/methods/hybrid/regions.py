@@ -28,7 +28,7 @@ from pocoloco.utils.atomic import atomic_open
 from pocoloco.viz.render import render_grid
 
 __all__ = ["MIN_FREE_SHARE", "FreeRegionMaps", "inside_depth", "learn_free_maps", "point_regions", "render_free_maps",
-           "vertex_normals"]
+           "scan_vertex_votes", "vertex_normals"]
 
 #: an outfit with a smaller free point share has no free region (wholly attached)
 MIN_FREE_SHARE = 0.02
@@ -125,6 +125,18 @@ def inside_depth(points: np.ndarray, body_vertices: np.ndarray, normals: np.ndar
     return -np.einsum("nc,nc->n", points - body_vertices[nearest], normals[nearest])
 
 
+def scan_vertex_votes(points: np.ndarray, labels: np.ndarray | None, body_vertices: np.ndarray,
+                      margin: float) -> np.ndarray:  # fmt: skip
+    """(V,) float32 0 / 1: one frame's vote of each posed body vertex (V, 3) on a scan (N, 3) with
+    point ``labels`` (N,) (None: distance only): free when its nearest scan point is loose garment
+    or lies farther than ``margin`` (metres)."""
+    dist, idx = cKDTree(np.asarray(points, np.float64)).query(np.asarray(body_vertices, np.float64))
+    vote = dist > margin
+    if labels is not None:
+        vote |= np.asarray(labels)[idx] == LABEL_GARMENT
+    return vote.astype(np.float32)
+
+
 def learn_free_maps(
     data: str | os.PathLike,
     subjects: Sequence[str] | None = None,
@@ -166,9 +178,8 @@ def learn_free_maps(
             fr = read_frame(path, ("points", "labels", "body_vertices"), allow_missing=True)
             if fr.labels is None or fr.body_vertices is None:
                 raise ValueError(f"{path}: the free-region map needs point labels and the posed body (synthetic data)")
-            dist, idx = cKDTree(fr.points).query(fr.body_vertices)
-            vote = ((fr.labels[idx] == LABEL_GARMENT) if labels else False) | (dist > margin)
-            votes = vote.astype(np.int32) if votes is None else votes + vote
+            vote = scan_vertex_votes(fr.points, fr.labels if labels else None, fr.body_vertices, margin)
+            votes = vote.astype(np.int32) if votes is None else votes + vote.astype(np.int32)
             bodies.append((fr.points, fr.body_vertices))
             done += 1
             if progress is not None:

@@ -86,10 +86,11 @@ class PocoLocoMethod(Method):
 
     def fit_outfit(self, scans: Sequence[tuple[np.ndarray, np.ndarray | None, Pose]], steps: int = 400,
                    lr: float | None = None, progress=None, shape: Sequence[float] | None = None,
-                   seed: int = 0, init: torch.Tensor | None = None, anchor: float = 0.0) -> CodeFit:  # fmt: skip
+                   seed: int = 0, init: torch.Tensor | None = None, anchor: float = 0.0,
+                   labels=None) -> CodeFit:  # fmt: skip
         """Fit a new outfit code to ``scans`` [(points (P, 3), normals or None, pose)], the network
         frozen, from ``init`` (default the mean code) with an optional pull ``anchor`` to it
-        (:func:`~pocoloco.methods.pocoloco.fitting.fit_outfit_code`)."""
+        (:func:`~pocoloco.methods.pocoloco.fitting.fit_outfit_code`). ``labels`` are not used."""
         return fit_outfit_code(self.model, self.normalisation, self.config,
                                [(points, pose.joints, self.body_points_of(pose)) for points, _, pose in scans],
                                shape=shape if self.config.body_shape else None, steps=steps,

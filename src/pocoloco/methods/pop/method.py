@@ -86,12 +86,13 @@ class POPMethod(SkinnedMethod):
         return int(self.config.num_points)
 
     def fit_outfit(self, scans, steps: int = 400, lr: float | None = None, progress=None, shape=None,
-                   seed: int = 0, init: torch.Tensor | None = None, anchor: float = 0.0) -> POPFit:  # fmt: skip
+                   seed: int = 0, init: torch.Tensor | None = None, anchor: float = 0.0,
+                   labels=None) -> POPFit:  # fmt: skip
         """Fit a new outfit to one scan ``scans = [(points (P, 3), unit normals (P, 3), pose)]`` (world
         frame of the pose): only a new geometric feature tensor is optimised, from ``init`` (default:
         the mean of the trained outfits); the network is frozen. POP's Eq. 7 has no pull to the
         start: ``anchor`` must be 0 (:func:`~pocoloco.methods.pop.fitting.fit_unseen_outfit`,
-        paper Eq. 7 fits one scan)."""
+        paper Eq. 7 fits one scan). ``labels`` (the scans' point labels) are not used."""
         if len(scans) != 1:
             raise ValueError(f"POP fits an outfit to one scan (paper Eq. 7), got {len(scans)}")
         if anchor:
