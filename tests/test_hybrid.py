@@ -319,3 +319,35 @@ def test_fit_adds_an_outfit_to_both_networks_and_the_maps(generator, hybrid, hyb
         assert new.free.outfit_names() == []
     assert main(["sample", "--ckpt", str(out), "--outfit", "new_skirt", "--joints", spec, "--num", "2", "--points",
                  "200", "--steps", "2", "--no-render", "--out", str(tmp_path / "s")]) == 0  # fmt: skip
+
+
+def test_fine_tune_stages_the_free_generator_and_a_rerun_goes_on_where_it_stopped(hybrid, tiny_dataset, tiny_run,
+                                                                                   tmp_path, capsys):  # fmt: skip
+    """pocoloco hybrid --fine-tune: maps, a free-region pack, a generator fine-tuned from --free in
+    the shared loop, then the hybrid assembled with it; a rerun after the generator finished only
+    assembles (and a finished folder is refused)."""
+    attached = load_method(hybrid).config.sources["attached"]
+    out = tmp_path / "tuned"
+    argv = ["hybrid", "--attached", attached, "--free", str(tiny_run), "--data", str(tiny_dataset), "--out", str(out),
+            "--every", "4", "--fine-tune", "0.02", "--pack-every", "2", "--pack-points", "64", "--no-progress"]  # fmt: skip
+    # a kill after the generator finished, before the assembly: the rerun keeps the stages
+    import pocoloco.cli.train as cli_train
+
+    real = cli_train.assemble_hybrid
+    cli_train.assemble_hybrid = lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt())
+    try:
+        assert main(argv) != 0 and "rerun the same command" in capsys.readouterr().err
+    finally:
+        cli_train.assemble_hybrid = real
+    assert (out / "maps.npz").is_file() and (out / "free.pack").is_file() and (out / "free_generator" / "model").is_dir()
+    stamp = (out / "free_generator" / "model").stat().st_mtime_ns
+    pack = PackedDataset(out / "free.pack", "train")
+    assert pack.normalisation is not None and len(pack) > 0
+    assert main(argv) == 0, capsys.readouterr().err
+    assert (out / "free_generator" / "model").stat().st_mtime_ns == stamp  # not trained again
+    m = load_method(out)
+    assert isinstance(m, HybridMethod) and m.config.sources["free"].endswith("free_generator/model")
+    cfg = json.loads((out / "free_generator" / "config.json").read_text())
+    assert cfg["init_from"].startswith(str(tiny_run)) and cfg["num_points"] == 64 and cfg["batch_size"] == 32
+    capsys.readouterr()
+    assert main(argv) == 2 and "already holds a checkpoint" in capsys.readouterr().err

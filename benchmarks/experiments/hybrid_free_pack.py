@@ -3,7 +3,8 @@
 Learns the free-region maps (``pocoloco.methods.hybrid.regions``) from the train split, renders
 them, and writes a training pack whose points are drawn only where the cloth hangs free (each
 point's nearest posed body vertex is free), for the outfits with a free region. Training PocoLoco on
-that pack (``pocoloco train --data PACK --init-from default``) gives the free-region generator.
+that pack (``pocoloco train --data PACK --init-from default``) gives the free-region generator;
+``pocoloco hybrid --fine-tune MINUTES`` runs both steps and the assembly in one command.
 
     python benchmarks/experiments/hybrid_free_pack.py --data ~/.cache/pocoloco/data/medium \
         --out ~/.cache/pocoloco/hybrid
@@ -15,9 +16,8 @@ import argparse
 import json
 from pathlib import Path
 
-from pocoloco.data.format import read_frame
-from pocoloco.data.pack import write_pack
-from pocoloco.methods.hybrid import learn_free_maps, point_regions, render_free_maps
+from pocoloco.methods.hybrid import learn_free_maps, render_free_maps
+from pocoloco.methods.hybrid.training import write_free_pack
 
 
 def main() -> None:
@@ -35,15 +35,9 @@ def main() -> None:
     maps = learn_free_maps(args.data, margin=args.margin, threshold=args.threshold)
     maps.save(out / "maps.npz")
     render_free_maps(maps, args.data, out / "maps.png")
-    free = {name: maps.free(i) for i, name in enumerate(maps.outfits)}
-    chosen = [n for i, n in enumerate(maps.outfits) if maps.point_share[i] >= args.min_share]
-
-    def select(subject: str, path: Path):
-        fr = read_frame(path, ("points", "body_vertices"))
-        return point_regions(fr.points, fr.body_vertices, free[subject])
-
-    meta = write_pack(args.data, out / "free.pack", every=args.every, points=args.points, subjects=chosen,
-                      select=select, splits=("train",))  # fmt: skip
+    meta = write_free_pack(args.data, maps, out / "free.pack", every=args.every, points=args.points,
+                           min_share=args.min_share)  # fmt: skip
+    chosen = meta["packed"]
     summary = {"outfits": list(maps.outfits), "point_share": [round(float(x), 4) for x in maps.point_share],
                "packed": chosen, "frames": meta["splits"], "skipped": meta["skipped"], "bytes": meta["bytes"]}  # fmt: skip
     (out / "summary.json").write_text(json.dumps(summary, indent=1))

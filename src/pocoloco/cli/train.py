@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
-from pocoloco.cli.common import add_threads_argument, console, progress_bar
+from pocoloco.cli.common import add_threads_argument, choose_device, console, progress_bar
 from pocoloco.data.dataset import OpenedDataset
 from pocoloco.data.pack import is_pack, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
@@ -29,7 +29,9 @@ from pocoloco.engine.trainer import (
 from pocoloco.engine.trainer import train as run_training
 from pocoloco.engine.checkpoint import latest_checkpoint
 from pocoloco.methods import METHODS, method_class
-from pocoloco.methods.hybrid import assemble_hybrid
+from pocoloco.engine.shipped import resolve_ckpt_arg
+from pocoloco.methods.hybrid import FreeRegionMaps, assemble_hybrid, learn_free_maps
+from pocoloco.methods.hybrid.training import train_free_generator, write_free_pack
 from pocoloco.methods.pocoloco.config import SCHEDULE_KINDS
 from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.methods.registry import config_from_checkpoint
@@ -260,21 +262,57 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def cmd_hybrid(args: argparse.Namespace) -> None:
-    """``pocoloco hybrid``: learn the free-region maps and write the hybrid checkpoint."""
+    """``pocoloco hybrid``: learn the free-region maps (and, with ``--fine-tune``, fine-tune the
+    free-region generator on a pack of them) and write the hybrid checkpoint."""
     for name in ("margin", "threshold", "generator_share"):
         if not math.isfinite(getattr(args, name)):
             raise ValueError(f"--{name.replace('_', '-')} must be a finite number, got {getattr(args, name)}")
     if args.every < 1:
         raise ValueError(f"--every must be >= 1, got {args.every}")
+    if args.fine_tune is not None and not (math.isfinite(args.fine_tune) and args.fine_tune > 0):
+        raise ValueError(f"--fine-tune must be > 0 minutes, got {args.fine_tune}")
+    if args.pack_every < 1 or args.pack_points < 1:
+        raise ValueError(f"--pack-every and --pack-points must be >= 1, got {args.pack_every} and {args.pack_points}")
     out = output_folder(args.out)
-    if latest_checkpoint(out / "checkpoints") is not None:
-        raise ValueError(f"--out {out}: already holds a checkpoint (choose a new folder)")
-    with progress_bar("free-region maps", total=None) as update:
-        ck = assemble_hybrid(args.attached, args.free, args.data, out, margin=args.margin, threshold=args.threshold,
-                             every=args.every, maps=args.maps, generator_share=args.generator_share,
-                             inside_tolerance=args.inside_tolerance, progress=lambda done, total: update(done, total=total))  # fmt: skip
+    with exclusive_lock(out, "pocoloco hybrid"):
+        if latest_checkpoint(out / "checkpoints") is not None:
+            raise ValueError(f"--out {out}: already holds a checkpoint (choose a new folder)")
+        free, maps = args.free, args.maps
+        if args.fine_tune is not None:
+            free, maps = _fine_tuned_generator(args, out)
+        with progress_bar("free-region maps", total=None) as update:
+            ck = assemble_hybrid(args.attached, free, args.data, out, margin=args.margin, threshold=args.threshold,
+                                 every=args.every, maps=maps, generator_share=args.generator_share,
+                                 inside_tolerance=args.inside_tolerance,
+                                 progress=lambda done, total: update(done, total=total))  # fmt: skip
     print(f"wrote {ck} and the free-region maps {out / 'maps.npz'}, {out / 'maps.png'}; sample it with "
           f"`pocoloco sample --ckpt {out} --joints DATASET:subject/split/sequence/index`")  # fmt: skip
+
+
+def _fine_tuned_generator(args: argparse.Namespace, out: Path) -> tuple[Path, Path]:
+    """``pocoloco hybrid --fine-tune``'s stages in ``out`` (each kept, so a rerun after a kill goes
+    on where it stopped): maps.npz, free.pack, free_generator/ (methods.hybrid.training). Returns
+    (the fine-tuned generator, the maps file)."""
+    maps_path, pack_path, run = out / "maps.npz", out / "free.pack", out / "free_generator"
+    if args.maps is not None:
+        maps = FreeRegionMaps.load(args.maps)
+    elif maps_path.is_file():
+        maps = FreeRegionMaps.load(maps_path)
+    else:
+        with progress_bar("free-region maps", total=None) as update:
+            maps = learn_free_maps(args.data, margin=args.margin, threshold=args.threshold, every=args.every,
+                                   progress=lambda done, total: update(done, total=total))  # fmt: skip
+    maps.save(maps_path)
+    if not pack_path.is_file():
+        with progress_bar("free-region pack", total=None) as update:
+            meta = write_free_pack(args.data, maps, pack_path, every=args.pack_every, points=args.pack_points,
+                                   progress=lambda done, total: update(done, total=total))  # fmt: skip
+        print(f"packed the free region of {', '.join(meta['packed'])}: {pack_path} ({meta['bytes'] / 1e6:.1f} MB)")
+    if not (run / "model").is_dir():
+        train_free_generator(pack_path, resolve_ckpt_arg(args.free), run, minutes=args.fine_tune,
+                             device=choose_device(None), progress=not args.no_progress,
+                             num_points=args.pack_points)  # fmt: skip
+    return run / "model", maps_path
 
 
 def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
@@ -294,6 +332,15 @@ def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--generator-share", type=float, default=1.0,
                         help="of the free region's points, the share PocoLoco draws; POP draws the rest there "
                              "(default 1: the free region is wholly generated)")  # fmt: skip
+    parser.add_argument("--fine-tune", type=float, default=None, metavar="MINUTES",
+                        help="first fine-tune --free on a pack of the free region's points for this many minutes "
+                             "(stages maps.npz, free.pack, free_generator/ in --out; rerun the same command to go "
+                             "on after a kill)")  # fmt: skip
+    parser.add_argument("--pack-every", type=int, default=3, help="--fine-tune: pack every K-th train frame (default 3)")
+    parser.add_argument("--pack-points", type=int, default=512,
+                        help="--fine-tune: free-region points per packed frame, and per cloud in training (default 512)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_threads_argument(parser)
     parser.add_argument("--inside-tolerance", type=float, default=None, metavar="M",
                         help="draw again generated points deeper than M metres inside the posed body (default: "
                              "keep them)")  # fmt: skip

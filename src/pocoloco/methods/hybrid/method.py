@@ -9,9 +9,11 @@ posed body), a PocoLoco point denoiser (the free region) and the per-outfit free
 nearest posed body vertex is free) and the rest from POP's points in the attached region, so the
 hypotheses of one pose differ in the free region only.
 
-This first version is *assembled* from trained checkpoints (``pocoloco hybrid``): the denoiser may
-be one trained on the whole body or one fine-tuned on free-region packs
-(``benchmarks/experiments/hybrid_free_pack.py``); training both parts in one loop is not built yet.
+A hybrid is *assembled* from trained checkpoints (``pocoloco hybrid``): the denoiser may be one
+trained on the whole body or one fine-tuned on a pack of free-region points
+(:mod:`pocoloco.methods.hybrid.training`, ``pocoloco hybrid --fine-tune MINUTES``); the two networks
+share no parameter and are trained apart (POP on the whole body, whose free-region points the
+hybrid also uses).
 """
 
 from __future__ import annotations
