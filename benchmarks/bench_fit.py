@@ -1,10 +1,12 @@
-"""Fitting an outfit the model never saw (issue 15, item 2): PocoLoco next to POP, on the same scans.
+"""Fitting an outfit the model never saw (issue 15, item 2): PocoLoco next to POP and the hybrid, on the same scans.
 
 For every subject of ``--data`` (a dataset whose garments the models never trained on, e.g. the
 ``unseen`` preset) and every number of scans k in ``--scans``: k frames of the subject's *train*
 split (evenly spaced) are written as PLY scans (points + normals, world frame) and ``pocoloco fit``
 fits a new outfit to them (PocoLoco: only a new outfit code, with the diffusion loss, on k scans;
-POP: only its geometric feature tensor, on one scan, as its paper). Then both are scored at *new
+POP: only its geometric feature tensor, on one scan, as its paper; the hybrid: POP's features to
+the scan and its generator's code to the scan's free region, its map from the scan's labels). Then
+each is scored at *new
 poses*, the subject's *test* split (``--frames`` frames x ``--seeds``, ``--points`` points):
 
 * **before**: the model in its nearest trained outfit (the best single one on the first scan);
@@ -70,6 +72,7 @@ def main() -> None:
     ap.add_argument("--subjects", nargs="+", help="default: every subject of --data")
     ap.add_argument("--ckpt-pocoloco", help="PocoLoco trained with --outfit-codes (run folder or checkpoint)")
     ap.add_argument("--ckpt-pop", help="POP run folder or checkpoint")
+    ap.add_argument("--ckpt-hybrid", help="hybrid checkpoint (pocoloco hybrid): fits one scan, as POP")
     ap.add_argument("--scans", type=int, nargs="+", default=[1, 3], help="numbers of scans fitted (POP: 1 only)")
     ap.add_argument("--fit-steps", type=int, default=400)
     ap.add_argument("--start", choices=("nearest", "mean"), default="nearest", help="fit start (pocoloco fit --start)")
@@ -83,9 +86,10 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    models = {k: v for k, v in (("pocoloco", args.ckpt_pocoloco), ("pop", args.ckpt_pop)) if v}
+    models = {k: v for k, v in (("pocoloco", args.ckpt_pocoloco), ("pop", args.ckpt_pop), ("hybrid", args.ckpt_hybrid))
+              if v}  # fmt: skip
     if not models:
-        raise SystemExit("error: give --ckpt-pocoloco and / or --ckpt-pop")
+        raise SystemExit("error: give --ckpt-pocoloco, --ckpt-pop and / or --ckpt-hybrid")
     card = fmt.read_card(args.data)
     subjects = args.subjects or sorted(card["subjects"])
     if args.fresh and args.work.exists():
@@ -108,8 +112,8 @@ def main() -> None:
             if method.kind != kind:
                 raise SystemExit(f"error: --ckpt-{kind} {ckpt} is a {method.kind} checkpoint")
             for k in sorted(set(args.scans)):
-                if kind == "pop" and k != 1:
-                    continue  # POP fits one scan (its paper, Eq. 7)
+                if kind in ("pop", "hybrid") and k != 1:
+                    continue  # POP fits one scan (its paper, Eq. 7), and so does the hybrid's POP part
                 tag = f"{kind}_{subject}_k{k}"
                 fitted = args.work / tag
                 if not (fitted / "fit.json").exists():
@@ -124,7 +128,7 @@ def main() -> None:
                         scans.append((ply, spec))
                     t0 = time.perf_counter()
                     fit_outfit(ckpt, scans, fitted, name=subject, steps=args.fit_steps, start=args.start,
-                               anchor=args.anchor if kind == "pocoloco" else 0.0)  # fmt: skip
+                               anchor=args.anchor if kind != "pop" else 0.0)  # fmt: skip
                     print(f"fitted {tag} in {time.perf_counter() - t0:.0f} s", flush=True)
                 rep = json.loads((fitted / "fit.json").read_text())
                 nearest = rep["before_nearest_outfit"]["outfit"]

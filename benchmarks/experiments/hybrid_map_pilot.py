@@ -46,55 +46,50 @@ def main() -> None:
     variants = {"labels or 3 cm": dict(margin=0.03, labels=True), "3 cm": dict(margin=0.03, labels=False),
                 "2 cm": dict(margin=0.02, labels=False), "5 cm": dict(margin=0.05, labels=False)}  # fmt: skip
     maps = {name: learn_free_maps(args.data, pop.outfit_names(), **kw) for name, kw in variants.items()}
-    frames = {}
-    for s, _, path in DatasetLayout(args.data).iter_frames(args.split):
-        frames.setdefault(s, []).append(path)
     opt = SamplerOptions(steps=args.steps)
     N, rows = args.points, []
-    for s in sorted(frames):
-        ps = frames[s]
-        for path in (ps[len(ps) // 4], ps[3 * len(ps) // 4])[: args.per_subject]:
-            fr = read_frame(path, allow_missing=True)
-            pose = pop.pose_from_frame(path, s, frame=fr)
-            o = pop.outfit_id(s)
-            pop_pts = pop.predict(pose, N, seeds=(0,), outfit=o).points[0]
-            pop_all = pop.predict(pose, len(pop.model.query_points()), seeds=(0,), outfit=o).points[0]
-            for seed in (0, 1):
-                if s in gen.outfit_names() or not gen.outfit_names():
-                    go = gen.outfit_id(s) if gen.outfit_names() else None
-                    gen_pts = gen.predict(pose, 3 * N, seeds=(seed,), outfit=go, options=opt).points[0]
-                else:  # a generator trained on free regions only never saw a wholly attached outfit
-                    gen_pts = np.zeros((0, 3), np.float32)
-                row = {"subject": s, "frame": str(path), "seed": seed}
-                row.update({f"pop:{k}": v for k, v in _metrics(pop_pts, fr).items()})
-                rng = np.random.default_rng(seed)
-                for name, m in maps.items():
-                    free = m.free(o)
-                    nf = int(round(m.free_share_of(o) * N))
-                    att = pop_all[~point_regions(pop_all, fr.body_vertices, free)]
-                    fre = gen_pts[point_regions(gen_pts, fr.body_vertices, free)]
-                    parts = [att[rng.choice(len(att), N - nf, replace=len(att) < N - nf)]]
+    for s, path in pilot_frames(args.data, args.split, args.per_subject):
+        fr = read_frame(path, allow_missing=True)
+        pose = pop.pose_from_frame(path, s, frame=fr)
+        o = pop.outfit_id(s)
+        pop_pts = pop.predict(pose, N, seeds=(0,), outfit=o).points[0]
+        pop_all = pop.predict(pose, len(pop.model.query_points()), seeds=(0,), outfit=o).points[0]
+        for seed in (0, 1):
+            if s in gen.outfit_names() or not gen.outfit_names():
+                go = gen.outfit_id(s) if gen.outfit_names() else None
+                gen_pts = gen.predict(pose, 3 * N, seeds=(seed,), outfit=go, options=opt).points[0]
+            else:  # a generator trained on free regions only never saw a wholly attached outfit
+                gen_pts = np.zeros((0, 3), np.float32)
+            row = {"subject": s, "frame": str(path), "seed": seed}
+            row.update({f"pop:{k}": v for k, v in _metrics(pop_pts, fr).items()})
+            rng = np.random.default_rng(seed)
+            for name, m in maps.items():
+                free = m.free(o)
+                nf = int(round(m.free_share_of(o) * N))
+                att = pop_all[~point_regions(pop_all, fr.body_vertices, free)]
+                fre = gen_pts[point_regions(gen_pts, fr.body_vertices, free)]
+                parts = [att[rng.choice(len(att), N - nf, replace=len(att) < N - nf)]]
+                if nf:
+                    parts.append(fre[rng.choice(len(fre), nf, replace=len(fre) < nf)])
+                row.update({f"{name}:{k}": v for k, v in _metrics(np.concatenate(parts), fr).items()})
+                if name == "labels or 3 cm":
+                    # generator share: the generator draws a * nf of the free region's points, POP the rest
+                    pop_free = pop_all[point_regions(pop_all, fr.body_vertices, free)]
+                    for a in MIX:
+                        ng = int(round(a * nf))
+                        mix = [parts[0]]
+                        if ng:
+                            mix.append(fre[rng.choice(len(fre), ng, replace=len(fre) < ng)])
+                        if nf - ng:
+                            mix.append(pop_free[rng.choice(len(pop_free), nf - ng, replace=len(pop_free) < nf - ng)])
+                        row.update({f"mix {a:g}:{k}": v for k, v in _metrics(np.concatenate(mix), fr).items()})
+                    # the same split with the scan's own free-region points
+                    scan = fr.points[point_regions(fr.points, fr.body_vertices, free)]
                     if nf:
-                        parts.append(fre[rng.choice(len(fre), nf, replace=len(fre) < nf)])
-                    row.update({f"{name}:{k}": v for k, v in _metrics(np.concatenate(parts), fr).items()})
-                    if name == "labels or 3 cm":
-                        # generator share: the generator draws a * nf of the free region's points, POP the rest
-                        pop_free = pop_all[point_regions(pop_all, fr.body_vertices, free)]
-                        for a in MIX:
-                            ng = int(round(a * nf))
-                            mix = [parts[0]]
-                            if ng:
-                                mix.append(fre[rng.choice(len(fre), ng, replace=len(fre) < ng)])
-                            if nf - ng:
-                                mix.append(pop_free[rng.choice(len(pop_free), nf - ng, replace=len(pop_free) < nf - ng)])
-                            row.update({f"mix {a:g}:{k}": v for k, v in _metrics(np.concatenate(mix), fr).items()})
-                        # the same split with the scan's own free-region points
-                        scan = fr.points[point_regions(fr.points, fr.body_vertices, free)]
-                        if nf:
-                            parts[1] = scan[rng.choice(len(scan), nf, replace=len(scan) < nf)]
-                        row.update({f"oracle:{k}": v for k, v in _metrics(np.concatenate(parts), fr).items()})
-                rows.append(row)
-                print(s, seed, {n: round(row[f"{n}:chamfer_cm"], 2) for n in ("pop", *maps)}, flush=True)
+                        parts[1] = scan[rng.choice(len(scan), nf, replace=len(scan) < nf)]
+                    row.update({f"oracle:{k}": v for k, v in _metrics(np.concatenate(parts), fr).items()})
+            rows.append(row)
+            print(s, seed, {n: round(row[f"{n}:chamfer_cm"], 2) for n in ("pop", *maps)}, flush=True)
     summary = {}
     for name in ("pop", *maps, *(f"mix {a:g}" for a in MIX), "oracle"):
         summary[name] = {k: float(np.nanmean([r[f"{name}:{k}"] for r in rows])) for k in KEYS}
@@ -112,6 +107,16 @@ def main() -> None:
         r["frame"] = r["frame"].split("/subjects/")[-1]
     with open(args.out, "w") as f:
         json.dump(_rounded({"settings": vars(args), "summary": summary, "rows": rows}), f, separators=(",", ":"))
+
+
+def pilot_frames(data, split: str, per_subject: int) -> list[tuple[str, object]]:
+    """(subject, frame path) of the pilots: per subject, the frames a quarter and three quarters
+    into its ``split`` frames (the first ``per_subject`` of those two)."""
+    frames: dict[str, list] = {}
+    for s, _, path in DatasetLayout(data).iter_frames(split):
+        frames.setdefault(s, []).append(path)
+    return [(s, path) for s in sorted(frames)
+            for path in (frames[s][len(frames[s]) // 4], frames[s][3 * len(frames[s]) // 4])[:per_subject]]  # fmt: skip
 
 
 def _rounded(x):

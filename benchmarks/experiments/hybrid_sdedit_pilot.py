@@ -20,7 +20,9 @@ import numpy as np
 import torch
 
 from pocoloco.apps.common import denoise_from, to_metres, to_normalised
-from pocoloco.data.format import DatasetLayout, read_frame
+from hybrid_map_pilot import pilot_frames
+
+from pocoloco.data.format import read_frame
 from pocoloco.evaluation.metrics import evaluate_frame
 from pocoloco.methods import load_method
 from pocoloco.methods.base import SamplerOptions
@@ -41,42 +43,37 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(1)
     hy = load_method(args.ckpt)
-    frames = {}
-    for s, _, path in DatasetLayout(args.data).iter_frames(args.split):
-        frames.setdefault(s, []).append(path)
     N, rows = args.points, []
-    for s in sorted(frames):
-        ps = frames[s]
-        for path in (ps[len(ps) // 4], ps[3 * len(ps) // 4])[: args.per_subject]:
-            fr = read_frame(path, allow_missing=True)
-            pose = hy.pose_from_frame(path, s, frame=fr)
-            o = hy.outfit_id(s)
-            free = hy.maps.free(o)
-            n_att, n_free = hy.split(o, N)
-            pop = hy.attached.predict(pose, N, seeds=(0,), outfit=o).points[0]
-            att = hy._skinned_points(pose, o, free, n_att, 0)
-            pop_free = hy._skinned_points(pose, o, free, 0, n_free) if n_free else np.zeros((0, 3), np.float32)
-            base = hy.predict(pose, N, seeds=(0, 1), outfit=o).points
-            for seed in (0, 1):
-                row = {"subject": s, "frame": str(path).split("/subjects/")[-1], "seed": seed}
-                row.update({f"pop:{k}": v for k, v in _metrics(pop, fr).items()})
-                row.update({f"hybrid:{k}": v for k, v in _metrics(base[seed], fr).items()})
-                for t in args.t:
-                    if n_free:
-                        prior = hy.free.point_prior(hy._free_outfit(o))
-                        x0 = to_normalised(prior.normalisation, pop_free, None, pose.joints, prior.point_channels)[None]
-                        x = denoise_from(prior, pose.joints, x0, t, seeds=[seed])
-                        gen = to_metres(prior.normalisation, x, pose.joints)[0][0]
-                        keep = gen[point_regions(gen, pose.body_vertices, free)]
-                        keep = keep if len(keep) else gen
-                        rng = np.random.default_rng([seed, t])
-                        cloud = np.concatenate([att, keep[rng.choice(len(keep), n_free, replace=len(keep) < n_free)]])
-                    else:
-                        cloud = att
-                    row.update({f"sdedit {t}:{k}": v for k, v in _metrics(cloud, fr).items()})
-                rows.append(row)
-                print(s, seed, {n: round(row[f"{n}:chamfer_cm"], 2) for n in ("pop", "hybrid", *(f"sdedit {t}" for t in args.t))},
-                      flush=True)  # fmt: skip
+    for s, path in pilot_frames(args.data, args.split, args.per_subject):
+        fr = read_frame(path, allow_missing=True)
+        pose = hy.pose_from_frame(path, s, frame=fr)
+        o = hy.outfit_id(s)
+        free = hy.maps.free(o)
+        n_att, n_free = hy.split(o, N)
+        pop = hy.attached.predict(pose, N, seeds=(0,), outfit=o).points[0]
+        att = hy._skinned_points(pose, o, free, n_att, 0)
+        pop_free = hy._skinned_points(pose, o, free, 0, n_free) if n_free else np.zeros((0, 3), np.float32)
+        base = hy.predict(pose, N, seeds=(0, 1), outfit=o).points
+        for seed in (0, 1):
+            row = {"subject": s, "frame": str(path).split("/subjects/")[-1], "seed": seed}
+            row.update({f"pop:{k}": v for k, v in _metrics(pop, fr).items()})
+            row.update({f"hybrid:{k}": v for k, v in _metrics(base[seed], fr).items()})
+            for t in args.t:
+                if n_free:
+                    prior = hy.free.point_prior(hy._free_outfit(o))
+                    x0 = to_normalised(prior.normalisation, pop_free, None, pose.joints, prior.point_channels)[None]
+                    x = denoise_from(prior, pose.joints, x0, t, seeds=[seed])
+                    gen = to_metres(prior.normalisation, x, pose.joints)[0][0]
+                    keep = gen[point_regions(gen, pose.body_vertices, free)]
+                    keep = keep if len(keep) else gen
+                    rng = np.random.default_rng([seed, t])
+                    cloud = np.concatenate([att, keep[rng.choice(len(keep), n_free, replace=len(keep) < n_free)]])
+                else:
+                    cloud = att
+                row.update({f"sdedit {t}:{k}": v for k, v in _metrics(cloud, fr).items()})
+            rows.append(row)
+            print(s, seed, {n: round(row[f"{n}:chamfer_cm"], 2) for n in ("pop", "hybrid", *(f"sdedit {t}" for t in args.t))},
+                  flush=True)  # fmt: skip
     names = ("pop", "hybrid", *(f"sdedit {t}" for t in args.t))
     summary = {}
     for name in names:
