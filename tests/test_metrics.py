@@ -383,3 +383,35 @@ def test_adjusted_energy_score_takes_the_resampling_noise_out_of_the_spread():
     assert M.energy_score_adjusted(3.0, 1, floor) == 3.0 and M.energy_score_adjusted(3.0, 4, None) == 3.0
     m = M.summarise_samples([M.evaluate_frame(x, None, gt, None) for x in samples], M.diversity_cm(samples), floor)
     assert m["energy_score_adj_cm"] == pytest.approx(adj, rel=1e-9)
+
+
+def test_hypotheses_that_share_points_get_the_floor_of_resamples_sharing_as_many():
+    """A perfect hybrid-like sampler: every hypothesis keeps the same 75 % of one resample of the
+    surface and redraws 25 %. Its pairwise term holds only a quarter of the resampling noise, so
+    adding the whole floor back over-corrects (ES adj. far above its own Chamfer); the floor of
+    resamples sharing 75 % gives the Chamfer back. Independent samples: the plain floor, unchanged."""
+    rng = np.random.default_rng(1)
+    surface = rng.normal(size=(40_000, 3))
+    surface /= np.linalg.norm(surface, axis=1, keepdims=True)
+    n = 1024
+    gt = surface[rng.choice(len(surface), n, replace=False)]
+    other = surface[rng.choice(len(surface), n, replace=False)]
+    order = rng.permutation(len(surface))  # disjoint draws: a redrawn point never repeats a kept one
+    base = surface[order[:768]]
+    samples = [np.concatenate([base, surface[order[768 + 256 * k: 1024 + 256 * k]]]) for k in range(4)]
+    assert M.shared_fraction(samples) == pytest.approx(0.75, abs=1e-9)
+    assert M.shared_fraction([gt, gt.copy()]) == 1.0
+    assert M.shared_fraction([gt + 1e-6, gt]) == 0.0  # exact coordinates only
+    overlap = len(set(map(tuple, gt)) & set(map(tuple, other))) / n  # two subsets of one scan overlap by chance
+    assert M.shared_fraction([gt, other]) == pytest.approx(overlap, abs=1e-12)
+    to_gt = [M.chamfer_cm(x, gt) for x in samples]
+    raw = M.energy_score_from_chamfers(to_gt, M.diversity_cm(samples))
+    plain = M.chamfer_cm(other, gt)
+    assert M.partly_shared_floor_cm(gt, other, 0.0, (0,)) == pytest.approx(plain, rel=1e-12)  # a permutation of other
+    assert M.partly_shared_floor_cm(gt, other, 1.0, (0,)) == 0.0
+    shared_floor = M.partly_shared_floor_cm(gt, other, M.shared_fraction(samples), (0,))
+    assert 0.1 * plain < shared_floor < 0.6 * plain
+    assert M.energy_score_adjusted(raw, 4, plain) > 1.15 * np.mean(to_gt)  # the whole floor over-corrects
+    assert M.energy_score_adjusted(raw, 4, shared_floor) == pytest.approx(np.mean(to_gt), rel=0.08)
+    with pytest.raises(ValueError, match="shared"):
+        M.partly_shared_floor_cm(gt, other, 1.5, (0,))

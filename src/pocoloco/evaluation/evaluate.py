@@ -52,7 +52,8 @@ from pocoloco.evaluation.baselines import (
     select_frames,
     subset,
 )
-from pocoloco.evaluation.metrics import chamfer_cm, diversity_cm, evaluate_frame, nearest, summarise, summarise_samples
+from pocoloco.evaluation.metrics import (chamfer_cm, diversity_cm, evaluate_frame, nearest, partly_shared_floor_cm,
+                                         shared_fraction, summarise, summarise_samples)
 from pocoloco.methods import SamplerOptions, fit_to_memory, load_method
 from pocoloco.utils.atomic import (
     jsonable,
@@ -263,9 +264,12 @@ def evaluate(
                     m["diversity_garment_cm"] = m["diversity_body_cm"] = 0.0
             else:
                 div = diversity_cm(pred.points) if len(seeds) >= 2 else None
-                floor = chamfer_cm(fr.points[resample], gt)
+                # the resampling floor of hypotheses sharing as many points as these do (0: all resampled)
+                shared = shared_fraction(pred.points) if len(seeds) >= 2 else 0.0
+                floor = partly_shared_floor_cm(gt, fr.points[resample].astype(np.float64), shared, (3, n_done))
                 m = summarise_samples([score(pred.points[k], normals[k]) for k in range(len(seeds))], div, floor)
                 m["seconds_per_sample"] = per_sample
+                m["shared_points_pct"] = 100.0 * shared
                 if div is not None:
                     m["diversity_cm"] = div
                     if gt_lab is not None:
@@ -422,7 +426,8 @@ FAIR_NOTE = ("best-of-K Chamfer = the smallest Chamfer among the K samples of a 
              "Chamfer, = Chamfer for K = 1. Mean Chamfer over samples charges a calibrated sampler an extra spread term that "
              "a regressor's conditional mean does not pay; ES subtracts it; lower is better. Between finite point sets the "
              "pairwise term also holds the point-resampling noise (the GT-resample Chamfer), which flatters a sampler: "
-             "ES adj. adds half of that per-frame floor back (= ES for K = 1) and is the column that ranks both kinds. "
+             "ES adj. adds half of that per-frame floor back (= ES for K = 1; for hypotheses that share points, as the "
+             "hybrid's do, the floor of two resamples sharing as many) and is the column that ranks both kinds. "
              "Second table: the scan split by its labels, S2M over the GT garment (rest) points, M2S over the predicted "
              "points whose nearest GT point is garment (rest); garment columns average over the garment frames only "
              "(tight subjects have none). F / P / R = F-score / precision / recall (%) at 1 and 2 cm, overall and on "

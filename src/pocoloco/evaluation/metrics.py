@@ -506,6 +506,33 @@ def summarise(frames: Iterable[Mapping[str, float]]) -> dict[str, float]:
     return out
 
 
+def shared_fraction(samples: Sequence[np.ndarray] | np.ndarray) -> float:
+    """Mean over ordered pairs (k, l) of K >= 2 clouds of the fraction of X_k's points that X_l
+    holds exactly (the same coordinates): 0 for independent samples, 1 for identical clouds, in
+    between for hypotheses that share a part (the hybrid's attached points)."""
+    clouds = [_cloud(s, f"samples[{i}]") for i, s in enumerate(samples)]
+    if len(clouds) < 2:
+        raise ValueError(f"the shared fraction needs at least 2 samples, got {len(clouds)}")
+    shares = [float(np.mean(nearest(a, b)[0] == 0.0)) for a in clouds for b in clouds if a is not b]
+    return float(np.mean(shares))
+
+
+def partly_shared_floor_cm(gt: np.ndarray, other: np.ndarray, shared: float, seed: Sequence[int]) -> float:
+    """The Chamfer (cm) between the N-point scan subset ``gt`` (N, 3) and a second subset that
+    keeps a ``shared`` fraction of its points (drawn with ``seed``) and takes the rest from the
+    independent subset ``other`` (N, 3): the resampling floor of hypotheses that share that
+    fraction of their points (= the plain floor for ``shared`` 0, 0 for 1)."""
+    if not 0.0 <= shared <= 1.0:
+        raise ValueError(f"shared must be in [0, 1], got {shared}")
+    n = len(gt)
+    keep = int(round(shared * n))
+    if keep >= n:
+        return 0.0
+    rng = np.random.default_rng(list(seed))
+    mixed = np.concatenate([gt[rng.choice(n, keep, replace=False)], other[rng.choice(len(other), n - keep, replace=False)]])
+    return chamfer_cm(mixed, gt)
+
+
 def energy_score_adjusted(energy_score: float, num_samples: int, noise_floor_cm: float | None) -> float:
     """The energy score with the point-resampling noise taken out of its pairwise term, in cm.
 
@@ -513,6 +540,8 @@ def energy_score_adjusted(energy_score: float, num_samples: int, noise_floor_cm:
     surface are ``noise_floor_cm`` apart (the GT-resample row). The pairwise term of ES counts that
     floor as the model's spread and subtracts half of it, which flatters any sampler against a
     deterministic model; this adds it back: ES + floor / 2 for K >= 2 samples, ES (= Chamfer) for K = 1.
+    For hypotheses that share part of their points the floor is that of resamples sharing as much
+    (:func:`partly_shared_floor_cm`): their pairwise term holds less resampling noise.
     """
     if num_samples < 2 or noise_floor_cm is None:
         return float(energy_score)
