@@ -351,3 +351,31 @@ def test_fine_tune_stages_the_free_generator_and_a_rerun_goes_on_where_it_stoppe
     assert cfg["init_from"].startswith(str(tiny_run)) and cfg["num_points"] == 64 and cfg["batch_size"] == 32
     capsys.readouterr()
     assert main(argv) == 2 and "already holds a checkpoint" in capsys.readouterr().err
+
+
+def test_pop_points_are_drawn_by_the_body_area_their_pixels_stand_for(hybrid, tiny_dataset):
+    """Each of POP's query pixels stands for its posed face's area / the face's pixel count (checked
+    with a loop); area-weighted draws favour pixels that stand for more surface."""
+    m = load_method(hybrid)
+    _, _, path = _frame(tiny_dataset, "tight")
+    fr = read_frame(path, allow_missing=True)
+    pose = m.pose_from_frame(path, "tight", frame=fr)
+    P = len(m.attached.model.query_points())
+    areas = m._pixel_areas(pose, P)
+    faces = np.asarray(m.attached.model.faces_np)
+    qf = m.attached.model.q_face.cpu().numpy()
+    v = fr.body_vertices.astype(np.float64)
+    for i in (0, P // 2, P - 1):
+        f = faces[qf[i]]
+        area = 0.5 * np.linalg.norm(np.cross(v[f[1]] - v[f[0]], v[f[2]] - v[f[0]]))
+        assert areas[i] == pytest.approx(area / sum(int(x == qf[i]) for x in qf), rel=1e-9)
+    assert areas.sum() > 0
+    pts = m.attached.predict(pose, P, seeds=(0,), outfit=m.outfit_id("tight")).points[0]
+    uniform = m.config.replace(area_weighted=False)
+    plain = HybridMethod(m.model, uniform, m.normalisation, m.path, m.step, m.meta)
+    o = m.outfit_id("tight")
+    free = np.zeros(len(fr.body_vertices), bool)
+    tree_idx = {tuple(p): k for k, p in enumerate(pts)}
+    picked_w = [areas[tree_idx[tuple(p)]] for p in m._skinned_points(pose, o, free, P // 3, 0)]
+    picked_u = [areas[tree_idx[tuple(p)]] for p in plain._skinned_points(pose, o, free, P // 3, 0)]
+    assert np.mean(picked_w) > 1.2 * np.mean(picked_u)

@@ -37,7 +37,7 @@ from pocoloco.methods.hybrid.regions import (MIN_FREE_SHARE, FreeRegionMaps, ins
                                              scan_vertex_votes, vertex_normals)
 from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
-from pocoloco.methods.pop.method import POPMethod
+from pocoloco.methods.pop.method import POPMethod, pop_query_for
 from pocoloco.methods.skinned import SkinnedTrainConfig
 from pocoloco.models.denoisers import build_denoiser
 from pocoloco.utils.config import Config
@@ -57,7 +57,8 @@ class HybridConfig(Config):
     checkpoints it was assembled from (provenance). generator_share: the share of the free region's
     points the denoiser draws; POP draws the rest there (its own points in that region); 1 = the
     free region is wholly generated. inside_tolerance: generated points deeper inside the posed
-    body than this (metres) are drawn again (None: kept; the scans hold none)."""
+    body than this (metres) are drawn again (None: kept; the scans hold none). area_weighted: POP's
+    points are drawn by the body area their UV pixels stand for (False: every pixel alike)."""
 
     model: str = "hybrid"
     preset: str = "assembled"
@@ -68,6 +69,7 @@ class HybridConfig(Config):
     sources: dict[str, str] = field(default_factory=dict)
     generator_share: float = 1.0
     inside_tolerance: float | None = None
+    area_weighted: bool = True
 
     def __post_init__(self):
         if self.model != "hybrid":
@@ -382,7 +384,10 @@ class HybridMethod(Method):
                         code: torch.Tensor | None = None) -> np.ndarray:  # fmt: skip
         """(n_att + n_free, 3) POP points (deterministic): n_att whose nearest posed body vertex is
         attached, then n_free whose nearest one is free. POP is queried at its training UV map's
-        pixels (or more, when that is too few): a finer map scores worse (BENCHMARKS)."""
+        pixels (or more, when that is too few): a finer map scores worse (BENCHMARKS). With
+        ``area_weighted`` the points are drawn with weights = the posed surface area each pixel
+        stands for (its face's area / the face's pixels), so they cover the body as a scan does
+        rather than as the UV layout does (hands and face have more pixels per cm^2)."""
         parts = []
         m = len(self.attached.model.query_points())
         for want, region in ((n_att, False), (n_free, True)):
@@ -390,12 +395,22 @@ class HybridMethod(Method):
                 continue
             for _ in range(FREE_DRAWS):
                 pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit, code=code).points[0]
-                keep = pts[point_regions(pts, pose.body_vertices, free) == region]
-                if len(keep) >= want:
+                inside = point_regions(pts, pose.body_vertices, free) == region
+                if inside.sum() >= want:
                     break
-                m = math.ceil(1.5 * m * want / max(len(keep), 1))
-            parts.append(_exactly(keep, want, np.random.default_rng([0, 7, int(region)]), pts))
+                m = math.ceil(1.5 * m * want / max(int(inside.sum()), 1))
+            weights = self._pixel_areas(pose, m)[inside] if self.config.area_weighted else None
+            parts.append(_exactly(pts[inside], want, np.random.default_rng([0, 7, int(region)]), pts, weights))
         return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
+
+    def _pixel_areas(self, pose: Pose, m: int) -> np.ndarray:
+        """(m,) the posed body surface area (m^2) each of POP's m query points stands for, in the
+        order :meth:`predict` returns them (``pop_query_for`` with seed 0)."""
+        faces = np.asarray(self.attached.model.faces_np, np.int64)
+        face_idx = pop_query_for(self.attached.model, m, 0)[0].face_idx.cpu().numpy()
+        v = np.asarray(pose.body_vertices, np.float64)
+        area = 0.5 * np.linalg.norm(np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]]), axis=1)
+        return area[face_idx] / np.bincount(face_idx, minlength=len(faces))[face_idx]
 
     def _free_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int, seeds: Sequence[int],
                      options: SamplerOptions, code: torch.Tensor | None = None) -> list[np.ndarray]:  # fmt: skip
@@ -427,13 +442,18 @@ class HybridMethod(Method):
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         return {"free": self.free.sample_settings(options, num_points), "margin": self.config.margin,
                 "threshold": self.config.threshold, "generator_share": self.config.generator_share,
-                "inside_tolerance": self.config.inside_tolerance}  # fmt: skip
+                "inside_tolerance": self.config.inside_tolerance, "area_weighted": self.config.area_weighted}  # fmt: skip
 
 
-def _exactly(points: np.ndarray, n: int, rng: np.random.Generator, fallback: np.ndarray) -> np.ndarray:
-    """n of ``points`` without replacement (with replacement only when there are fewer); of
-    ``fallback`` (the unfiltered draw) when a region caught no point at all (a sliver of a region,
-    e.g. a fitted outfit's mean map)."""
+def _exactly(points: np.ndarray, n: int, rng: np.random.Generator, fallback: np.ndarray,
+             weights: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """n of ``points`` without replacement (with replacement only when there are fewer), with
+    probabilities proportional to ``weights`` (N,) when given; of ``fallback`` (the unfiltered
+    draw) when a region caught no point at all (a sliver of a region, e.g. a fitted outfit's mean
+    map)."""
     if len(points) == 0:
-        points = fallback
-    return points[np.sort(rng.choice(len(points), n, replace=len(points) < n))].astype(np.float32)
+        points, weights = fallback, None
+    p = None
+    if weights is not None and weights.sum() > 0 and np.count_nonzero(weights) >= min(n, len(points)):
+        p = weights / weights.sum()
+    return points[np.sort(rng.choice(len(points), n, replace=len(points) < n, p=p))].astype(np.float32)
