@@ -283,7 +283,7 @@ def cmd_hybrid(args: argparse.Namespace) -> None:
         with progress_bar("free-region maps", total=None) as update:
             ck = assemble_hybrid(args.attached, free, args.data, out, margin=args.margin, threshold=args.threshold,
                                  every=args.every, maps=maps, generator_share=args.generator_share,
-                                 inside_tolerance=args.inside_tolerance,
+                                 inside_tolerance=args.inside_tolerance, area_weighted=not args.no_area_weighting,
                                  progress=lambda done, total: update(done, total=total))  # fmt: skip
     print(f"wrote {ck} and the free-region maps {out / 'maps.npz'}, {out / 'maps.png'}; sample it with "
           f"`pocoloco sample --ckpt {out} --joints DATASET:subject/split/sequence/index`")  # fmt: skip
@@ -329,9 +329,9 @@ def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threshold", type=float, default=0.5,
                         help="free region: vertices free in more than this share of frames (default 0.5)")
     parser.add_argument("--every", type=int, default=60, help="learn the maps from every K-th train frame (default 60)")
-    parser.add_argument("--generator-share", type=float, default=1.0,
+    parser.add_argument("--generator-share", type=float, default=0.5,
                         help="of the free region's points, the share PocoLoco draws; POP draws the rest there "
-                             "(default 1: the free region is wholly generated)")  # fmt: skip
+                             "(default 0.5, the measured best trade-off; 1: the free region wholly generated)")  # fmt: skip
     parser.add_argument("--fine-tune", type=float, default=None, metavar="MINUTES",
                         help="first fine-tune --free on a pack of the free region's points for this many minutes "
                              "(stages maps.npz, free.pack, free_generator/ in --out; rerun the same command to go "
@@ -341,6 +341,9 @@ def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--fine-tune: free-region points per packed frame, and per cloud in training (default 512)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_threads_argument(parser)
+    parser.add_argument("--no-area-weighting", action="store_true",
+                        help="draw POP's points uniformly among its UV pixels (default: by the body area each "
+                             "stands for)")  # fmt: skip
     parser.add_argument("--inside-tolerance", type=float, default=None, metavar="M",
                         help="draw again generated points deeper than M metres inside the posed body (default: "
                              "keep them)")  # fmt: skip

@@ -32,6 +32,7 @@ def assemble_hybrid(
     maps: str | os.PathLike | None = None,
     generator_share: float = 1.0,
     inside_tolerance: float | None = None,
+    area_weighted: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> Path:
     """Write the hybrid of the POP checkpoint ``attached`` and the PocoLoco checkpoint ``free`` into
@@ -39,7 +40,8 @@ def assemble_hybrid(
     learnt from ``data``'s train split for POP's outfits (``margin``, ``threshold``, ``every``:
     :func:`~pocoloco.methods.hybrid.regions.learn_free_maps`), or read from ``maps``.
     ``generator_share``: of the free region's points, the share the denoiser draws (POP the rest);
-    ``inside_tolerance``: generated points deeper inside the posed body are drawn again (metres). Returns the
+    ``inside_tolerance``: generated points deeper inside the posed body are drawn again (metres);
+    ``area_weighted``: POP's points drawn by the body area their pixels stand for. Returns the
     checkpoint folder. One-line errors: wrong checkpoint kinds, outfits the maps or the free-region
     model do not know, a free-region model that needs the posed body."""
     if not 0.0 <= generator_share <= 1.0:
@@ -79,7 +81,8 @@ def assemble_hybrid(
     config = HybridConfig(attached=pop.config.to_dict(), free=gen.config.to_dict(), margin=region.margin,
                           threshold=region.threshold, sources={"attached": str(pop.path), "free": str(gen.path)},
                           generator_share=float(generator_share),
-                          inside_tolerance=None if inside_tolerance is None else float(inside_tolerance))  # fmt: skip
+                          inside_tolerance=None if inside_tolerance is None else float(inside_tolerance),
+                          area_weighted=bool(area_weighted))  # fmt: skip
     return save_checkpoint(out / "checkpoints", 0, model_kind="hybrid", preset=config.preset, config=config.to_dict(),
                            normalisation=gen.normalisation, model_state=state,
                            extra={"outfits": pop.outfits, "num_vertices": int(pop.model.num_vertices),
