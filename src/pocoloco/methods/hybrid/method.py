@@ -46,6 +46,8 @@ __all__ = ["HybridConfig", "HybridMethod", "HybridModel"]
 
 #: draws of the free-region generator per cloud before its points are topped up by repetition
 FREE_DRAWS = 4
+#: POP is queried at most at this many times its training pixels (or the points asked) per region
+MAX_QUERY_FACTOR = 8
 #: the fewest points the animation's generator draws per frame (an outfit with no free region)
 ANIMATION_MIN_PRIOR_POINTS = 64
 
@@ -389,16 +391,19 @@ class HybridMethod(Method):
         stands for (its face's area / the face's pixels), so they cover the body as a scan does
         rather than as the UV layout does (hands and face have more pixels per cm^2)."""
         parts = []
-        m = len(self.attached.model.query_points())
+        pixels = len(self.attached.model.query_points())
+        m = pixels
         for want, region in ((n_att, False), (n_free, True)):
             if want == 0:
                 continue
             for _ in range(FREE_DRAWS):
                 pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit, code=code).points[0]
                 inside = point_regions(pts, pose.body_vertices, free) == region
-                if inside.sum() >= want:
+                if inside.sum() >= want or m >= MAX_QUERY_FACTOR * max(pixels, want):
                     break
-                m = math.ceil(1.5 * m * want / max(int(inside.sum()), 1))
+                # a finer map until the region holds enough (bounded: a region POP hardly reaches
+                # would otherwise ask for millions of points)
+                m = min(math.ceil(1.5 * m * want / max(int(inside.sum()), 1)), MAX_QUERY_FACTOR * max(pixels, want))
             weights = self._pixel_areas(pose, m)[inside] if self.config.area_weighted else None
             parts.append(_exactly(pts[inside], want, np.random.default_rng([0, 7, int(region)]), pts, weights))
         return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
