@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import platform
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -207,6 +208,7 @@ def main(argv: list[str] | None = None) -> dict:
               "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
               "seconds_total": seconds, "summary": summary, "rows": rows}  # fmt: skip
     write_json_atomic(args.out, jsonable(result))
+    Path(f"{args.out}.partial").unlink(missing_ok=True)  # the finished run replaces it
     print(f"wrote {args.out}")
     return result
 

@@ -381,3 +381,57 @@ def test_pop_points_are_drawn_by_the_body_area_their_pixels_stand_for(hybrid, ti
     picked_w = [areas[tree_idx[tuple(p)]] for p in m._skinned_points(pose, o, free, P // 3, 0)]
     picked_u = [areas[tree_idx[tuple(p)]] for p in plain._skinned_points(pose, o, free, P // 3, 0)]
     assert np.mean(picked_w) > 1.2 * np.mean(picked_u)
+
+
+def test_a_linked_hybrid_holds_only_its_maps_and_draws_what_the_copy_draws(hybrid, tiny_dataset, tmp_path, capsys):
+    """pocoloco hybrid --link: references to its two checkpoints (checked by digest) and the maps as
+    bits; the same clouds as the hybrid holding copies; a source that changed or went is one line."""
+    copy = load_method(hybrid)
+    sources = tmp_path / "sources"
+    for part, kind in (("attached", "pop"), ("free", "pocoloco")):
+        assert main(["export-model", "--ckpt", copy.config.sources[part], "--out", str(sources / kind),
+                     "--dtype", "float32"]) == 0  # fmt: skip
+    argv = ["hybrid", "--attached", str(sources / "pop"), "--free", str(sources / "pocoloco"), "--data",
+            str(tiny_dataset), "--maps", str(hybrid / "maps.npz"), "--generator-share", "1", "--link", "--no-progress"]
+    assert main([*argv, "--out", str(tmp_path / "linked")]) == 0
+    linked = load_method(tmp_path / "linked")
+    assert set(linked.meta["linked"]) == {"attached", "free"} and linked.config.sources["attached"] == str(sources / "pop")
+    weights = sum(p.stat().st_size for p in linked.path.glob("*.safetensors"))
+    assert weights < 0.1 * sum(p.stat().st_size for p in copy.path.glob("*.safetensors"))
+    np.testing.assert_array_equal(linked.maps.vertex_share > 0.5, copy.maps.vertex_share > 0.5)
+    _, _, path = _frame(tiny_dataset, "skirt")
+    fr = read_frame(path, allow_missing=True)
+    for m in (copy, linked):  # the copy at the linked one's settings: only the weights' source differs
+        m.config = m.config.replace(generator_share=1.0, inside_tolerance=None)
+    a, b = (m.predict(m.pose_from_frame(path, "skirt", frame=fr), 256, seeds=(0, 1), outfit=m.outfit_id("skirt"),
+                      options=SamplerOptions(steps=2)).points for m in (copy, linked))  # fmt: skip
+    np.testing.assert_allclose(a, b, atol=1e-6)
+    capsys.readouterr()
+    import shutil
+
+    shutil.rmtree(sources / "pop")  # the same model exported again, in another dtype: other weights
+    assert main(["export-model", "--ckpt", copy.config.sources["attached"], "--out", str(sources / "pop")]) == 0
+    capsys.readouterr()
+    spec = f"{tiny_dataset}:skirt/test/{_frame(tiny_dataset, 'skirt')[1]}/0"
+    sample = ["sample", "--ckpt", str(tmp_path / "linked"), "--joints", spec, "--points", "64", "--steps", "2",
+              "--no-render", "--out", str(tmp_path / "s")]  # fmt: skip
+    assert main(sample) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "has changed since" in err and "pocoloco hybrid" in err, err
+    shutil.rmtree(sources / "pop")
+    assert main(sample) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cannot be loaded" in err, err
+
+
+def test_the_shipped_hybrid_links_the_shipped_pop_and_pocoloco():
+    """default:hybrid: maps only (kilobytes), its networks those of default:pop and default."""
+    from pocoloco.engine.shipped import default_checkpoint
+
+    m = load_method(default_checkpoint("hybrid"))
+    assert isinstance(m, HybridMethod)
+    assert {p: r["ckpt"] for p, r in m.meta["linked"].items()} == {"attached": "default:pop", "free": "default"}
+    assert (default_checkpoint("hybrid") / "model.safetensors").stat().st_size < 100_000
+    o = m.outfit_id("skirt_a")  # sampled from the CLI with the shipped peers (test_peers.py)
+    assert 0.2 < m.maps.point_share[o] < 0.8 and m.config.generator_share == 0.5
+    assert m.maps.point_share[m.outfit_id("tight_a")] == 0

@@ -459,9 +459,9 @@ def test_train_on_a_subset_of_subjects(tiny_dataset, tmp_path, capsys):
         train(tiny("pop", steps=1, subjects=["nobody"]), tiny_dataset, tmp_path / "x", progress=False)
 
 
-@pytest.mark.parametrize("model", ["pop", "closet"])
+@pytest.mark.parametrize("model", ["pop", "closet", "hybrid"])
 def test_shipped_peer_samples_a_demo_pose(tmp_path, capsys, model):
-    """``--ckpt default:pop`` / ``default:closet``: the shipped peers load and dress the README's demo
+    """``--ckpt default:pop`` / ``default:closet`` / ``default:hybrid``: the shipped peers load and dress the README's demo
     pose (its anny pose, posed with the outfit's body) near that body; an unknown ``default:`` name is a
     one-line error."""
     out = tmp_path / model
@@ -478,7 +478,7 @@ def test_shipped_peer_samples_a_demo_pose(tmp_path, capsys, model):
     dist = cKDTree(pose.body_vertices).query(ply.points)[0]  # metres to the nearest posed-body vertex
     assert np.median(dist) < 0.05 and np.quantile(dist, 0.95) < 0.25, (np.median(dist), np.quantile(dist, 0.95))
     err = _one_line_error(capsys, main([*argv[:2], "default:nope", *argv[3:-1], str(tmp_path / "x")]))
-    assert "default:pop" in err and "default:closet" in err
+    assert "default:pop" in err and "default:closet" in err and "default:hybrid" in err
 
 
 def test_describe_checkpoint_names_shipped_and_relative_paths(tmp_path, monkeypatch):

@@ -82,7 +82,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
 def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ckpt", help="checkpoint / run folder of any model; 'default' = the PocoLoco model shipped "
-                                       "with pocoloco (default:pop, default:closet its peers); omit with --baselines-only")  # fmt: skip
+                                       "with pocoloco (default:pop, default:closet its peers, default:hybrid); omit with --baselines-only")  # fmt: skip
     parser.add_argument("--data", required=True, help="pocoloco dataset folder")
     parser.add_argument("--split", default="test", help="split to evaluate (default test)")
     parser.add_argument("--frames", type=int, default=24, help="frames evenly spaced over the split (0 = all; default 24)")

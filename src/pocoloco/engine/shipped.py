@@ -22,7 +22,8 @@ __all__ = ["ASSETS_DIR", "SHIPPED_MODELS", "default_checkpoint", "describe_check
 ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
 DEFAULT_MODEL_DIR = ASSETS_DIR / "pocoloco_medium"
 #: ``--ckpt default:NAME`` -> folder under assets/ (``default`` alone is PocoLoco's)
-SHIPPED_MODELS = {"pocoloco": "pocoloco_medium", "pop": "pop_medium", "closet": "closet_medium"}
+SHIPPED_MODELS = {"pocoloco": "pocoloco_medium", "pop": "pop_medium", "closet": "closet_medium",
+                  "hybrid": "hybrid_medium"}
 
 
 def default_checkpoint(kind: str = "pocoloco") -> Path:

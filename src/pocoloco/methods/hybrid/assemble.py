@@ -1,8 +1,16 @@
 """Assemble a hybrid checkpoint from a trained POP (attached region), a trained PocoLoco denoiser
-(free region) and free-region maps learnt from the dataset (``pocoloco hybrid``)."""
+(free region) and free-region maps learnt from the dataset (``pocoloco hybrid``).
+
+A hybrid holds copies of both networks' weights, or (``link=True``, ``pocoloco hybrid --link``)
+only its maps and a reference to each checkpoint it was made of: the shipped models by name
+(``default:pop``, ``default``), others by their checkpoint folder, each with the checksum of its
+``meta.json`` (which holds its weights' checksums), so a linked hybrid loads only the very weights
+it was assembled from. The shipped ``default:hybrid`` is one: its maps are a few kilobytes, where a
+copy of the two networks would be 17 MB."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from collections.abc import Callable
@@ -11,13 +19,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pocoloco.engine.checkpoint import load_checkpoint, save_checkpoint
+from pocoloco.engine.checkpoint import META_FILE, load_checkpoint, save_checkpoint
+from pocoloco.engine.shipped import describe_checkpoint
 from pocoloco.methods.hybrid.method import HybridConfig
 from pocoloco.methods.hybrid.regions import FreeRegionMaps, learn_free_maps, render_free_maps
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
 from pocoloco.methods.pop.method import POPMethod
 
-__all__ = ["assemble_hybrid"]
+__all__ = ["assemble_hybrid", "link_name"]
 
 
 def assemble_hybrid(
@@ -33,6 +42,7 @@ def assemble_hybrid(
     generator_share: float = 1.0,
     inside_tolerance: float | None = None,
     area_weighted: bool = True,
+    link: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> Path:
     """Write the hybrid of the POP checkpoint ``attached`` and the PocoLoco checkpoint ``free`` into
@@ -41,8 +51,9 @@ def assemble_hybrid(
     :func:`~pocoloco.methods.hybrid.regions.learn_free_maps`), or read from ``maps``.
     ``generator_share``: of the free region's points, the share the denoiser draws (POP the rest);
     ``inside_tolerance``: generated points deeper inside the posed body are drawn again (metres);
-    ``area_weighted``: POP's points drawn by the body area their pixels stand for. Returns the
-    checkpoint folder. One-line errors: wrong checkpoint kinds, outfits the maps or the free-region
+    ``area_weighted``: POP's points drawn by the body area their pixels stand for; ``link``: store
+    references to the two checkpoints instead of copies of their weights, and the maps thresholded
+    (one bit per outfit and body vertex; module docstring). Returns the checkpoint folder. One-line errors: wrong checkpoint kinds, outfits the maps or the free-region
     model do not know, a free-region model that needs the posed body."""
     if not 0.0 <= generator_share <= 1.0:
         raise ValueError(f"--generator-share must be in [0, 1], got {generator_share}")
@@ -74,12 +85,21 @@ def assemble_hybrid(
     out.mkdir(parents=True, exist_ok=True)
     region.save(out / "maps.npz")
     render_free_maps(region, data, out / "maps.png")
-    state = {**{f"attached.{k}": v for k, v in pop.model.state_dict().items()},
-             **{f"free.{k}": v for k, v in gen.model.state_dict().items()},
-             "vertex_share": torch.from_numpy(region.vertex_share.astype(np.float32)),
-             "point_share": torch.from_numpy(region.point_share.astype(np.float32))}  # fmt: skip
+    point_share = torch.from_numpy(region.point_share.astype(np.float32))
+    if link:
+        linked = {part: {"ckpt": link_name(m.path), "meta_sha256": _meta_sha256(m.path)}
+                  for part, m in (("attached", pop), ("free", gen))}  # fmt: skip
+        free_mask = np.stack([region.free(i) for i in range(len(names))])
+        state = {"free_bits": torch.from_numpy(np.packbits(free_mask, axis=1)), "point_share": point_share}
+        sources = {part: ref["ckpt"] for part, ref in linked.items()}
+    else:
+        linked = None
+        state = {**{f"attached.{k}": v for k, v in pop.model.state_dict().items()},
+                 **{f"free.{k}": v for k, v in gen.model.state_dict().items()},
+                 "vertex_share": torch.from_numpy(region.vertex_share.astype(np.float32)), "point_share": point_share}
+        sources = {"attached": str(pop.path), "free": str(gen.path)}
     config = HybridConfig(attached=pop.config.to_dict(), free=gen.config.to_dict(), margin=region.margin,
-                          threshold=region.threshold, sources={"attached": str(pop.path), "free": str(gen.path)},
+                          threshold=region.threshold, sources=sources,
                           generator_share=float(generator_share),
                           inside_tolerance=None if inside_tolerance is None else float(inside_tolerance),
                           area_weighted=bool(area_weighted))  # fmt: skip
@@ -87,4 +107,20 @@ def assemble_hybrid(
                            normalisation=gen.normalisation, model_state=state,
                            extra={"outfits": pop.outfits, "num_vertices": int(pop.model.num_vertices),
                                   "free_outfits": gen.outfits, "map_frames": region.frames.tolist(),
-                                  "data": os.fspath(data)})  # fmt: skip
+                                  "data": os.fspath(data), **({"linked": linked} if linked else {})})  # fmt: skip
+
+
+def link_name(path: str | os.PathLike) -> str:
+    """How a linked hybrid names a source checkpoint folder: ``default:pop`` / ``default`` for a
+    shipped model (found wherever pocoloco is installed), else the folder's absolute path."""
+    name = describe_checkpoint(path)
+    return name if name.startswith("default") else os.fspath(Path(path).resolve())
+
+
+def _meta_sha256(folder: str | os.PathLike) -> str:
+    """The checkpoint's own digest of its meta.json (which holds its weight files' digests)."""
+    with open(Path(folder) / META_FILE, encoding="utf-8") as f:
+        digest = json.load(f).get("meta_sha256")
+    if not digest:
+        raise ValueError(f"{folder}: an older checkpoint without checksums cannot be linked (leave out --link)")
+    return str(digest)

@@ -30,7 +30,8 @@ import torch
 from torch import nn
 
 from pocoloco.data.poses import MeanShapeCache, Pose
-from pocoloco.engine.checkpoint import Checkpoint, one_line
+from pocoloco.engine.checkpoint import Checkpoint, load_checkpoint, one_line
+from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import AnimationPrior, Method, SampledClouds, SamplerOptions
 from pocoloco.methods.hybrid.regions import (MIN_FREE_SHARE, FreeRegionMaps, inside_depth, point_regions,
@@ -145,6 +146,8 @@ class HybridMethod(Method):
     @classmethod
     def from_checkpoint(cls, ck: Checkpoint, device: str = "cpu", use_ema: bool = True) -> HybridMethod:
         state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
+        if ck.meta.get("linked"):
+            state = {**state, **_linked_state(ck)}
         try:
             config = HybridConfig.from_dict(ck.config)
             att_cfg, free_cfg = config.attached_config(), config.free_config()
@@ -152,7 +155,13 @@ class HybridMethod(Method):
             attached = POPMethod._model_from_state(att_cfg, part("attached."), ck.meta)
             free = build_denoiser(free_cfg.architecture, free_cfg.denoiser)
             free.load_state_dict({k: v.float() for k, v in part("free.").items()})
-            model = HybridModel(attached, free, state["vertex_share"].float(), state["point_share"].float())
+            if "free_bits" in state:  # a linked hybrid: the thresholded maps, one bit per vertex
+                bits = np.unpackbits(state["free_bits"].numpy().astype(np.uint8), axis=1,
+                                     count=int(ck.meta["num_vertices"]))  # fmt: skip
+                vertex_share = torch.from_numpy(bits.astype(np.float32))
+            else:
+                vertex_share = state["vertex_share"].float()
+            model = HybridModel(attached, free, vertex_share, state["point_share"].float())
         except (KeyError, TypeError, RuntimeError, ValueError) as e:
             raise ValueError(f"{ck.path}: corrupt hybrid checkpoint ({one_line(e)})") from None
         if len(ck.meta.get("outfits", [])) != model.vertex_share.shape[0]:
@@ -462,3 +471,26 @@ def _exactly(points: np.ndarray, n: int, rng: np.random.Generator, fallback: np.
     if weights is not None and weights.sum() > 0 and np.count_nonzero(weights) >= min(n, len(points)):
         p = weights / weights.sum()
     return points[np.sort(rng.choice(len(points), n, replace=len(points) < n, p=p))].astype(np.float32)
+
+
+def _linked_state(ck: Checkpoint) -> dict[str, torch.Tensor]:
+    """The weights a linked hybrid (``pocoloco hybrid --link``) refers to, as ``attached.*`` /
+    ``free.*``: each source checkpoint loaded by its name (a shipped model) or folder and checked
+    against the digest recorded at assembly; one-line errors when it is missing or changed."""
+    state: dict[str, torch.Tensor] = {}
+    for part, kind in (("attached", "pop"), ("free", "pocoloco")):
+        ref = ck.meta["linked"].get(part) or {}
+        name = ref.get("ckpt")
+        if not name:
+            raise ValueError(f"{ck.path}: corrupt hybrid checkpoint (no linked {part} model)")
+        try:
+            source = load_checkpoint(resolve_ckpt_arg(name), expect_model=kind, training_state=False)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{ck.path}: links the {part} model {name}, which cannot be loaded ({one_line(e)})") from None
+        if source.meta.get("meta_sha256") != ref.get("meta_sha256"):
+            raise ValueError(f"{ck.path}: links the {part} model {name} as it was when assembled; it has changed since "
+                             f"(meta.json digest {str(source.meta.get('meta_sha256'))[:12]}, recorded "
+                             f"{str(ref.get('meta_sha256'))[:12]}): assemble the hybrid again with `pocoloco hybrid`")  # fmt: skip
+        weights = source.ema_state if source.ema_state is not None else source.model_state
+        state.update({f"{part}.{k}": v for k, v in weights.items()})
+    return state
