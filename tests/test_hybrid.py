@@ -66,6 +66,36 @@ def test_point_regions_take_the_region_of_the_nearest_body_vertex():
     free = np.array([False, True, False])
     pts = np.array([[0.9, 0.1, 0], [0.1, 0.8, 0], [0.2, 0.1, 0.3], [1.5, 0, 0]], np.float32)
     assert point_regions(pts, body, free).tolist() == [True, False, False, True]
+    # far: a point farther than that from every vertex is free whatever its nearest one
+    assert point_regions(pts, body, free, far=0.3).tolist() == [True, False, True, True]
+    far = np.array([np.linalg.norm(body - x, axis=1).min() > 0.25 for x in pts])  # the loop
+    assert point_regions(pts, body, free, far=0.25).tolist() == (free[[1, 2, 0, 1]] | far).tolist()
+
+
+def test_point_shares_counted_with_far_points_add_them_and_leave_attached_outfits_alone(tiny_dataset, tmp_path):
+    """recount_point_shares: by the nearest vertex alone it repeats learn_free_maps' shares on the
+    same frames; with far it counts the scan points far from the body too (checked by a loop), an
+    outfit without a free region stays wholly attached, and the rule travels with the maps."""
+    from pocoloco.methods.hybrid.regions import recount_point_shares
+
+    maps = learn_free_maps(tiny_dataset, margin=0.03, threshold=0.5, every=4)
+    skirt, tight = (maps.outfits.index(n) for n in ("skirt", "tight"))
+    again = recount_point_shares(maps, tiny_dataset, None, every=12)  # learn_free_maps: every 3rd of every 4th
+    np.testing.assert_allclose(again.point_share, maps.point_share, atol=1e-6)
+    far = recount_point_shares(maps, tiny_dataset, 0.05, every=12)
+    layout = DatasetLayout(tiny_dataset)
+    paths = [layout.frame_path("skirt", "train", q, i) for q in layout.sequences("skirt", "train")
+             for i in layout.frame_indices("skirt", "train", q)][::12]  # fmt: skip
+    loop = []
+    for path in paths:
+        fr = read_frame(path, ("points", "body_vertices"), allow_missing=True)
+        d = np.array([np.linalg.norm(fr.body_vertices - x, axis=1) for x in fr.points])
+        loop.append(np.mean(maps.free(skirt)[d.argmin(1)] | (d.min(1) > 0.05)))
+    assert far.point_share[skirt] == pytest.approx(np.mean(loop), abs=1e-6)
+    assert far.point_share[skirt] >= maps.point_share[skirt] and far.point_share[tight] == 0 and far.far == 0.05
+    assert FreeRegionMaps.load(far.save(tmp_path / "far.npz")).far == 0.05
+    direct = learn_free_maps(tiny_dataset, margin=0.03, threshold=0.5, every=4, far=0.05)
+    np.testing.assert_allclose(direct.point_share, far.point_share, atol=1e-6)
 
 
 def test_inside_depth_matches_a_per_point_loop_and_is_positive_inside_a_closed_body(tiny_dataset):
@@ -435,3 +465,23 @@ def test_the_shipped_hybrid_links_the_shipped_pop_and_pocoloco():
     o = m.outfit_id("skirt_a")  # sampled from the CLI with the shipped peers (test_peers.py)
     assert 0.2 < m.maps.point_share[o] < 0.8 and m.config.generator_share == 0.5
     assert m.maps.point_share[m.outfit_id("tight_a")] == 0
+
+
+def test_with_far_the_free_region_takes_points_far_from_the_body_and_pop_keeps_the_rest(hybrid, tiny_dataset):
+    """config.far: generated points farther than far from the body are kept whatever their nearest
+    vertex, POP's attached points are the ones near an attached vertex, the hypotheses still share them."""
+    ck = load_method(hybrid)
+    m = HybridMethod(ck.model, ck.config.replace(far=0.05), ck.normalisation, ck.path, ck.step, ck.meta)
+    _, _, path = _frame(tiny_dataset, "skirt")
+    fr = read_frame(path, allow_missing=True)
+    o = m.outfit_id("skirt")
+    clouds = m.predict(m.pose_from_frame(path, "skirt", frame=fr), 300, seeds=(0, 1), outfit=o,
+                       options=SamplerOptions(steps=2)).points  # fmt: skip
+    n_att, _ = m.split(o, 300)
+    free = m.maps.free(o)
+    for pts in clouds:
+        assert not point_regions(pts[:n_att], fr.body_vertices, free, far=0.05).any()
+        assert point_regions(pts[n_att:], fr.body_vertices, free, far=0.05).all()
+    np.testing.assert_array_equal(clouds[0, :n_att], clouds[1, :n_att])
+    with pytest.raises(ValueError, match="far must be a distance"):
+        ck.config.replace(far=0.0)

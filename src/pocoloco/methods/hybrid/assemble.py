@@ -22,7 +22,7 @@ import torch
 from pocoloco.engine.checkpoint import META_FILE, load_checkpoint, save_checkpoint
 from pocoloco.engine.shipped import describe_checkpoint
 from pocoloco.methods.hybrid.method import HybridConfig
-from pocoloco.methods.hybrid.regions import FreeRegionMaps, learn_free_maps, render_free_maps
+from pocoloco.methods.hybrid.regions import FreeRegionMaps, learn_free_maps, recount_point_shares, render_free_maps
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
 from pocoloco.methods.pop.method import POPMethod
 
@@ -42,6 +42,7 @@ def assemble_hybrid(
     generator_share: float = 1.0,
     inside_tolerance: float | None = None,
     area_weighted: bool = True,
+    far: float | None = None,
     link: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> Path:
@@ -51,7 +52,9 @@ def assemble_hybrid(
     :func:`~pocoloco.methods.hybrid.regions.learn_free_maps`), or read from ``maps``.
     ``generator_share``: of the free region's points, the share the denoiser draws (POP the rest);
     ``inside_tolerance``: generated points deeper inside the posed body are drawn again (metres);
-    ``area_weighted``: POP's points drawn by the body area their pixels stand for; ``link``: store
+    ``area_weighted``: POP's points drawn by the body area their pixels stand for; ``far``: points
+    farther than this from the body are free whatever their nearest vertex (the point shares are
+    counted by the same rule, again from ``data`` when ``maps`` were counted otherwise); ``link``: store
     references to the two checkpoints instead of copies of their weights, and the maps thresholded
     (one bit per outfit and body vertex; module docstring). Returns the checkpoint folder. One-line errors: wrong checkpoint kinds, outfits the maps or the free-region
     model do not know, a free-region model that needs the posed body."""
@@ -59,13 +62,16 @@ def assemble_hybrid(
         raise ValueError(f"--generator-share must be in [0, 1], got {generator_share}")
     if inside_tolerance is not None and not 0.0 <= inside_tolerance < math.inf:
         raise ValueError(f"--inside-tolerance must be a distance >= 0 (metres), got {inside_tolerance}")
+    if far is not None and not 0.0 < far < math.inf:
+        raise ValueError(f"--far must be a distance > 0 (metres), got {far}")
     pop = POPMethod.from_checkpoint(load_checkpoint(attached, expect_model="pop", training_state=False))
     gen = PocoLocoMethod.from_checkpoint(load_checkpoint(free, expect_model="pocoloco", training_state=False))
     if gen.needs_body:
         raise ValueError(f"{free}: a free-region model trained with --body-points cannot be assembled yet")
     names = pop.outfit_names()
     if maps is None:
-        region = learn_free_maps(data, names, margin=margin, threshold=threshold, every=every, progress=progress)
+        region = learn_free_maps(data, names, margin=margin, threshold=threshold, every=every, far=far,
+                                 progress=progress)  # fmt: skip
     else:
         region = FreeRegionMaps.load(maps)
         missing = [n for n in names if n not in region.outfits]
@@ -73,7 +79,9 @@ def assemble_hybrid(
             raise ValueError(f"{maps}: no free-region map for outfits {missing}")
         rows = [region.outfits.index(n) for n in names]
         region = FreeRegionMaps(tuple(names), region.vertex_share[rows], region.point_share[rows], region.margin,
-                                region.threshold, region.frames[rows]).without_small_regions()  # fmt: skip
+                                region.threshold, region.frames[rows], region.far).without_small_regions()  # fmt: skip
+        if region.far != far:
+            region = recount_point_shares(region, data, far, progress=progress)
     if region.vertex_share.shape[1] != int(pop.model.num_vertices):
         raise ValueError(f"the maps are over {region.vertex_share.shape[1]} body vertices, POP's body has "
                          f"{int(pop.model.num_vertices)}")  # fmt: skip
@@ -102,7 +110,7 @@ def assemble_hybrid(
                           threshold=region.threshold, sources=sources,
                           generator_share=float(generator_share),
                           inside_tolerance=None if inside_tolerance is None else float(inside_tolerance),
-                          area_weighted=bool(area_weighted))  # fmt: skip
+                          area_weighted=bool(area_weighted), far=None if far is None else float(far))  # fmt: skip
     return save_checkpoint(out / "checkpoints", 0, model_kind="hybrid", preset=config.preset, config=config.to_dict(),
                            normalisation=gen.normalisation, model_state=state,
                            extra={"outfits": pop.outfits, "num_vertices": int(pop.model.num_vertices),

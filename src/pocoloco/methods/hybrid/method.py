@@ -61,7 +61,9 @@ class HybridConfig(Config):
     points the denoiser draws; POP draws the rest there (its own points in that region); 1 = the
     free region is wholly generated. inside_tolerance: generated points deeper inside the posed
     body than this (metres) are drawn again (None: kept; the scans hold none). area_weighted: POP's
-    points are drawn by the body area their UV pixels stand for (False: every pixel alike)."""
+    points are drawn by the body area their UV pixels stand for (False: every pixel alike). far:
+    points farther than this from the posed body (metres) belong to the free region whatever their
+    nearest vertex (a hem swinging past an attached hand or foot; None: the nearest vertex alone)."""
 
     model: str = "hybrid"
     preset: str = "assembled"
@@ -73,6 +75,7 @@ class HybridConfig(Config):
     generator_share: float = 1.0
     inside_tolerance: float | None = None
     area_weighted: bool = True
+    far: float | None = None
 
     def __post_init__(self):
         if self.model != "hybrid":
@@ -81,6 +84,8 @@ class HybridConfig(Config):
             raise ValueError(f"generator share must be in [0, 1], got {self.generator_share}")
         if self.inside_tolerance is not None and not 0.0 <= self.inside_tolerance < math.inf:
             raise ValueError(f"inside tolerance must be a distance >= 0 (metres), got {self.inside_tolerance}")
+        if self.far is not None and not 0.0 < self.far < math.inf:
+            raise ValueError(f"far must be a distance > 0 (metres), got {self.far}")
 
     def attached_config(self) -> SkinnedTrainConfig:
         return SkinnedTrainConfig.from_dict(self.attached)
@@ -262,7 +267,7 @@ class HybridMethod(Method):
         attached = self.attached.fit_outfit([(points, normals, pose)], steps=steps, lr=lr, progress=phase(0),
                                             init=init.attached)  # fmt: skip
         free_mask = init.vertex_share > self.maps.threshold
-        region = point_regions(points, pose.body_vertices, free_mask)
+        region = point_regions(points, pose.body_vertices, free_mask, self.config.far)
         share = float(region.mean())
         if share < MIN_FREE_SHARE:
             share = 0.0
@@ -354,8 +359,9 @@ class HybridMethod(Method):
 
     def _kept(self, pose: Pose, free: np.ndarray, points: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
         """(M,) bool: which generated points (M, 3) the free region keeps (their nearest posed body
-        vertex is free and, with ``inside_tolerance``, they are no deeper inside the body)."""
-        keep = point_regions(points, pose.body_vertices, free)
+        vertex is free, or they lie farther than ``far`` from the body, and, with
+        ``inside_tolerance``, they are no deeper inside the body)."""
+        keep = point_regions(points, pose.body_vertices, free, self.config.far)
         if normals is not None:
             keep &= inside_depth(points, pose.body_vertices, normals) <= self.config.inside_tolerance
         return keep
@@ -407,7 +413,7 @@ class HybridMethod(Method):
                 continue
             for _ in range(FREE_DRAWS):
                 pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit, code=code).points[0]
-                inside = point_regions(pts, pose.body_vertices, free) == region
+                inside = point_regions(pts, pose.body_vertices, free, self.config.far) == region
                 if inside.sum() >= want or m >= MAX_QUERY_FACTOR * max(pixels, want):
                     break
                 # a finer map until the region holds enough (bounded: a region POP hardly reaches
@@ -456,7 +462,8 @@ class HybridMethod(Method):
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         return {"free": self.free.sample_settings(options, num_points), "margin": self.config.margin,
                 "threshold": self.config.threshold, "generator_share": self.config.generator_share,
-                "inside_tolerance": self.config.inside_tolerance, "area_weighted": self.config.area_weighted}  # fmt: skip
+                "inside_tolerance": self.config.inside_tolerance, "area_weighted": self.config.area_weighted,
+                "far": self.config.far}  # fmt: skip
 
 
 def _exactly(points: np.ndarray, n: int, rng: np.random.Generator, fallback: np.ndarray,

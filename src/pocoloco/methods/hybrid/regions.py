@@ -15,6 +15,7 @@ Shapes: V body vertices, O outfits, N points.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -27,8 +28,8 @@ from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame, read_
 from pocoloco.utils.atomic import atomic_open
 from pocoloco.viz.render import render_grid
 
-__all__ = ["MIN_FREE_SHARE", "FreeRegionMaps", "inside_depth", "learn_free_maps", "point_regions", "render_free_maps",
-           "scan_vertex_votes", "vertex_normals"]
+__all__ = ["MIN_FREE_SHARE", "FreeRegionMaps", "inside_depth", "learn_free_maps", "point_regions",
+           "recount_point_shares", "render_free_maps", "scan_vertex_votes", "vertex_normals"]
 
 #: an outfit with a smaller free point share has no free region (wholly attached)
 MIN_FREE_SHARE = 0.02
@@ -41,7 +42,8 @@ class FreeRegionMaps:
     outfits: outfit (subject) names, ids in this order. vertex_share: (O, V) float32 share of
     frames in which each body vertex was free. point_share: (O,) float32 mean share of an outfit's
     scan points in its free region. margin (m) / threshold: the rule that made them.
-    frames: (O,) int32 frames each outfit's map was estimated from.
+    frames: (O,) int32 frames each outfit's map was estimated from. far: the point rule the point
+    shares were counted with (:func:`point_regions`; None: the nearest vertex alone).
     """
 
     outfits: tuple[str, ...]
@@ -50,6 +52,7 @@ class FreeRegionMaps:
     margin: float
     threshold: float
     frames: np.ndarray
+    far: float | None = None
 
     def __post_init__(self):
         O = len(self.outfits)
@@ -71,7 +74,7 @@ class FreeRegionMaps:
         share = self.vertex_share.copy()
         share[small] = 0.0
         return FreeRegionMaps(self.outfits, share, np.where(small, 0.0, self.point_share).astype(np.float32),
-                              self.margin, self.threshold, self.frames)  # fmt: skip
+                              self.margin, self.threshold, self.frames, self.far)  # fmt: skip
 
     def free_share_of(self, outfit: int) -> float:
         return float(self.point_share[int(outfit)])
@@ -81,7 +84,8 @@ class FreeRegionMaps:
         with atomic_open(path, "wb") as f:
             np.savez(f, outfits=np.array(self.outfits), vertex_share=self.vertex_share.astype(np.float32),
                      point_share=self.point_share.astype(np.float32), margin=np.float32(self.margin),
-                     threshold=np.float32(self.threshold), frames=self.frames.astype(np.int32))  # fmt: skip
+                     threshold=np.float32(self.threshold), frames=self.frames.astype(np.int32),
+                     far=np.float64(np.nan if self.far is None else self.far))  # fmt: skip
         return Path(path)
 
     @classmethod
@@ -89,20 +93,24 @@ class FreeRegionMaps:
         """Read a ``.npz`` written by :meth:`save` (one-line errors for missing or damaged files)."""
         try:
             with np.load(path, allow_pickle=False) as z:
+                far = float(z["far"]) if "far" in z.files else float("nan")
                 return cls(tuple(str(s) for s in z["outfits"]), z["vertex_share"].astype(np.float32),
                            z["point_share"].astype(np.float32), float(z["margin"]), float(z["threshold"]),
-                           z["frames"].astype(np.int32))  # fmt: skip
+                           z["frames"].astype(np.int32), None if np.isnan(far) else far)  # fmt: skip
         except FileNotFoundError:
             raise ValueError(f"{path}: no such free-region map file") from None
         except (KeyError, ValueError, OSError, EOFError) as e:
             raise ValueError(f"{path}: not a free-region map file ({type(e).__name__}: {e})") from None
 
 
-def point_regions(points: np.ndarray, body_vertices: np.ndarray, free: np.ndarray) -> np.ndarray:
+def point_regions(points: np.ndarray, body_vertices: np.ndarray, free: np.ndarray,
+                  far: float | None = None) -> np.ndarray:  # fmt: skip
     """(N,) bool: whether each point (N, 3) lies in the free region, i.e. its nearest posed body
-    vertex (V, 3) is free (``free`` (V,) bool)."""
-    _, nearest = cKDTree(np.asarray(body_vertices, np.float64)).query(np.asarray(points, np.float64))
-    return np.asarray(free, bool)[nearest]
+    vertex (V, 3) is free (``free`` (V,) bool) or, with ``far`` (metres), it lies farther than that
+    from every body vertex (a hem swinging past a hand or a foot, whose vertices are attached)."""
+    dist, nearest = cKDTree(np.asarray(body_vertices, np.float64)).query(np.asarray(points, np.float64))
+    region = np.asarray(free, bool)[nearest]
+    return region if far is None else region | (dist > far)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -145,13 +153,15 @@ def learn_free_maps(
     threshold: float = 0.5,
     every: int = 60,
     labels: bool = True,
+    far: float | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> FreeRegionMaps:
     """Estimate the free-region maps of ``subjects`` (default: all) from every ``every``-th frame of
     their train split (module docstring); the point share from every third of those frames.
     ``labels=False``: a vertex votes free on distance alone (garment that hugs the body, such as
-    trousers, stays attached). Outfits with a free point share below ``MIN_FREE_SHARE`` come out
-    wholly attached (:meth:`FreeRegionMaps.without_small_regions`).
+    trousers, stays attached). ``far``: the point shares count points farther than this from the
+    body as free too (:func:`point_regions`). Outfits with a free point share below
+    ``MIN_FREE_SHARE`` come out wholly attached (:meth:`FreeRegionMaps.without_small_regions`).
 
     One-line ValueErrors: a subject without train frames, frames without labels or posed body."""
     if not margin > 0:
@@ -170,7 +180,7 @@ def learn_free_maps(
             raise ValueError(f"{data}: subject {s!r} has no train frames")
         plan[s] = paths[::every]
     total, done = sum(len(p) for p in plan.values()), 0
-    shares, point_shares, counts = [], [], []
+    shares, point_shares, counts, samples = [], [], [], []
     for s, paths in plan.items():
         votes: np.ndarray | None = None
         bodies = []
@@ -187,12 +197,51 @@ def learn_free_maps(
         share = votes.astype(np.float32) / len(paths)
         free = share > threshold
         point_shares.append(np.mean([point_regions(p, b, free).mean() for p, b in bodies[::3]]))
+        samples.append(bodies[::3])
         shares.append(share)
         counts.append(len(paths))
     if len({len(x) for x in shares}) != 1:
         raise ValueError(f"{data}: subjects have bodies with different vertex counts")
-    return FreeRegionMaps(tuple(plan), np.stack(shares), np.asarray(point_shares, np.float32), float(margin),
+    maps = FreeRegionMaps(tuple(plan), np.stack(shares), np.asarray(point_shares, np.float32), float(margin),
                           float(threshold), np.asarray(counts, np.int32)).without_small_regions()  # fmt: skip
+    if far is None:
+        return maps
+    # an outfit without a free region stays wholly attached; the others count their far points too
+    far_shares = [np.mean([point_regions(p, b, maps.free(o), far).mean() for p, b in samples[o]])
+                  if maps.free(o).any() else 0.0 for o in range(len(plan))]  # fmt: skip
+    return dataclasses.replace(maps, point_share=np.asarray(far_shares, np.float32), far=float(far))
+
+
+def recount_point_shares(maps: FreeRegionMaps, data: str | os.PathLike, far: float | None, *, every: int = 180,
+                         progress: Callable[[int, int], None] | None = None) -> FreeRegionMaps:  # fmt: skip
+    """``maps`` with each outfit's free point share counted again on every ``every``-th train frame
+    of ``data`` by the point rule ``far`` (:func:`point_regions`): the share a hybrid drawing
+    points farther than ``far`` from the body in the free region needs. The vertex maps are kept."""
+    layout = DatasetLayout(data)
+    plan = {}
+    for s in maps.outfits:
+        paths = [layout.frame_path(s, "train", q, i) for q in layout.sequences(s, "train")
+                 for i in layout.frame_indices(s, "train", q)][::every]  # fmt: skip
+        if not paths:
+            raise ValueError(f"{data}: subject {s!r} has no train frames")
+        plan[s] = paths
+    total, done, shares = sum(len(p) for p in plan.values()), 0, []
+    for o, (s, paths) in enumerate(plan.items()):
+        if not maps.free(o).any():  # no free region: wholly attached, whatever lies far
+            shares.append(0.0)
+            done += len(paths)
+            continue
+        counts = []
+        for path in paths:
+            fr = read_frame(path, ("points", "body_vertices"), allow_missing=True)
+            if fr.body_vertices is None:
+                raise ValueError(f"{path}: the free point share needs the posed body (synthetic data)")
+            counts.append(point_regions(fr.points, fr.body_vertices, maps.free(o), far).mean())
+            done += 1
+            if progress is not None:
+                progress(done, total)
+        shares.append(np.mean(counts))
+    return dataclasses.replace(maps, point_share=np.asarray(shares, np.float32), far=None if far is None else float(far))
 
 
 def render_free_maps(maps: FreeRegionMaps, data: str | os.PathLike, path: str | os.PathLike,
