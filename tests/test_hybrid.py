@@ -485,3 +485,32 @@ def test_with_far_the_free_region_takes_points_far_from_the_body_and_pop_keeps_t
     np.testing.assert_array_equal(clouds[0, :n_att], clouds[1, :n_att])
     with pytest.raises(ValueError, match="far must be a distance"):
         ck.config.replace(far=0.0)
+
+
+def test_with_trust_generated_points_stay_near_pops_own_points_in_the_free_region(hybrid, tiny_dataset):
+    """config.trust: a generated point is kept only within trust of one of POP's points (at its
+    training UV pixels) in the free region (checked by brute force on points around them); the
+    attached points are untouched."""
+    ck = load_method(hybrid)
+    m = HybridMethod(ck.model, ck.config.replace(trust=0.05), ck.normalisation, ck.path, ck.step, ck.meta)
+    _, _, path = _frame(tiny_dataset, "skirt")
+    fr = read_frame(path, allow_missing=True)
+    pose, o = m.pose_from_frame(path, "skirt", frame=fr), m.outfit_id("skirt")
+    free = m.maps.free(o)
+    pop = m.attached.predict(pose, len(m.attached.model.query_points()), seeds=(0,), outfit=o).points[0]
+    ref = pop[point_regions(pop, fr.body_vertices, free)]
+    rng = np.random.default_rng(0)
+    direction = rng.normal(size=(400, 3))
+    pts = ref[rng.integers(len(ref), size=400)] + direction / np.linalg.norm(direction, axis=1, keepdims=True) * \
+        rng.uniform(0.0, 0.12, size=(400, 1))  # fmt: skip
+    d = np.array([np.linalg.norm(ref - x, axis=1).min() for x in pts])
+    expected = point_regions(pts, fr.body_vertices, free) & (d <= 0.05)
+    assert 0 < expected.sum() < 400
+    np.testing.assert_array_equal(m._kept(pose, free, pts, None, m._reference(pose, o, free)), expected)
+    assert ck._reference(pose, o, free) is None  # without trust: no reference
+    clouds = m.predict(pose, 300, seeds=(0, 1), outfit=o, options=SamplerOptions(steps=2)).points
+    plain = ck.predict(pose, 300, seeds=(0, 1), outfit=o, options=SamplerOptions(steps=2)).points
+    n_att, _ = m.split(o, 300)
+    np.testing.assert_array_equal(clouds[:, :n_att], plain[:, :n_att])
+    with pytest.raises(ValueError, match="trust must be a distance"):
+        ck.config.replace(trust=-1.0)

@@ -284,7 +284,7 @@ def cmd_hybrid(args: argparse.Namespace) -> None:
             ck = assemble_hybrid(args.attached, free, args.data, out, margin=args.margin, threshold=args.threshold,
                                  every=args.every, maps=maps, generator_share=args.generator_share,
                                  inside_tolerance=args.inside_tolerance, area_weighted=not args.no_area_weighting,
-                                 far=args.far, link=args.link,
+                                 far=args.far, trust=args.trust, link=args.link,
                                  progress=lambda done, total: update(done, total=total))  # fmt: skip
     print(f"wrote {ck} and the free-region maps {out / 'maps.npz'}, {out / 'maps.png'}; sample it with "
           f"`pocoloco sample --ckpt {out} --joints DATASET:subject/split/sequence/index`")  # fmt: skip
@@ -352,6 +352,9 @@ def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
                         help="points farther than M metres from the posed body belong to the free region whatever "
                              "their nearest body vertex (a hem swinging past a hand or a foot; default: the "
                              "nearest vertex alone)")  # fmt: skip
+    parser.add_argument("--trust", type=float, default=None, metavar="M",
+                        help="draw again generated points farther than M metres from POP's own points in the free "
+                             "region (default: keep them)")  # fmt: skip
     parser.add_argument("--link", action="store_true",
                         help="store references to --attached and --free (the shipped models by name, others by "
                              "folder, each with its checksum) instead of copies of their weights, and the maps "

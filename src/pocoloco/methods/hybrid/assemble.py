@@ -43,6 +43,7 @@ def assemble_hybrid(
     inside_tolerance: float | None = None,
     area_weighted: bool = True,
     far: float | None = None,
+    trust: float | None = None,
     link: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> Path:
@@ -54,16 +55,20 @@ def assemble_hybrid(
     ``inside_tolerance``: generated points deeper inside the posed body are drawn again (metres);
     ``area_weighted``: POP's points drawn by the body area their pixels stand for; ``far``: points
     farther than this from the body are free whatever their nearest vertex (the point shares are
-    counted by the same rule, again from ``data`` when ``maps`` were counted otherwise); ``link``: store
-    references to the two checkpoints instead of copies of their weights, and the maps thresholded
-    (one bit per outfit and body vertex; module docstring). Returns the checkpoint folder. One-line errors: wrong checkpoint kinds, outfits the maps or the free-region
-    model do not know, a free-region model that needs the posed body."""
+    counted by the same rule, again from ``data`` when ``maps`` were counted otherwise); ``trust``:
+    generated points farther than this from POP's own points in the free region are drawn again;
+    ``link``: store references to the two checkpoints instead of copies of their weights, and the
+    maps thresholded (one bit per outfit and body vertex; module docstring). Returns the checkpoint
+    folder. One-line errors: wrong checkpoint kinds, outfits the maps or the free-region model do
+    not know, a free-region model that needs the posed body."""
     if not 0.0 <= generator_share <= 1.0:
         raise ValueError(f"--generator-share must be in [0, 1], got {generator_share}")
     if inside_tolerance is not None and not 0.0 <= inside_tolerance < math.inf:
         raise ValueError(f"--inside-tolerance must be a distance >= 0 (metres), got {inside_tolerance}")
     if far is not None and not 0.0 < far < math.inf:
         raise ValueError(f"--far must be a distance > 0 (metres), got {far}")
+    if trust is not None and not 0.0 < trust < math.inf:
+        raise ValueError(f"--trust must be a distance > 0 (metres), got {trust}")
     pop = POPMethod.from_checkpoint(load_checkpoint(attached, expect_model="pop", training_state=False))
     gen = PocoLocoMethod.from_checkpoint(load_checkpoint(free, expect_model="pocoloco", training_state=False))
     if gen.needs_body:
@@ -110,7 +115,8 @@ def assemble_hybrid(
                           threshold=region.threshold, sources=sources,
                           generator_share=float(generator_share),
                           inside_tolerance=None if inside_tolerance is None else float(inside_tolerance),
-                          area_weighted=bool(area_weighted), far=None if far is None else float(far))  # fmt: skip
+                          area_weighted=bool(area_weighted), far=None if far is None else float(far),
+                          trust=None if trust is None else float(trust))  # fmt: skip
     return save_checkpoint(out / "checkpoints", 0, model_kind="hybrid", preset=config.preset, config=config.to_dict(),
                            normalisation=gen.normalisation, model_state=state,
                            extra={"outfits": pop.outfits, "num_vertices": int(pop.model.num_vertices),

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import nn
 
 from pocoloco.data.poses import MeanShapeCache, Pose
@@ -63,7 +64,9 @@ class HybridConfig(Config):
     body than this (metres) are drawn again (None: kept; the scans hold none). area_weighted: POP's
     points are drawn by the body area their UV pixels stand for (False: every pixel alike). far:
     points farther than this from the posed body (metres) belong to the free region whatever their
-    nearest vertex (a hem swinging past an attached hand or foot; None: the nearest vertex alone)."""
+    nearest vertex (a hem swinging past an attached hand or foot; None: the nearest vertex alone).
+    trust: generated points farther than this (metres) from POP's own points in the free region are
+    drawn again: the generator's hypotheses stay within that distance of the regressor's (None: off)."""
 
     model: str = "hybrid"
     preset: str = "assembled"
@@ -76,6 +79,7 @@ class HybridConfig(Config):
     inside_tolerance: float | None = None
     area_weighted: bool = True
     far: float | None = None
+    trust: float | None = None
 
     def __post_init__(self):
         if self.model != "hybrid":
@@ -86,6 +90,8 @@ class HybridConfig(Config):
             raise ValueError(f"inside tolerance must be a distance >= 0 (metres), got {self.inside_tolerance}")
         if self.far is not None and not 0.0 < self.far < math.inf:
             raise ValueError(f"far must be a distance > 0 (metres), got {self.far}")
+        if self.trust is not None and not 0.0 < self.trust < math.inf:
+            raise ValueError(f"trust must be a distance > 0 (metres), got {self.trust}")
 
     def attached_config(self) -> SkinnedTrainConfig:
         return SkinnedTrainConfig.from_dict(self.attached)
@@ -336,7 +342,8 @@ class HybridMethod(Method):
         clouds = [skinned] * len(seeds)
         if n_gen:
             region = self._free_points(pose, outfit, self._free_mask(outfit, code), n_gen, seeds, options,
-                                       None if code is None else code.free)  # fmt: skip
+                                       None if code is None else code.free,
+                                       None if code is None else code.attached)  # fmt: skip
             clouds = [np.concatenate([skinned, r]) for r in region]
         return SampledClouds(np.stack(clouds).astype(np.float32), None)
 
@@ -357,14 +364,29 @@ class HybridMethod(Method):
         return self._skinned_points(pose, outfit, self._free_mask(outfit, code), n_att, n_free - n_gen,
                                     None if code is None else code.attached)  # fmt: skip
 
-    def _kept(self, pose: Pose, free: np.ndarray, points: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
+    def _kept(self, pose: Pose, free: np.ndarray, points: np.ndarray, normals: np.ndarray | None,
+              reference: cKDTree | None = None) -> np.ndarray:  # fmt: skip
         """(M,) bool: which generated points (M, 3) the free region keeps (their nearest posed body
-        vertex is free, or they lie farther than ``far`` from the body, and, with
-        ``inside_tolerance``, they are no deeper inside the body)."""
+        vertex is free, or they lie farther than ``far`` from the body; with ``inside_tolerance``,
+        they are no deeper inside the body; with ``trust``, they lie within it of ``reference``,
+        POP's points in the region: :meth:`_reference`)."""
         keep = point_regions(points, pose.body_vertices, free, self.config.far)
         if normals is not None:
             keep &= inside_depth(points, pose.body_vertices, normals) <= self.config.inside_tolerance
+        if reference is not None:
+            keep &= reference.query(np.asarray(points, np.float64))[0] <= self.config.trust
         return keep
+
+    def _reference(self, pose: Pose, outfit: int, free: np.ndarray, code: torch.Tensor | None = None) -> cKDTree | None:
+        """With ``trust``: a search tree over POP's points (at its training UV pixels) that fall in
+        the free region, which the generated points must stay near; None without ``trust`` or when
+        POP puts no point there."""
+        if self.config.trust is None:
+            return None
+        pts = self.attached.predict(pose, len(self.attached.model.query_points()), seeds=(0,), outfit=outfit,
+                                    code=code).points[0]  # fmt: skip
+        ref = pts[point_regions(pts, pose.body_vertices, free, self.config.far)]
+        return cKDTree(np.asarray(ref, np.float64)) if len(ref) else None
 
     def _normals(self, pose: Pose) -> np.ndarray | None:
         """The posed body's vertex normals when the inside test is on, else None."""
@@ -390,7 +412,7 @@ class HybridMethod(Method):
             skinned = self._skinned_for(pose, outfit, num_points)
             if not n_gen:
                 return skinned
-            kept = generated[self._kept(pose, free, generated, self._normals(pose))]
+            kept = generated[self._kept(pose, free, generated, self._normals(pose), self._reference(pose, outfit, free))]
             return np.concatenate([skinned, _exactly(kept, n_gen, np.random.default_rng([int(seed), 8]), generated)])
 
         # the generator draws half as many again as the free region keeps (it strays a little)
@@ -433,12 +455,14 @@ class HybridMethod(Method):
         return area[face_idx] / np.bincount(face_idx, minlength=len(faces))[face_idx]
 
     def _free_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int, seeds: Sequence[int],
-                     options: SamplerOptions, code: torch.Tensor | None = None) -> list[np.ndarray]:  # fmt: skip
+                     options: SamplerOptions, code: torch.Tensor | None = None,
+                     attached_code: torch.Tensor | None = None) -> list[np.ndarray]:  # fmt: skip
         """Per seed, (n, 3) generated points whose nearest posed body vertex is free (and, with an
         ``inside_tolerance``, that lie no deeper inside the body): the generator's clouds are
         filtered and drawn again (new seeds derived from the seed) until n."""
         fo = self._free_outfit(outfit)
         normals = self._normals(pose)
+        reference = self._reference(pose, outfit, free, attached_code)
         found: list[list[np.ndarray]] = [[] for _ in seeds]
         last: list[np.ndarray] = [np.zeros((0, 3), np.float32)] * len(seeds)
         m, rate = n, 1.0
@@ -451,7 +475,7 @@ class HybridMethod(Method):
             clouds = self.free.predict(pose, m, seeds=draw, outfit=fo, options=options, code=code).points
             kept = 0
             for k, pts in zip(todo, clouds, strict=True):
-                keep = self._kept(pose, free, pts, normals)
+                keep = self._kept(pose, free, pts, normals, reference)
                 found[k].append(pts[keep])
                 last[k] = pts
                 kept += int(keep.sum())
@@ -463,7 +487,7 @@ class HybridMethod(Method):
         return {"free": self.free.sample_settings(options, num_points), "margin": self.config.margin,
                 "threshold": self.config.threshold, "generator_share": self.config.generator_share,
                 "inside_tolerance": self.config.inside_tolerance, "area_weighted": self.config.area_weighted,
-                "far": self.config.far}  # fmt: skip
+                "far": self.config.far, "trust": self.config.trust}  # fmt: skip
 
 
 def _exactly(points: np.ndarray, n: int, rng: np.random.Generator, fallback: np.ndarray,
