@@ -436,6 +436,13 @@ def test_a_linked_hybrid_holds_only_its_maps_and_draws_what_the_copy_draws(hybri
     a, b = (m.predict(m.pose_from_frame(path, "skirt", frame=fr), 256, seeds=(0, 1), outfit=m.outfit_id("skirt"),
                       options=SamplerOptions(steps=2)).points for m in (copy, linked))  # fmt: skip
     np.testing.assert_allclose(a, b, atol=1e-6)
+    # its maps serve a new assembly as they are (--maps CKPT): the same regions and point shares
+    assert main([*argv, "--maps", str(tmp_path / "linked"), "--out", str(tmp_path / "again")]) == 0
+    again = load_method(tmp_path / "again")
+    np.testing.assert_array_equal(again.maps.vertex_share, linked.maps.vertex_share)
+    np.testing.assert_array_equal(again.maps.point_share, linked.maps.point_share)
+    with pytest.raises(ValueError, match="expected 'hybrid'"):
+        FreeRegionMaps.load(sources / "pop")
     capsys.readouterr()
     import shutil
 

@@ -50,7 +50,7 @@ def run_command(func, args: argparse.Namespace, prog: str = "pocoloco") -> int:
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning
             for name, value in vars(args).items():  # --ckpt[-pop|...] default / default:pop / default:closet
-                if (name in ("ckpt", "init_from", "attached", "free") or name.startswith("ckpt_")) and isinstance(value, str):
+                if (name in ("ckpt", "init_from", "attached", "free", "maps") or name.startswith("ckpt_")) and isinstance(value, str):
                     setattr(args, name, str(resolve_ckpt_arg(value)))
             apply_threads(getattr(args, "threads", None))
             check_seeds(args)

@@ -323,7 +323,8 @@ def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
                              "pack)")  # fmt: skip
     parser.add_argument("--data", required=True, help="the dataset both were trained on (the maps are learnt from it)")
     parser.add_argument("--out", required=True, help="run folder to write (checkpoints/, maps.npz, maps.png)")
-    parser.add_argument("--maps", help="free-region maps .npz to use instead of learning them")
+    parser.add_argument("--maps", help="free-region maps to use instead of learning them: a .npz, or a hybrid checkpoint "
+                                       "whose maps to reuse (e.g. default:hybrid)")  # fmt: skip
     parser.add_argument("--margin", type=float, default=0.03,
                         help="a body vertex is free in a frame when its nearest captured point is loose garment or "
                              "farther than this (metres; default 0.03)")  # fmt: skip

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame, read_subject
+from pocoloco.engine.checkpoint import load_checkpoint
 from pocoloco.utils.atomic import atomic_open
 from pocoloco.viz.render import render_grid
 
@@ -89,8 +90,32 @@ class FreeRegionMaps:
         return Path(path)
 
     @classmethod
+    def _from_checkpoint(cls, path: str | os.PathLike) -> FreeRegionMaps:
+        """The maps a hybrid checkpoint holds (its ``vertex_share`` or ``free_bits``, ``point_share``,
+        and the rule in its config), without loading its networks."""
+        ck = load_checkpoint(path, expect_model="hybrid", training_state=False)
+        try:
+            state, config = ck.model_state, ck.config
+            outfits = tuple(str(o["name"]) for o in ck.meta["outfits"])
+            if "free_bits" in state:
+                share = np.unpackbits(state["free_bits"].numpy().astype(np.uint8), axis=1,
+                                      count=int(ck.meta["num_vertices"])).astype(np.float32)  # fmt: skip
+            else:
+                share = state["vertex_share"].float().numpy()
+            frames = np.asarray(ck.meta.get("map_frames", [0] * len(outfits)), np.int32)
+            far = config.get("far")
+            return cls(outfits, share, state["point_share"].float().numpy(), float(config["margin"]),
+                       float(config["threshold"]), frames, None if far is None else float(far))  # fmt: skip
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{ck.path}: no free-region maps in this hybrid checkpoint ({e})") from None
+
+    @classmethod
     def load(cls, path: str | os.PathLike) -> FreeRegionMaps:
-        """Read a ``.npz`` written by :meth:`save` (one-line errors for missing or damaged files)."""
+        """Read a ``.npz`` written by :meth:`save`, or the maps of a hybrid checkpoint / run folder
+        (a linked one keeps them thresholded: shares 0 / 1); one-line errors for missing or damaged
+        files."""
+        if Path(path).is_dir():
+            return cls._from_checkpoint(path)
         try:
             with np.load(path, allow_pickle=False) as z:
                 far = float(z["far"]) if "far" in z.files else float("nan")
