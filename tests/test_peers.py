@@ -490,6 +490,15 @@ def test_describe_checkpoint_names_shipped_and_relative_paths(tmp_path, monkeypa
     monkeypatch.chdir(tmp_path)
     assert describe_checkpoint(tmp_path / "runs" / "a") == "runs/a"
     assert describe_checkpoint("/elsewhere/ckpt") == "/elsewhere/ckpt"
+    # a linked hybrid names shipped models by name, every other folder by its absolute path (even
+    # one whose relative name starts like a shipped one)
+    from pocoloco.engine.shipped import shipped_name
+    from pocoloco.methods.hybrid.assemble import link_name
+
+    (tmp_path / "default_run").mkdir()
+    assert shipped_name(ASSETS_DIR / "hybrid_medium") == "default:hybrid" and shipped_name(tmp_path) is None
+    assert link_name(ASSETS_DIR / "pop_medium") == "default:pop"
+    assert link_name("default_run") == str(tmp_path / "default_run")
 
 
 # ------------------------------------------------------------------ what the shared loop adds

@@ -19,7 +19,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["ASSETS_DIR", "SHIPPED_MODELS", "default_checkpoint", "describe_checkpoint", "resolve_ckpt_arg"]
+__all__ = ["ASSETS_DIR", "SHIPPED_MODELS", "default_checkpoint", "describe_checkpoint", "resolve_ckpt_arg",
+           "shipped_name"]
 
 ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
 DEFAULT_MODEL_DIR = ASSETS_DIR / "pocoloco_medium"
@@ -40,13 +41,22 @@ def default_checkpoint(kind: str = "pocoloco") -> Path:
     return path
 
 
-def describe_checkpoint(path: str | os.PathLike) -> str:
-    """How to name a checkpoint folder in reports: ``default:pop`` etc. for a shipped model, else
-    the path relative to the working directory when it lies below it, else the path as given."""
+def shipped_name(path: str | os.PathLike) -> str | None:
+    """``default`` / ``default:pop`` ... when ``path`` is a shipped model's folder, else None."""
     p = Path(path).resolve()
     for kind, folder in SHIPPED_MODELS.items():
         if p == (ASSETS_DIR / folder).resolve():
             return "default" if kind == "pocoloco" else f"default:{kind}"
+    return None
+
+
+def describe_checkpoint(path: str | os.PathLike) -> str:
+    """How to name a checkpoint folder in reports: ``default:pop`` etc. for a shipped model, else
+    the path relative to the working directory when it lies below it, else the path as given."""
+    name = shipped_name(path)
+    if name is not None:
+        return name
+    p = Path(path).resolve()
     try:
         return str(p.relative_to(Path.cwd().resolve()))
     except ValueError:

@@ -10,7 +10,6 @@ copy of the two networks would be 17 MB."""
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Callable
@@ -19,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pocoloco.engine.checkpoint import META_FILE, load_checkpoint, save_checkpoint
-from pocoloco.engine.shipped import describe_checkpoint
+from pocoloco.engine.checkpoint import load_checkpoint, save_checkpoint
+from pocoloco.engine.shipped import shipped_name
 from pocoloco.methods.hybrid.method import HybridConfig
 from pocoloco.methods.hybrid.regions import FreeRegionMaps, learn_free_maps, recount_point_shares, render_free_maps
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
@@ -100,7 +99,7 @@ def assemble_hybrid(
     render_free_maps(region, data, out / "maps.png")
     point_share = torch.from_numpy(region.point_share.astype(np.float32))
     if link:
-        linked = {part: {"ckpt": link_name(m.path), "meta_sha256": _meta_sha256(m.path)}
+        linked = {part: {"ckpt": link_name(m.path), "meta_sha256": _meta_sha256(m)}
                   for part, m in (("attached", pop), ("free", gen))}  # fmt: skip
         free_mask = np.stack([region.free(i) for i in range(len(names))])
         state = {"free_bits": torch.from_numpy(np.packbits(free_mask, axis=1)), "point_share": point_share}
@@ -127,14 +126,12 @@ def assemble_hybrid(
 def link_name(path: str | os.PathLike) -> str:
     """How a linked hybrid names a source checkpoint folder: ``default:pop`` / ``default`` for a
     shipped model (found wherever pocoloco is installed), else the folder's absolute path."""
-    name = describe_checkpoint(path)
-    return name if name.startswith("default") else os.fspath(Path(path).resolve())
+    return shipped_name(path) or os.fspath(Path(path).resolve())
 
 
-def _meta_sha256(folder: str | os.PathLike) -> str:
-    """The checkpoint's own digest of its meta.json (which holds its weight files' digests)."""
-    with open(Path(folder) / META_FILE, encoding="utf-8") as f:
-        digest = json.load(f).get("meta_sha256")
+def _meta_sha256(method: POPMethod | PocoLocoMethod) -> str:
+    """The loaded checkpoint's own digest of its meta.json (which holds its weight files' digests)."""
+    digest = method.meta.get("meta_sha256")
     if not digest:
-        raise ValueError(f"{folder}: an older checkpoint without checksums cannot be linked (leave out --link)")
+        raise ValueError(f"{method.path}: an older checkpoint without checksums cannot be linked (leave out --link)")
     return str(digest)
