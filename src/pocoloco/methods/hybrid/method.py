@@ -36,7 +36,7 @@ from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import AnimationPrior, Method, SampledClouds, SamplerOptions
 from pocoloco.methods.hybrid.regions import (MIN_FREE_SHARE, FreeRegionMaps, inside_depth, point_regions,
-                                             scan_vertex_votes, vertex_normals)
+                                             scan_vertex_votes, stored_vertex_share, vertex_normals)
 from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
 from pocoloco.methods.pop.method import POPMethod, pop_query_for
@@ -166,12 +166,7 @@ class HybridMethod(Method):
             attached = POPMethod._model_from_state(att_cfg, part("attached."), ck.meta)
             free = build_denoiser(free_cfg.architecture, free_cfg.denoiser)
             free.load_state_dict({k: v.float() for k, v in part("free.").items()})
-            if "free_bits" in state:  # a linked hybrid: the thresholded maps, one bit per vertex
-                bits = np.unpackbits(state["free_bits"].numpy().astype(np.uint8), axis=1,
-                                     count=int(ck.meta["num_vertices"]))  # fmt: skip
-                vertex_share = torch.from_numpy(bits.astype(np.float32))
-            else:
-                vertex_share = state["vertex_share"].float()
+            vertex_share = torch.from_numpy(stored_vertex_share(state, int(ck.meta["num_vertices"])))
             model = HybridModel(attached, free, vertex_share, state["point_share"].float())
         except (KeyError, TypeError, RuntimeError, ValueError) as e:
             raise ValueError(f"{ck.path}: corrupt hybrid checkpoint ({one_line(e)})") from None

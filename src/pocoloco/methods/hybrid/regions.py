@@ -20,6 +20,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -30,7 +31,7 @@ from pocoloco.utils.atomic import atomic_open
 from pocoloco.viz.render import render_grid
 
 __all__ = ["MIN_FREE_SHARE", "FreeRegionMaps", "inside_depth", "learn_free_maps", "point_regions",
-           "recount_point_shares", "render_free_maps", "scan_vertex_votes", "vertex_normals"]
+           "recount_point_shares", "render_free_maps", "scan_vertex_votes", "stored_vertex_share", "vertex_normals"]
 
 #: an outfit with a smaller free point share has no free region (wholly attached)
 MIN_FREE_SHARE = 0.02
@@ -97,11 +98,7 @@ class FreeRegionMaps:
         try:
             state, config = ck.model_state, ck.config
             outfits = tuple(str(o["name"]) for o in ck.meta["outfits"])
-            if "free_bits" in state:
-                share = np.unpackbits(state["free_bits"].numpy().astype(np.uint8), axis=1,
-                                      count=int(ck.meta["num_vertices"])).astype(np.float32)  # fmt: skip
-            else:
-                share = state["vertex_share"].float().numpy()
+            share = stored_vertex_share(state, int(ck.meta["num_vertices"]))
             frames = np.asarray(ck.meta.get("map_frames", [0] * len(outfits)), np.int32)
             far = config.get("far")
             return cls(outfits, share, state["point_share"].float().numpy(), float(config["margin"]),
@@ -126,6 +123,15 @@ class FreeRegionMaps:
             raise ValueError(f"{path}: no such free-region map file") from None
         except (KeyError, ValueError, OSError, EOFError) as e:
             raise ValueError(f"{path}: not a free-region map file ({type(e).__name__}: {e})") from None
+
+
+def stored_vertex_share(state: dict[str, Any], num_vertices: int) -> np.ndarray:
+    """(O, V) float32 the vertex maps a hybrid checkpoint's ``state`` holds: ``vertex_share``, or in
+    a linked one ``free_bits`` (O, ceil(V / 8)) uint8, the thresholded maps packed (shares 0 / 1)."""
+    if "free_bits" in state:
+        bits = np.asarray(state["free_bits"].cpu().numpy(), np.uint8)
+        return np.unpackbits(bits, axis=1, count=int(num_vertices)).astype(np.float32)
+    return state["vertex_share"].float().cpu().numpy()
 
 
 def point_regions(points: np.ndarray, body_vertices: np.ndarray, free: np.ndarray,
@@ -197,13 +203,7 @@ def learn_free_maps(
         raise ValueError(f"every must be an integer >= 1, got {every!r}")
     layout = DatasetLayout(data)
     names = sorted(subjects) if subjects is not None else layout.subjects()
-    plan: dict[str, list[Path]] = {}
-    for s in names:
-        paths = [layout.frame_path(s, "train", q, i) for q in layout.sequences(s, "train")
-                 for i in layout.frame_indices(s, "train", q)]  # fmt: skip
-        if not paths:
-            raise ValueError(f"{data}: subject {s!r} has no train frames")
-        plan[s] = paths[::every]
+    plan = {s: _train_frames(layout, data, s, every) for s in names}
     total, done = sum(len(p) for p in plan.values()), 0
     shares, point_shares, counts, samples = [], [], [], []
     for s, paths in plan.items():
@@ -231,10 +231,25 @@ def learn_free_maps(
                           float(threshold), np.asarray(counts, np.int32)).without_small_regions()  # fmt: skip
     if far is None:
         return maps
-    # an outfit without a free region stays wholly attached; the others count their far points too
-    far_shares = [np.mean([point_regions(p, b, maps.free(o), far).mean() for p, b in samples[o]])
-                  if maps.free(o).any() else 0.0 for o in range(len(plan))]  # fmt: skip
-    return dataclasses.replace(maps, point_share=np.asarray(far_shares, np.float32), far=float(far))
+    return dataclasses.replace(maps, point_share=_point_shares(maps, samples, far), far=float(far))
+
+
+def _train_frames(layout: DatasetLayout, data: str | os.PathLike, subject: str, every: int) -> list[Path]:
+    """Every ``every``-th train frame of ``subject`` (a one-line error when it has none)."""
+    paths = [layout.frame_path(subject, "train", q, i) for q in layout.sequences(subject, "train")
+             for i in layout.frame_indices(subject, "train", q)]  # fmt: skip
+    if not paths:
+        raise ValueError(f"{data}: subject {subject!r} has no train frames")
+    return paths[::every]
+
+
+def _point_shares(maps: FreeRegionMaps, samples: Sequence[Sequence[tuple[np.ndarray, np.ndarray]]],
+                  far: float | None) -> np.ndarray:  # fmt: skip
+    """(O,) float32: each outfit's mean share of scan points in its free region by the rule ``far``
+    over its ``samples`` [(points, posed body vertices)]; an outfit without a free region stays
+    wholly attached (0), whatever lies far."""
+    return np.asarray([np.mean([point_regions(p, b, maps.free(o), far).mean() for p, b in samples[o]])
+                       if maps.free(o).any() else 0.0 for o in range(len(maps.outfits))], np.float32)  # fmt: skip
 
 
 def recount_point_shares(maps: FreeRegionMaps, data: str | os.PathLike, far: float | None, *, every: int = 180,
@@ -243,30 +258,22 @@ def recount_point_shares(maps: FreeRegionMaps, data: str | os.PathLike, far: flo
     of ``data`` by the point rule ``far`` (:func:`point_regions`): the share a hybrid drawing
     points farther than ``far`` from the body in the free region needs. The vertex maps are kept."""
     layout = DatasetLayout(data)
-    plan = {}
-    for s in maps.outfits:
-        paths = [layout.frame_path(s, "train", q, i) for q in layout.sequences(s, "train")
-                 for i in layout.frame_indices(s, "train", q)][::every]  # fmt: skip
-        if not paths:
-            raise ValueError(f"{data}: subject {s!r} has no train frames")
-        plan[s] = paths
-    total, done, shares = sum(len(p) for p in plan.values()), 0, []
-    for o, (s, paths) in enumerate(plan.items()):
-        if not maps.free(o).any():  # no free region: wholly attached, whatever lies far
-            shares.append(0.0)
-            done += len(paths)
-            continue
-        counts = []
-        for path in paths:
+    plan = {s: _train_frames(layout, data, s, every) for s in maps.outfits}
+    total, done, samples = sum(len(p) for p in plan.values()), 0, []
+    for o, paths in enumerate(plan.values()):
+        bodies = []
+        for path in paths if maps.free(o).any() else ():  # no free region: nothing to read
             fr = read_frame(path, ("points", "body_vertices"), allow_missing=True)
             if fr.body_vertices is None:
                 raise ValueError(f"{path}: the free point share needs the posed body (synthetic data)")
-            counts.append(point_regions(fr.points, fr.body_vertices, maps.free(o), far).mean())
+            bodies.append((fr.points, fr.body_vertices))
             done += 1
             if progress is not None:
                 progress(done, total)
-        shares.append(np.mean(counts))
-    return dataclasses.replace(maps, point_share=np.asarray(shares, np.float32), far=None if far is None else float(far))
+        done += len(paths) - len(bodies)
+        samples.append(bodies)
+    return dataclasses.replace(maps, point_share=_point_shares(maps, samples, far),
+                               far=None if far is None else float(far))
 
 
 def render_free_maps(maps: FreeRegionMaps, data: str | os.PathLike, path: str | os.PathLike,
