@@ -151,7 +151,8 @@ class HybridMethod(Method):
                                    | {"outfits": meta.get("free_outfits", [])})  # fmt: skip
         self.maps = FreeRegionMaps(tuple(o["name"] for o in self.outfits), model.vertex_share.cpu().numpy(),
                                    model.point_share.cpu().numpy(), config.margin, config.threshold,
-                                   np.asarray(meta.get("map_frames", [0] * len(self.outfits)), np.int32))  # fmt: skip
+                                   np.asarray(meta.get("map_frames", [0] * len(self.outfits)), np.int32),
+                                   config.far)  # fmt: skip
 
     # ------------------------------------------------------------------ loading and training
     @classmethod
@@ -295,7 +296,7 @@ class HybridMethod(Method):
         self.meta["map_frames"] = [*self.meta.get("map_frames", [0] * new_id), 1]
         self.maps = FreeRegionMaps(tuple(self.outfit_names()), m.vertex_share.cpu().numpy(),
                                    m.point_share.cpu().numpy(), self.maps.margin, self.maps.threshold,
-                                   np.asarray(self.meta["map_frames"], np.int32))  # fmt: skip
+                                   np.asarray(self.meta["map_frames"], np.int32), self.maps.far)  # fmt: skip
         return new_id
 
     # ---------------------------------------------------------------------------- predicting

@@ -44,7 +44,8 @@ def write_free_pack(data: str | os.PathLike, maps: FreeRegionMaps, out: str | os
                     points: int = 512, min_share: float = 0.05,
                     progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:  # fmt: skip
     """Write ``out``: a training pack of ``data``'s train split holding only free-region points
-    (each point's nearest posed body vertex is free in its outfit's map), every ``every``-th frame
+    (each point's nearest posed body vertex is free in its outfit's map, or it lies farther than
+    the maps' ``far`` from the body: :func:`point_regions`), every ``every``-th frame
     of the outfits whose free point share is at least ``min_share``. Returns the pack's meta
     (:func:`~pocoloco.data.pack.write_pack`) with ``packed`` (those outfits)."""
     chosen = [n for i, n in enumerate(maps.outfits) if maps.point_share[i] >= min_share]
@@ -54,7 +55,7 @@ def write_free_pack(data: str | os.PathLike, maps: FreeRegionMaps, out: str | os
 
     def select(subject: str, path: Path):
         fr = read_frame(path, ("points", "body_vertices"))
-        return point_regions(fr.points, fr.body_vertices, free[subject])
+        return point_regions(fr.points, fr.body_vertices, free[subject], maps.far)
 
     meta = write_pack(data, out, every=every, points=points, subjects=chosen, select=select, splits=("train",),
                       progress=progress)  # fmt: skip
