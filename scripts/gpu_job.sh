@@ -10,6 +10,12 @@
 # BEST="PRESET BATCH STEPS_PER_S" (skip the search), INIT_FROM=CKPT (fine-tune from that checkpoint
 # with its config, e.g. the hybrid's free-region generator from src/pocoloco/assets/pocoloco_medium on
 # a free-region pack), LR (the run's peak learning rate).
+# RUNS="NAME:TRAIN ARGS;NAME:TRAIN ARGS": no search and no single run: train these side by side on the
+# one GPU (small networks leave it launch-bound, so several runs cost little more than one), each on
+# the whole budget's clock (--time-budget), with its own log NAME.log and export NAME/model, e.g.
+#   RUNS="s256:--preset latent_small --batch-size 256 --lr 2e-3;s1024:--preset latent_small --batch-size 1024"
+# A run's own --steps / --decay-steps win over the defaults (100,000 steps, wsd over the last fifth:
+# the clock ends it, cooled down).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PACK=$1
@@ -38,6 +44,27 @@ if [ -z "${SKIP_BENCH:-}" ]; then
     || echo "bench failed (going on)"
 fi
 
+if [ -n "${RUNS:-}" ]; then
+  LEFT=$(( TOTAL - $(elapsed) - 60 ))  # start-up, final checkpoints, exports and packing
+  [ "$LEFT" -lt 30 ] && LEFT=30
+  MINUTES=$($PY -c "print(round($LEFT / 60, 3))")
+  IFS=';' read -ra SPECS <<< "$RUNS"
+  W=$(( WORKERS * 2 / ${#SPECS[@]} )); [ "$W" -lt 2 ] && W=2
+  echo "== train ${#SPECS[@]} runs side by side, $W workers each, budget $MINUTES min ($(elapsed) s)"
+  PIDS=()
+  for spec in "${SPECS[@]}"; do
+    NAME=${spec%%:*}
+    ARGS=${spec#*:}
+    echo "   $NAME: $ARGS"
+    # shellcheck disable=SC2086
+    $PY -m pocoloco train --data "$PACK" --out "$OUT/$NAME" --outfit-codes --body-shape --bf16 --device "$DEVICE" \
+      --workers "$W" --steps 100000 --lr-schedule wsd --decay-steps 20000 --ckpt-every 1000 --sample-every 0 \
+      --log-every 50 --time-budget "$MINUTES" --no-progress $ARGS > "$OUT/$NAME.log" 2>&1 &
+    PIDS+=($!)
+  done
+  for pid in "${PIDS[@]}"; do wait "$pid" || echo "a run failed (pid $pid)"; done
+  for spec in "${SPECS[@]}"; do NAME=${spec%%:*}; echo "-- $NAME"; tail -n 3 "$OUT/$NAME.log"; done
+else  # one run, its network and batch from a search (or BEST)
 if [ -n "${BEST:-}" ]; then  # "PRESET BATCH STEPS_PER_S" from an earlier search: no search now
   printf '{"best": {"preset": "%s", "batch": %s, "steps_per_s": %s}}' $BEST > "$OUT/search.json"
 else
@@ -70,11 +97,13 @@ $PY -m pocoloco train --data "$PACK" --out "$OUT/run" $START_ARGS ${LR:+--lr $LR
   --body-shape --bf16 --device "$DEVICE" --workers "$WORKERS" $SCHEDULE --ckpt-every 1000 --sample-every 0 \
   --log-every 50 --time-budget "$MINUTES" --no-progress || echo "train failed"
 
+fi
+
 echo "== pack results ($(elapsed) s)"
 # the trip back takes at most 8 files of 16 MiB: one tar of everything but the full checkpoints, in 15 MB parts
-tar -cf "$OUT/results.tar" -C "$OUT" --exclude=run/checkpoints --exclude=results.tar --exclude=job.log . 2>/dev/null
+tar -cf "$OUT/results.tar" -C "$OUT" --exclude=checkpoints --exclude=results.tar --exclude=job.log . 2>/dev/null
 split -b 15000000 -d "$OUT/results.tar" "$OUT/results.tar.part"
 rm -f "$OUT/results.tar"
-rm -rf "$OUT/run" "$OUT/bench.json" "$OUT/search.json"
+find "$OUT" -mindepth 1 -maxdepth 1 ! -name 'results.tar.part*' ! -name job.log -exec rm -rf {} +
 ls -la "$OUT"
 echo "== done ($(elapsed) s)"
