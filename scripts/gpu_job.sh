@@ -11,8 +11,10 @@
 # with its config, e.g. the hybrid's free-region generator from src/pocoloco/assets/pocoloco_medium on
 # a free-region pack), LR (the run's peak learning rate).
 # RUNS="NAME:TRAIN ARGS;NAME:TRAIN ARGS": no search and no single run: train these side by side on the
-# one GPU (small networks leave it launch-bound, so several runs cost little more than one), each on
-# the whole budget's clock (--time-budget), with its own log NAME.log and export NAME/model, e.g.
+# one GPU, each on the whole budget's clock (--time-budget), with its own log NAME.log and export
+# NAME/model. The runs share the GPU by time-slicing: on one H100 four runs kept it 100 % busy and
+# together made about the steps of one run (BENCHMARKS.md, "Five recipes side by side"), so RUNS
+# compares recipes at an equal share of the budget; it does not buy extra runs. E.g.
 #   RUNS="s256:--preset latent_small --batch-size 256 --lr 2e-3;s1024:--preset latent_small --batch-size 1024"
 # A run's own --steps / --decay-steps win over the defaults (100,000 steps, wsd over the last fifth:
 # the clock ends it, cooled down).
@@ -50,6 +52,7 @@ if [ -n "${RUNS:-}" ]; then
   MINUTES=$($PY -c "print(round($LEFT / 60, 3))")
   IFS=';' read -ra SPECS <<< "$RUNS"
   W=$(( WORKERS * 2 / ${#SPECS[@]} )); [ "$W" -lt 2 ] && W=2
+  T=$(( $(nproc) / ${#SPECS[@]} )); [ "$T" -lt 1 ] && T=1  # torch threads each: the cores shared, not oversubscribed
   echo "== train ${#SPECS[@]} runs side by side, $W workers each, budget $MINUTES min ($(elapsed) s)"
   PIDS=()
   for spec in "${SPECS[@]}"; do
@@ -59,7 +62,7 @@ if [ -n "${RUNS:-}" ]; then
     # shellcheck disable=SC2086
     $PY -m pocoloco train --data "$PACK" --out "$OUT/$NAME" --outfit-codes --body-shape --bf16 --device "$DEVICE" \
       --workers "$W" --steps 100000 --lr-schedule wsd --decay-steps 20000 --ckpt-every 1000 --sample-every 0 \
-      --log-every 50 --time-budget "$MINUTES" --no-progress $ARGS > "$OUT/$NAME.log" 2>&1 &
+      --log-every 50 --threads "$T" --time-budget "$MINUTES" --no-progress $ARGS > "$OUT/$NAME.log" 2>&1 &
     PIDS+=($!)
   done
   for pid in "${PIDS[@]}"; do wait "$pid" || echo "a run failed (pid $pid)"; done
