@@ -34,6 +34,11 @@ WORKERS=${WORKERS:-8}
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/job.log") 2>&1
 elapsed() { echo $(( $(date +%s) - START )); }
+# seconds left for training after HEADROOM (start-up, final checkpoints, exports, packing), at least 30
+left_seconds() { local left=$(( TOTAL - $(elapsed) - $1 )); echo $(( left < 30 ? 30 : left )); }
+# what every training run here shares: the full recipe (outfit codes + body shape, bf16), no previews
+TRAIN=($PY -m pocoloco train --data "$PACK" --outfit-codes --body-shape --bf16 --device "$DEVICE" --ckpt-every 1000
+       --sample-every 0 --log-every 50 --no-progress)
 
 echo "== $(date -u +%FT%TZ) job: pack $PACK, $TOTAL s"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
@@ -47,9 +52,7 @@ if [ -z "${SKIP_BENCH:-}" ]; then
 fi
 
 if [ -n "${RUNS:-}" ]; then
-  LEFT=$(( TOTAL - $(elapsed) - 60 ))  # start-up, final checkpoints, exports and packing
-  [ "$LEFT" -lt 30 ] && LEFT=30
-  MINUTES=$($PY -c "print(round($LEFT / 60, 3))")
+  MINUTES=$($PY -c "print(round($(left_seconds 60) / 60, 3))")
   IFS=';' read -ra SPECS <<< "$RUNS"
   W=$(( WORKERS * 2 / ${#SPECS[@]} )); [ "$W" -lt 2 ] && W=2
   T=$(( $(nproc) / ${#SPECS[@]} )); [ "$T" -lt 1 ] && T=1  # torch threads each: the cores shared, not oversubscribed
@@ -60,9 +63,8 @@ if [ -n "${RUNS:-}" ]; then
     ARGS=${spec#*:}
     echo "   $NAME: $ARGS"
     # shellcheck disable=SC2086
-    $PY -m pocoloco train --data "$PACK" --out "$OUT/$NAME" --outfit-codes --body-shape --bf16 --device "$DEVICE" \
-      --workers "$W" --steps 100000 --lr-schedule wsd --decay-steps 20000 --ckpt-every 1000 --sample-every 0 \
-      --log-every 50 --threads "$T" --time-budget "$MINUTES" --no-progress $ARGS > "$OUT/$NAME.log" 2>&1 &
+    "${TRAIN[@]}" --out "$OUT/$NAME" --workers "$W" --threads "$T" --steps 100000 --lr-schedule wsd \
+      --decay-steps 20000 --time-budget "$MINUTES" $ARGS > "$OUT/$NAME.log" 2>&1 &
     PIDS+=($!)
   done
   for pid in "${PIDS[@]}"; do wait "$pid" || echo "a run failed (pid $pid)"; done
@@ -86,8 +88,7 @@ except Exception:
 EOF
 )
 
-LEFT=$(( TOTAL - $(elapsed) - 45 ))  # start-up, final checkpoint, export and packing
-[ "$LEFT" -lt 30 ] && LEFT=30
+LEFT=$(left_seconds 45)
 # wsd with its cool-down over the last fifth, on the step count that fits at the searched rate (20 %
 # headroom) and on the clock (--time-budget), whichever comes first: a machine slower than the search's
 # still ends cooled down; without a measured rate the clock alone decides
@@ -96,9 +97,8 @@ MINUTES=$($PY -c "print(round($LEFT / 60, 3))")
 echo "== train $PRESET B=$BATCH: $SCHEDULE, budget $MINUTES min ($(elapsed) s)"
 if [ -n "${INIT_FROM:-}" ]; then START_ARGS="--init-from $INIT_FROM"; else START_ARGS="--preset $PRESET"; fi
 # shellcheck disable=SC2086
-$PY -m pocoloco train --data "$PACK" --out "$OUT/run" $START_ARGS ${LR:+--lr $LR} --batch-size "$BATCH" --outfit-codes \
-  --body-shape --bf16 --device "$DEVICE" --workers "$WORKERS" $SCHEDULE --ckpt-every 1000 --sample-every 0 \
-  --log-every 50 --time-budget "$MINUTES" --no-progress || echo "train failed"
+"${TRAIN[@]}" --out "$OUT/run" $START_ARGS ${LR:+--lr $LR} --batch-size "$BATCH" --workers "$WORKERS" $SCHEDULE \
+  --time-budget "$MINUTES" || echo "train failed"
 
 fi
 
