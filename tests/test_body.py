@@ -122,3 +122,18 @@ def test_bad_input_is_rejected(body):
     with pytest.raises(ValueError, match="outside"):
         AnnyBody({"age": 1.5})
     assert JOINT_NAMES[0] == "pelvis"
+
+
+def test_skeleton_rig_rebuilds_anny_exactly(body):
+    """Skinning from the 24 joint transforms alone (what a --bodies pack stores) against anny's
+    own forward pass over all 104 bones: the same vertices and vtransf."""
+    rot = np.random.default_rng(3).normal(0, 0.5, (4, NUM_JOINTS, 3)).astype(np.float32)
+    rig = body.skeleton_rig()
+    verts, vtransf = rig.pose(body.joint_transforms(rot))
+    ref = body.pose(rot)
+    assert verts.shape == ref.vertices.shape and vtransf.shape == ref.vtransf.shape
+    assert np.abs(verts - (ref.vertices - ref.joints[:, :1])).max() < 1e-5
+    assert np.abs(vtransf - ref.vtransf).max() < 1e-5
+    assert np.abs(rig.rest_vertices - rig.rest_vertices[0] + body.template[0] - body.template).max() < 1e-6
+    with pytest.raises(ValueError, match="joint_transforms must have shape"):
+        rig.pose(np.zeros((1, 23, 3, 4)))

@@ -11,7 +11,19 @@ import torch
 
 from pocoloco.cli import main as cli_main
 from pocoloco.data.dataset import PointCloudDataset, frame_velocity
-from pocoloco.data.pack import PackedDataset, decode_points, encode_points, open_point_clouds, read_pack_meta, write_pack
+from pocoloco.data.pack import (
+    PackedBodies,
+    PackedDataset,
+    decode_normals,
+    decode_points,
+    encode_normals,
+    encode_points,
+    open_point_clouds,
+    pack_summary,
+    read_pack_meta,
+    read_pack_subjects,
+    write_pack,
+)
 from pocoloco.diffusion import NoiseSchedule, diffusion_loss
 from pocoloco.engine import checkpoint as ckpt_io
 from pocoloco.engine.trainer import fused_optimizer_options, scaled_lr
@@ -127,9 +139,95 @@ def test_cli_pack_and_train_from_it(tiny_dataset, tmp_path, capsys):
     assert (run / "model" / "meta.json").is_file()  # every run ends with its exported model
     assert json.loads((run / "model" / "meta.json").read_text())["step"] == 2
     assert cli_main(["train", "--model", "pop", "--data", str(pack), "--out", str(tmp_path / "pop"), "--no-progress"]) == 2
-    assert "trains on the dataset folder" in capsys.readouterr().err
+    assert "pocoloco data pack --bodies" in capsys.readouterr().err
     assert cli_main([*base[:4], str(tmp_path / "b"), *base[5:], "--body-points", "8"]) == 2
     assert "no posed bodies" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ packs with bodies (POP, CloSET)
+def test_normals_codec_is_within_two_degrees():
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(5000, 3))
+    n = np.concatenate([n, np.eye(3), -np.eye(3), [[1, -1, 0], [0, 1, -1], [-1, 0, -1]]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    back = decode_normals(encode_normals(n))
+    angle = np.degrees(np.arccos(np.clip((n * back).sum(1), -1, 1)))
+    assert encode_normals(n).dtype == np.int8 and angle.max() < 2.0
+    assert np.allclose(np.linalg.norm(back, axis=1), 1, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def bodies_pack(tiny_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bpack") / "bodies.pack"
+    meta = write_pack(tiny_dataset, out, splits=("train", "test"), every=2, eval_every=4, points=600, bodies=True)
+    return out, meta
+
+
+def test_bodies_pack_gives_the_dataset_frames_and_bodies(tiny_dataset, bodies_pack):
+    """Each packed frame's body, vtransf, joints, points and normals against the dataset frame's
+    (the slow reference: the stored arrays), and the mean shape against anny's (MeanShapeCache)."""
+    from scipy.spatial import cKDTree
+
+    from pocoloco.data.format import DatasetLayout, read_frame, read_subject
+    from pocoloco.data.poses import MeanShapeCache, motion_path_of
+
+    path, meta = bodies_pack
+    assert meta["bodies"]["rigs"] == ["skirt", "tight", "mean"] and "posed bodies" in pack_summary(meta)
+    ds = PackedBodies(path, "train")
+    layout, cache = DatasetLayout(tiny_dataset), MeanShapeCache()
+    assert len(ds) == 4
+    for i in range(len(ds)):
+        subject, split, seq, idx = ds.frame_key(i).split("/")
+        src = layout.frame_path(subject, split, seq, int(idx))
+        want = read_frame(src, ["points", "normals", "joints", "frame_index", "body_vertices", "vtransf"])
+        got = ds.frame(i)
+        assert got.frame_index == want.frame_index
+        assert np.abs(got.body_vertices - want.body_vertices).max() < 5e-4
+        assert np.abs(got.vtransf - want.vtransf).max() < 1e-3
+        assert np.abs(got.joints - want.joints).max() < 1e-4
+        d, j = cKDTree(want.points).query(got.points)
+        assert d.max() <= 0.5e-3 * math.sqrt(3) + 1e-6
+        cos = (got.normals * want.normals[j]).sum(1)
+        assert np.mean(cos > np.cos(np.radians(2))) > 0.99  # the rest: another point at the same place
+        mean = cache.get(motion_path_of(src), int(want.frame_index))
+        assert np.abs(ds.mean_shape(i) - mean).max() < 5e-4
+    for name, asset in read_pack_subjects(path).items():
+        stored = read_subject(layout.subject_path(name))
+        assert np.array_equal(asset.faces, stored.faces) and np.array_equal(asset.uv_faces, stored.uv_faces)
+        assert np.allclose(asset.uv, stored.uv) and np.array_equal(asset.vertex_joint, stored.vertex_joint)
+        assert np.abs(asset.template - stored.template).max() < 1e-4
+    # a pack still serves PocoLoco as before
+    assert len(PackedDataset(path, "train")) == 4 and PackedDataset(path, "train")[0]["points"].shape == (600, 3)
+
+
+@pytest.mark.parametrize("model", ["pop", "closet"])
+def test_pop_and_closet_train_from_a_bodies_pack(bodies_pack, tmp_path, capsys, model):
+    path, _ = bodies_pack
+    run = tmp_path / model
+    argv = ["train", "--model", model, "--preset", "tiny", "--data", str(path), "--out", str(run), "--steps", "2",
+            "--num-points", "300", "--sample-every", "2", "--no-progress", "--threads", "1"]  # fmt: skip
+    assert cli_main(argv) == 0
+    ck = ckpt_io.load_checkpoint(run, expect_model=model)
+    assert ck.step == 2 and [o["name"] for o in ck.meta["outfits"]] == ["skirt", "tight"]
+    assert (run / "samples" / "step_000002.png").is_file()
+    assert cli_main([*argv[:3], *argv[5:9], "--steps", "3", "--resume", "--no-progress", "--threads", "1"]) == 0
+    assert ckpt_io.load_checkpoint(run, expect_model=model).step == 3
+
+
+def test_pop_batches_from_a_pack_use_the_posed_mean_shape(bodies_pack):
+    from pocoloco.methods.pop.method import POPTask
+    from pocoloco.methods.skinned import SkinnedBatches, skinned_preset
+
+    path, _ = bodies_pack
+    task = POPTask(skinned_preset("pop", "small", steps=2, batch_size=2, num_points=100), path)
+    assert task.needs_mean_shape
+    task.model = task.build_model()
+    batches = SkinnedBatches(task)
+    item = batches.frames(0)[0]
+    assert item.mean_shape is not None and item.mean_shape.shape == item.frame.body_vertices.shape
+    batch = batches[0]
+    assert batch.pose_vertices.shape == batch.body_vertices.shape and batch.scan_normals.shape == (2, 100, 3)
+    assert not torch.allclose(batch.pose_vertices, batch.body_vertices)  # the mean shape, not the subject's body
 
 
 # ------------------------------------------------------------------------------ the GPU-path pieces

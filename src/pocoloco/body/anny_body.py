@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .rig import SkeletonRig
 from .skeleton import ANNY_BONE_OF_JOINT, JOINT_NAMES, NUM_JOINTS
 
 #: Phenotype parameters anny accepts, each in [0, 1] (0.5 = average).
@@ -199,6 +200,45 @@ class AnnyBody:
             vertices=(out["vertices"] + shift).numpy().astype(np.float32),
             joints=(bone_poses[:, self.bone_of_joint, :3, 3] + shift).numpy().astype(np.float32),
             vtransf=vtransf.numpy().astype(np.float32),
+        )
+
+    def joint_transforms(self, joint_rotvecs: np.ndarray | torch.Tensor, chunk: int = 64) -> np.ndarray:
+        """(T, 24, 3) rotations -> (T, 24, 3, 4) float64 skinning transforms ``A_j = bone_pose @
+        inv(rest_bone_pose)`` of the 24 skeleton bones (anny's posed frame: pelvis at the origin);
+        with :meth:`skeleton_rig` they give the posed body (:class:`~pocoloco.body.rig.SkeletonRig`)."""
+        rot = torch.as_tensor(np.asarray(joint_rotvecs, dtype=np.float32))
+        if rot.ndim != 3 or rot.shape[1:] != (NUM_JOINTS, 3):
+            raise ValueError(f"joint_rotvecs must have shape (T, {NUM_JOINTS}, 3), got {tuple(rot.shape)}")
+        out = []
+        for i in range(0, rot.shape[0], chunk):
+            r = self.run_anny(rot[i : i + chunk])
+            bones = self.bone_of_joint
+            skin = r["bone_poses"][:, bones].double() @ torch.linalg.inv(r["rest_bone_poses"][:, bones].double())
+            out.append(skin[..., :3, :].numpy())
+        return np.concatenate(out)
+
+    def skeleton_rig(self) -> SkeletonRig:
+        """This subject's :class:`~pocoloco.body.rig.SkeletonRig`: anny's rest vertices, weights and
+        bones, each bone's skeleton ancestor and its constant offset ``C_b = inv(A_j(b)) A_b``
+        (taken at the zero pose; the same at every pose)."""
+        parents = self.model.bone_parents
+        parents = parents.tolist() if torch.is_tensor(parents) else list(parents)
+        joint_of_bone = {int(b): j for j, b in enumerate(self.bone_of_joint.tolist())}
+        bone_joint = np.zeros(self.num_bones, np.int64)
+        for b in range(self.num_bones):
+            a = b
+            while a not in joint_of_bone and parents[a] >= 0:
+                a = parents[a]
+            bone_joint[b] = joint_of_bone.get(a, 0)
+        r = self.run_anny(torch.zeros(1, NUM_JOINTS, 3))
+        skin = r["bone_poses"][0].double() @ torch.linalg.inv(r["rest_bone_poses"][0].double())  # (B, 4, 4)
+        offsets = torch.linalg.inv(skin[torch.as_tensor(self.bone_of_joint)[bone_joint]]) @ skin
+        return SkeletonRig(
+            rest_vertices=r["rest_vertices"][0].numpy().astype(np.float32),
+            weights=self.model.vertex_bone_weights.cpu().numpy().astype(np.float32),
+            bones=self.model.vertex_bone_indices.cpu().numpy().astype(np.int64),
+            bone_joint=bone_joint,
+            bone_offsets=offsets[:, :3, :].numpy(),
         )
 
     def pose_joints(self, joint_rotvecs: np.ndarray | torch.Tensor, chunk: int = 64) -> np.ndarray:

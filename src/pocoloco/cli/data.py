@@ -333,7 +333,7 @@ def cmd_data_pack(args: argparse.Namespace) -> None:
     with progress_bar("frames", transient=False) as update:
         meta = write_pack(args.path, out, splits=args.splits, every=args.every, eval_every=args.eval_every,
                           points=args.points, resolution_mm=args.resolution_mm, subjects=subjects,
-                          velocity=args.velocity, seed=args.seed, progress=update)  # fmt: skip
+                          velocity=args.velocity, bodies=args.bodies, seed=args.seed, progress=update)  # fmt: skip
     print(f"wrote {out}: {pack_summary(meta)}")
 
 
@@ -424,7 +424,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--sequence", help="sequence name (default: the ply folder's name)")
     s.set_defaults(func=cmd_data_import)
 
-    s = data.add_parser("pack", help="one compact file with what PocoLoco's training reads (for a remote GPU): "
+    s = data.add_parser("pack", help="one compact file with what a model's training reads (for a remote GPU): "
                                      "a subset of frames and points, quantised; `pocoloco train --data FILE` takes it")  # fmt: skip
     s.add_argument("path", help="dataset folder")
     s.add_argument("--out", required=True, help="pack file to write (e.g. medium.pack)")
@@ -440,6 +440,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--resolution-mm", type=float, default=1.0, help="position quantisation step in mm (default 1)")
     s.add_argument("--subjects", help="only these subjects, comma-separated (default: all)")
     s.add_argument("--velocity", action="store_true", help="also store joint velocities (for --joint-velocity models)")
+    s.add_argument("--bodies", action="store_true",
+                   help="also store the points' normals and each frame's posed body and posed mean shape, as 24 "
+                        "skinning transforms (what POP and CloSET train on; needs anny)")  # fmt: skip
     s.add_argument("--seed", type=int, default=0, help="seed of the point subsets (default 0)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing pack file")
     s.set_defaults(func=cmd_data_pack)

@@ -16,7 +16,7 @@ import torch.distributed as dist
 
 from pocoloco.cli.common import add_threads_argument, choose_device, console, progress_bar
 from pocoloco.data.dataset import OpenedDataset
-from pocoloco.data.pack import is_pack, training_card
+from pocoloco.data.pack import is_pack, read_pack_meta, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
 from pocoloco.engine.trainer import (
     LR_SCALING_RULES,
@@ -115,9 +115,9 @@ def cmd_train(args: argparse.Namespace) -> None:
     else:
         data = OpenedDataset.open(args.data, subjects=[])
     config = _config_from_args(args)
-    if packed and config.model != "pocoloco":
-        raise ValueError(f"--data {args.data}: a training pack holds what PocoLoco trains on; --model {config.model} "
-                         "trains on the dataset folder")  # fmt: skip
+    if packed and config.model != "pocoloco" and not read_pack_meta(args.data).get("bodies"):
+        raise ValueError(f"--data {args.data}: --model {config.model} trains on posed bodies and normals, which this "
+                         "pack does not hold: make it with `pocoloco data pack --bodies`, or train on the dataset folder")  # fmt: skip
     if not packed:
         data = data.ensure_checked(config.subjects)
     task = method_class(config.model).training_task(config, data)

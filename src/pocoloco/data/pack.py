@@ -22,10 +22,26 @@ File layout (a zip written by ``numpy.savez``, members stored; written atomicall
                          between neighbours, bytes shuffled (low bytes, then high bytes)
     <split>_velocity     LZMA bytes of float16 (F, J, 3) joint velocities, m/s (only if ``velocity``)
 
+With ``bodies`` (``pocoloco data pack --bodies``: what POP and CloSET train on) also::
+
+    <split>_normals      LZMA bytes of int8 (F, P, 2): the points' unit normals, octahedral code, in
+                         the points' stored order
+    <split>_transforms   LZMA bytes of int16 (F, 2, 24, 3, 4): the frame's 24 skinning transforms of
+                         the subject's body and of the mean-shape body in the same pose, in
+                         ``TRANSFORM_RESOLUTION`` units (:mod:`pocoloco.body.rig`)
+    body_*               LZMA bytes of the rigs (one per subject, then the mean shape: rest vertices
+                         in ``REST_RESOLUTION_M`` units, bind-pose pelvis, bone offsets) and of what
+                         they share (weights, bones, each bone's joint, faces, UVs, body parts)
+
+A posed body is rebuilt exactly as anny poses it (:class:`~pocoloco.body.rig.SkeletonRig`), within
+~0.1 mm of the dataset's; the pack checks that against every frame's stored body when it is made.
+
 Positions read back within half a quantisation step per axis (0.5 mm at the default 1 mm); joints
 within 0.05 mm. :class:`PackedDataset` gives the same items as
 :class:`~pocoloco.data.dataset.PointCloudDataset` (normalised with the dataset's own statistics,
-so a model trained on a pack is interchangeable with one trained on its dataset).
+so a model trained on a pack is interchangeable with one trained on its dataset);
+:class:`PackedBodies` gives the frames (points, normals, posed body, ``vtransf``) and posed mean
+shapes POP and CloSET train on.
 """
 
 from __future__ import annotations
@@ -45,73 +61,40 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from ..body.anny_body import AnnyBody
+from ..body.rig import SkeletonRig
 from ..utils.atomic import atomic_open
 from . import format as fmt
 from .dataset import DEFAULT_FPS, Normalisation, PointCloudDataset, frame_velocity
+from .frame import Frame, SubjectAsset
+from .pack_codec import (
+    bytes_member,
+    decode_int16,
+    decode_normals,
+    decode_points,
+    encode_int16,
+    encode_normals,
+    encode_points,
+    lzma_array,
+    morton_order,
+    unlzma_array,
+)
 
-__all__ = ["PACK_FORMAT", "PACK_VERSION", "PackedDataset", "decode_points", "encode_points", "is_pack",
-           "open_point_clouds", "pack_summary", "read_pack_meta", "training_card", "write_pack"]  # fmt: skip
+__all__ = ["PACK_FORMAT", "PACK_VERSION", "PackedBodies", "PackedDataset", "decode_normals", "decode_points",
+           "encode_normals", "encode_points", "is_pack", "open_point_clouds", "pack_summary", "read_pack_meta",
+           "read_pack_subjects", "training_card", "write_pack"]  # fmt: skip
 
 PACK_FORMAT = "pocoloco-pack"
 PACK_VERSION = 1
 #: quantisation step of the joints (root-relative), metres
 JOINT_RESOLUTION_M = 1e-4
-_INT16_MAX = 32767
-
-
-# ------------------------------------------------------------------------------ encoding
-def _morton_order(q: np.ndarray) -> np.ndarray:
-    """(P, 3) integer coordinates -> (P,) permutation sorting them along a 3D Morton (Z-order) curve."""
-    u = (q - q.min(axis=0)).astype(np.uint64)
-    code = np.zeros(len(q), np.uint64)
-    for bit in range(16):
-        for axis in range(3):
-            code |= ((u[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return np.argsort(code, kind="stable")
-
-
-def _shuffle_bytes(a: np.ndarray) -> bytes:
-    """int16 array -> its low bytes, then its high bytes (compresses better than interleaved)."""
-    b = np.ascontiguousarray(a, "<i2").view(np.uint8).reshape(-1, 2)
-    return b.T.tobytes()
-
-
-def _unshuffle_bytes(raw: bytes, shape: tuple[int, ...]) -> np.ndarray:
-    b = np.frombuffer(raw, np.uint8)
-    if b.size != 2 * int(np.prod(shape)):
-        raise ValueError(f"holds {b.size} bytes, expected {2 * int(np.prod(shape))}")
-    return np.ascontiguousarray(b.reshape(2, -1).T).view("<i2").reshape(shape)
-
-
-def encode_points(rel: np.ndarray, resolution: float) -> bytes:
-    """(F, P, 3) root-relative points (metres) -> LZMA bytes (module docstring). Raises if a point
-    lies farther from the root than int16 codes reach."""
-    q = np.round(np.asarray(rel, np.float64) / resolution)
-    if q.size and np.abs(q).max() > _INT16_MAX:
-        raise ValueError(f"a point lies {np.abs(rel).max():.1f} m from the root, beyond what {resolution * 1e3:g} mm "
-                         f"int16 codes hold ({_INT16_MAX * resolution:.1f} m): choose a coarser --resolution-mm")  # fmt: skip
-    q = q.astype(np.int32)
-    for f in range(len(q)):
-        q[f] = q[f][_morton_order(q[f])]
-    d = np.diff(q, axis=1, prepend=np.zeros_like(q[:, :1]))  # first point kept, then differences
-    return lzma.compress(_shuffle_bytes(d.astype(np.int16)), preset=9 | lzma.PRESET_EXTREME)
-
-
-def decode_points(blob: bytes, num_frames: int, num_points: int, resolution: float) -> np.ndarray:
-    """Inverse of :func:`encode_points` (up to the point order): (F, P, 3) float32 metres."""
-    d = _unshuffle_bytes(lzma.decompress(blob), (num_frames, num_points, 3))
-    return (np.cumsum(d, axis=1, dtype=np.int32) * resolution).astype(np.float32)
-
-
-def _encode_int16(a: np.ndarray, resolution: float, what: str) -> bytes:
-    q = np.round(np.asarray(a, np.float64) / resolution)
-    if q.size and np.abs(q).max() > _INT16_MAX:
-        raise ValueError(f"{what} out of the range int16 codes hold at {resolution:g} m")
-    return lzma.compress(_shuffle_bytes(q.astype(np.int16)), preset=9)
-
-
-def _decode_int16(blob: bytes, shape: tuple[int, ...], resolution: float) -> np.ndarray:
-    return (_unshuffle_bytes(lzma.decompress(blob), shape).astype(np.float64) * resolution).astype(np.float32)
+#: quantisation step of the skinning transforms (rotation entries and metres alike)
+TRANSFORM_RESOLUTION = 1e-4
+#: quantisation step of the rigs' rest vertices, metres
+REST_RESOLUTION_M = 5e-5
+#: the most a rebuilt body may differ from the dataset's stored one, metres (compact frames hold
+#: bodies to 0.5 mm)
+BODY_TOLERANCE_M = 2e-3
 
 
 # ------------------------------------------------------------------------------ writing
@@ -137,6 +120,7 @@ def write_pack(
     resolution_mm: float = 1.0,
     subjects: Sequence[str] | None = None,
     velocity: bool = False,
+    bodies: bool = False,
     seed: int = 0,
     select: Callable[[str, Path], np.ndarray] | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -147,7 +131,10 @@ def write_pack(
     (previews, validation) every ``eval_every``-th. points: P points per frame, drawn from
     ``default_rng([seed, split id, frame position])`` without replacement. resolution_mm: the
     positions' quantisation step. velocity: also store each frame's joint velocities
-    (:func:`~pocoloco.data.dataset.frame_velocity`, from the full dataset). select(subject, frame
+    (:func:`~pocoloco.data.dataset.frame_velocity`, from the full dataset). bodies: also the
+    points' normals and each frame's posed body and posed mean shape as skinning transforms, with
+    the rigs that turn them back into vertices (needs anny; every rebuilt body is checked against
+    the frame's stored one, ``BODY_TOLERANCE_M``). select(subject, frame
     path) -> (N,) bool: draw the points among these only (a region of the body, e.g. the hybrid
     method's free region); frames with fewer than ``points`` selected points are left out (their
     count is the meta's ``skipped``). progress(done, total): called after each frame. Returns the pack's meta (sizes in ``bytes``). One-line ValueErrors for
@@ -183,6 +170,9 @@ def write_pack(
     seq_id: dict[str, int] = {}
     members: dict[str, np.ndarray] = {}
     skipped: dict[str, int] = {}
+    rigs = _PackRigs(data, layout, card, chosen) if bodies else None
+    if rigs is not None:
+        members.update(rigs.members())
     for split_id, (split, frames) in enumerate(plan.items()):
         F = len(frames)
         index = np.zeros((F, 3), np.int32)
@@ -190,9 +180,12 @@ def write_pack(
         joints_rel = np.zeros((F, 24, 3), np.float32)
         rel = np.zeros((F, points, 3), np.float32)
         vel = np.zeros((F, 24, 3), np.float32) if velocity else None
+        normals = np.zeros((F, points, 3), np.float32) if bodies else None
+        transforms = np.zeros((F, 2, 24, 3, 4), np.float64) if bodies else None
         kept = np.ones(F, bool)
         for k, (subject, seq, path) in enumerate(frames):
-            fr = fmt.read_frame(path, ["points", "joints", "frame_index"])
+            keys = ["points", "joints", "frame_index"] + (["normals", "body_vertices"] if bodies else [])
+            fr = fmt.read_frame(path, keys, allow_missing=bodies)
             n = fr.points.shape[0]
             if n < points:
                 raise ValueError(f"{path}: frame has {n} points, fewer than --points {points}")
@@ -219,6 +212,10 @@ def write_pack(
             roots[k] = root
             joints_rel[k] = fr.joints - root
             rel[k] = fr.points[sel] - root
+            if rigs is not None:
+                transforms[k] = rigs.transforms(subject, split, seq, fr, Path(path))
+                order = morton_order(np.round(rel[k].astype(np.float64) / resolution).astype(np.int64))
+                rel[k], normals[k] = rel[k][order], fr.normals[sel][order]
             if vel is not None:
                 vel[k] = frame_velocity(path, fr.joints, fps)
             done += 1
@@ -228,32 +225,105 @@ def write_pack(
             raise ValueError(f"{data}: no {split} frame has {points} selected points")
         index, roots, joints_rel, rel = index[kept], roots[kept], joints_rel[kept], rel[kept]
         vel = None if vel is None else vel[kept]
+        if rigs is not None:
+            members[f"{split}_normals"] = lzma_array(encode_normals(normals[kept]))
+            members[f"{split}_transforms"] = bytes_member(
+                encode_int16(transforms[kept], TRANSFORM_RESOLUTION, f"{split} skinning transforms"))
         plan[split] = [f for f, keep in zip(frames, kept, strict=True) if keep]
         members[f"{split}_index"] = index
         members[f"{split}_root"] = roots
-        members[f"{split}_joints"] = _bytes_member(_encode_int16(joints_rel, JOINT_RESOLUTION_M, f"{split} joints"))
-        members[f"{split}_points"] = _bytes_member(encode_points(rel, resolution))
+        members[f"{split}_joints"] = bytes_member(encode_int16(joints_rel, JOINT_RESOLUTION_M, f"{split} joints"))
+        members[f"{split}_points"] = bytes_member(encode_points(rel, resolution))
         if vel is not None:
-            members[f"{split}_velocity"] = _bytes_member(lzma.compress(vel.astype("<f2").tobytes(), preset=9))
+            members[f"{split}_velocity"] = bytes_member(lzma.compress(vel.astype("<f2").tobytes(), preset=9))
     meta = {
         "format": PACK_FORMAT, "version": PACK_VERSION, "source": os.fspath(data),
         "subject_names": names,
         "subjects": {s: {k: card["subjects"][s].get(k) for k in ("phenotype", "garment_kind")} for s in chosen},
         "normalisation": card["normalisation"], "fps": fps, "resolution_m": resolution,
         "joint_resolution_m": JOINT_RESOLUTION_M, "points_per_frame": points, "seed": seed, "every": every,
-        "eval_every": eval_every, "velocity": bool(velocity), "sequences": sequences,
+        "eval_every": eval_every, "velocity": bool(velocity), "bodies": None if rigs is None else rigs.meta(),
+        "sequences": sequences,
         "splits": {sp: len(fr) for sp, fr in plan.items()}, "skipped": skipped,
         "crc32": {k: zlib.crc32(np.ascontiguousarray(v).tobytes()) for k, v in members.items()},
     }  # fmt: skip
-    members["meta"] = _bytes_member(json.dumps(meta).encode())
+    members["meta"] = bytes_member(json.dumps(meta).encode())
     with atomic_open(out, "wb") as f:
         np.savez(f, **members)
     meta["bytes"] = os.path.getsize(out)
     return meta
 
 
-def _bytes_member(raw: bytes) -> np.ndarray:
-    return np.frombuffer(raw, np.uint8)
+class _PackRigs:
+    """What ``write_pack(bodies=True)`` adds: the rigs of the packed subjects and of the mean shape
+    (anny), the mesh they share, and each frame's skinning transforms, checked against the frame's
+    stored body."""
+
+    def __init__(self, data, layout: fmt.DatasetLayout, card: dict[str, Any], subjects: Sequence[str]):
+        self.data, self.layout, self.subjects = os.fspath(data), layout, list(subjects)
+        self.assets = {s: fmt.read_subject(layout.subject_path(s)) for s in self.subjects}
+        first = self.assets[self.subjects[0]]
+        for s, a in self.assets.items():
+            if a.template.shape != first.template.shape or not np.array_equal(a.faces, first.faces):
+                raise ValueError(f"{self.data}: subject {s!r} has another body topology than {self.subjects[0]!r}")
+        self.bodies = {s: AnnyBody((card["subjects"][s].get("phenotype") or {})) for s in self.subjects}
+        self.bodies["mean"] = AnnyBody()
+        self.rigs = {s: b.skeleton_rig() for s, b in self.bodies.items()}
+        for s in self.subjects:
+            origin = self.rigs[s].rest_vertices[0] - self.bodies[s].template[0]
+            err = np.abs(self.rigs[s].rest_vertices - origin - self.assets[s].template).max()
+            if first.template.shape[0] != self.rigs[s].num_vertices or err > BODY_TOLERANCE_M:
+                raise ValueError(f"{self.data}: subject {s!r}: its stored template is not anny's body for its phenotype "
+                                 "(another anny version?): it cannot be packed with --bodies")  # fmt: skip
+        self._sequence: tuple[tuple[str, str, str], np.ndarray] | None = None
+
+    def meta(self) -> dict[str, Any]:
+        rig = self.rigs["mean"]
+        first = self.assets[self.subjects[0]]
+        return {"rigs": self.subjects + ["mean"], "num_vertices": rig.num_vertices,
+                "num_weights": int(rig.weights.shape[1]), "num_bones": int(rig.bone_offsets.shape[0]),
+                "num_faces": int(first.faces.shape[0]), "num_uv": int(first.uv.shape[0]),
+                "rest_resolution_m": REST_RESOLUTION_M, "transform_resolution": TRANSFORM_RESOLUTION}  # fmt: skip
+
+    def members(self) -> dict[str, np.ndarray]:
+        names = self.subjects + ["mean"]
+        rigs = [self.rigs[n] for n in names]
+        first = self.assets[self.subjects[0]]
+        origins = [r.rest_vertices[0] - self.bodies[n].template[0] for n, r in zip(names, rigs, strict=True)]
+        rest = np.stack([r.rest_vertices for r in rigs])
+        return {
+            "body_rest": bytes_member(encode_int16(rest, REST_RESOLUTION_M, "rest vertices")),
+            "body_origin": lzma_array(np.stack(origins).astype(np.float64)),
+            "body_offsets": lzma_array(np.stack([r.bone_offsets for r in rigs]).astype(np.float64)),
+            "body_weights": lzma_array(rigs[0].weights.astype(np.float32)),
+            "body_bones": lzma_array(rigs[0].bones.astype(np.uint8)),
+            "body_bone_joint": lzma_array(rigs[0].bone_joint.astype(np.uint8)),
+            "body_faces": lzma_array(first.faces.astype(np.int32)),
+            "body_uv": lzma_array(first.uv.astype(np.float32)),
+            "body_uv_faces": lzma_array(first.uv_faces.astype(np.int32)),
+            "body_vertex_joint": lzma_array(np.stack([self.assets[s].vertex_joint for s in self.subjects]).astype(np.int8)),
+        }  # fmt: skip
+
+    def transforms(self, subject: str, split: str, sequence: str, frame, path: Path) -> np.ndarray:
+        """(2, 24, 3, 4) the frame's transforms (subject, mean shape), after checking the subject's
+        rebuilt body against the frame's stored one."""
+        key = (subject, split, sequence)
+        if self._sequence is None or self._sequence[0] != key:
+            rot = fmt.read_motion(self.layout.motion_path(subject, split, sequence)).joint_rotvecs
+            self._sequence = key, np.stack([self.bodies[subject].joint_transforms(rot),
+                                            self.bodies["mean"].joint_transforms(rot)], 1)  # fmt: skip
+        seq = self._sequence[1]
+        i = int(frame.frame_index)
+        if not 0 <= i < len(seq):
+            raise ValueError(f"{path}: frame {i} is beyond its motion.npz ({len(seq)} frames)")
+        if frame.body_vertices is None or frame.normals is None:
+            raise ValueError(f"{path}: --bodies needs each frame's normals and posed body; this frame has none")
+        body, _ = self.rigs[subject].pose(seq[i, :1])
+        err = float(np.abs(body[0] - (frame.body_vertices - frame.joints[0])).max())
+        if err > BODY_TOLERANCE_M:
+            raise ValueError(f"{path}: the stored body differs from anny's by {err * 1e3:.1f} mm (another anny "
+                             "version?): it cannot be packed with --bodies")  # fmt: skip
+        return seq[i]
 
 
 # ------------------------------------------------------------------------------ reading
@@ -290,43 +360,110 @@ def training_card(data: str | os.PathLike) -> dict[str, Any]:
     return read_pack_meta(data) if is_pack(data) else fmt.read_card(data)
 
 
+def _checked_members(src: str, meta: dict[str, Any], z, keys: Sequence[str]) -> dict[str, np.ndarray]:
+    """The members ``keys``, each checked against its CRC-32 (one line if missing or damaged)."""
+    arrays = {}
+    for key in keys:
+        try:
+            arr = z[key]
+        except (KeyError, ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
+            raise ValueError(f"{src}: damaged pack ({key}: {type(e).__name__})") from None
+        if zlib.crc32(np.ascontiguousarray(arr).tobytes()) != meta["crc32"].get(key):
+            raise ValueError(f"{src}: damaged pack ({key} fails its CRC-32 check)")
+        arrays[key] = arr
+    return arrays
+
+
+def _no_bodies(src: str) -> ValueError:
+    return ValueError(f"{src}: the pack holds no posed bodies or normals (POP and CloSET train on them): make it "
+                      "with `pocoloco data pack --bodies`")  # fmt: skip
+
+
 @functools.lru_cache(maxsize=4)
-def _load_split(src: str, mtime_ns: int, size: int, split: str, velocity: bool) -> tuple[dict[str, Any], tuple]:
+def _load_split(src: str, mtime_ns: int, size: int, split: str, velocity: bool, bodies: bool = False
+                ) -> tuple[dict[str, Any], tuple]:  # fmt: skip
     """Read, check and decode one split of a pack (cached: a search or benchmark building several
     runs on one pack decodes it once; ``mtime_ns`` / ``size`` make a rewritten pack a new key).
-    Returns (meta, (index (F, 3), root (F, 3), joints (F, 24, 3), points (F, P, 3), velocity or None))."""
+    Returns (meta, (index (F, 3), root (F, 3), joints (F, 24, 3), points (F, P, 3), velocity or None,
+    normals (F, P, 3) or None, transforms (F, 2, 24, 3, 4) or None)); the last two with ``bodies``."""
     meta, z = _open_members(src)
     try:
         if split not in meta["splits"]:
             raise ValueError(f"{src}: the pack holds no {split!r} frames (it has {', '.join(meta['splits'])})")
         if velocity and not meta.get("velocity"):
             raise ValueError(f"{src}: the pack holds no joint velocities: make it with `pocoloco data pack --velocity`")
-        arrays = {}
+        if bodies and not meta.get("bodies"):
+            raise _no_bodies(src)
         keys = [f"{split}_index", f"{split}_root", f"{split}_joints", f"{split}_points"]
-        for key in keys + ([f"{split}_velocity"] if velocity else []):
-            try:
-                arr = z[key]
-            except (KeyError, ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
-                raise ValueError(f"{src}: damaged pack ({key}: {type(e).__name__})") from None
-            if zlib.crc32(np.ascontiguousarray(arr).tobytes()) != meta["crc32"].get(key):
-                raise ValueError(f"{src}: damaged pack ({key} fails its CRC-32 check)")
-            arrays[key] = arr
+        keys += [f"{split}_velocity"] if velocity else []
+        keys += [f"{split}_normals", f"{split}_transforms"] if bodies else []
+        arrays = _checked_members(src, meta, z, keys)
     finally:
         z.close()
     F, P = int(meta["splits"][split]), int(meta["points_per_frame"])
     try:
         index = arrays[f"{split}_index"].reshape(F, 3)
         root = arrays[f"{split}_root"].reshape(F, 3)
-        joints = _decode_int16(arrays[f"{split}_joints"].tobytes(), (F, 24, 3), meta["joint_resolution_m"])
+        joints = decode_int16(arrays[f"{split}_joints"].tobytes(), (F, 24, 3), meta["joint_resolution_m"])
         points = decode_points(arrays[f"{split}_points"].tobytes(), F, P, meta["resolution_m"])
         vel = (np.frombuffer(lzma.decompress(arrays[f"{split}_velocity"].tobytes()), "<f2")
                .reshape(F, 24, 3).astype(np.float32) if velocity else None)  # fmt: skip
+        normals = transforms = None
+        if bodies:
+            normals = decode_normals(unlzma_array(arrays[f"{split}_normals"], "<i1", (F, P, 2)))
+            transforms = decode_int16(arrays[f"{split}_transforms"].tobytes(), (F, 2, 24, 3, 4),
+                                       meta["bodies"]["transform_resolution"])  # fmt: skip
     except (ValueError, lzma.LZMAError) as e:
         raise ValueError(f"{src}: damaged pack ({e})") from None
-    for a in (index, root, joints, points, vel):
+    for a in (index, root, joints, points, vel, normals, transforms):
         if a is not None:
             a.flags.writeable = False  # shared by every dataset built from the cache
-    return meta, (index, root, joints, points, vel)
+    return meta, (index, root, joints, points, vel, normals, transforms)
+
+
+@functools.lru_cache(maxsize=2)
+def _load_rigs(src: str, mtime_ns: int, size: int) -> tuple[dict[str, SkeletonRig], dict[str, SubjectAsset]]:
+    """The rigs of a ``--bodies`` pack ({subject or "mean": SkeletonRig}) and the packed subjects'
+    ``SubjectAsset`` (mesh, template, body parts, phenotype) as their ``subject.npz`` holds them."""
+    meta, z = _open_members(src)
+    try:
+        b = meta.get("bodies")
+        if not b:
+            raise _no_bodies(src)
+        keys = ["body_rest", "body_origin", "body_offsets", "body_weights", "body_bones", "body_bone_joint",
+                "body_faces", "body_uv", "body_uv_faces", "body_vertex_joint"]  # fmt: skip
+        m = _checked_members(src, meta, z, keys)
+    finally:
+        z.close()
+    names = list(b["rigs"])
+    R, V, K, B = len(names), int(b["num_vertices"]), int(b["num_weights"]), int(b["num_bones"])
+    Fc, U = int(b["num_faces"]), int(b["num_uv"])
+    try:
+        rest = decode_int16(m["body_rest"].tobytes(), (R, V, 3), b["rest_resolution_m"])
+        origin = unlzma_array(m["body_origin"], "<f8", (R, 3))
+        offsets = unlzma_array(m["body_offsets"], "<f8", (R, B, 3, 4))
+        weights = unlzma_array(m["body_weights"], "<f4", (V, K))
+        bones = unlzma_array(m["body_bones"], "u1", (V, K)).astype(np.int64)
+        bone_joint = unlzma_array(m["body_bone_joint"], "u1", (B,)).astype(np.int64)
+        faces = unlzma_array(m["body_faces"], "<i4", (Fc, 3))
+        uv = unlzma_array(m["body_uv"], "<f4", (U, 2))
+        uv_faces = unlzma_array(m["body_uv_faces"], "<i4", (Fc, 3))
+        parts = unlzma_array(m["body_vertex_joint"], "i1", (R - 1, V))
+        rigs = {n: SkeletonRig(rest[i], weights, bones, bone_joint, offsets[i]) for i, n in enumerate(names)}
+    except (ValueError, lzma.LZMAError) as e:
+        raise ValueError(f"{src}: damaged pack ({e})") from None
+    assets = {n: SubjectAsset(template=(rest[i] - origin[i]).astype(np.float32), faces=faces, uv=uv, uv_faces=uv_faces,
+                              vertex_joint=parts[i], phenotype=dict(meta["subjects"][n].get("phenotype") or {}))
+              for i, n in enumerate(names[:-1])}  # fmt: skip
+    return rigs, assets
+
+
+def read_pack_subjects(path: str | os.PathLike) -> dict[str, SubjectAsset]:
+    """Subject name -> ``SubjectAsset`` of a ``--bodies`` pack (the subject.npz POP / CloSET read)."""
+    src = os.fspath(path)
+    if not os.path.isfile(src):
+        raise ValueError(f"{src}: no such pack file")
+    return dict(_load_rigs(src, os.stat(src).st_mtime_ns, os.path.getsize(src))[1])
 
 
 class PackedDataset(Dataset):
@@ -340,17 +477,19 @@ class PackedDataset(Dataset):
 
     def __init__(self, path: str | os.PathLike, split: str = "train", *, subjects: Sequence[str] | None = None,
                  with_normals: bool = False, body_point_ids: Sequence[int] | None = None, heading: bool = False,
-                 velocity: bool = False):  # fmt: skip
+                 velocity: bool = False, _bodies: bool = False):  # fmt: skip
         src = self.root = os.fspath(path)
         if with_normals:
-            raise ValueError(f"{src}: a training pack holds no normals (6-channel denoisers train on the dataset folder)")
+            raise ValueError(f"{src}: PocoLoco reads no normals from a training pack (6-channel denoisers train on "
+                             "the dataset folder)")  # fmt: skip
         if body_point_ids is not None:
-            raise ValueError(f"{src}: a training pack holds no posed bodies: train --body-points on the dataset folder")
+            raise ValueError(f"{src}: PocoLoco reads no posed bodies from a training pack: train --body-points on "
+                             "the dataset folder")  # fmt: skip
         if not os.path.isfile(src):
             raise ValueError(f"{src}: no such pack file")
-        meta, arrays = _load_split(src, os.stat(src).st_mtime_ns, os.path.getsize(src), split, velocity)
+        meta, arrays = _load_split(src, os.stat(src).st_mtime_ns, os.path.getsize(src), split, velocity, _bodies)
         F = int(meta["splits"][split])
-        self._index, self._root, self._joints, self._points, self._velocity = arrays
+        self._index, self._root, self._joints, self._points, self._velocity, self._normals, self._transforms = arrays
         self.meta = meta
         self.card = {"subjects": meta["subjects"], "normalisation": meta["normalisation"]}
         # the packed subjects, sorted, as a dataset folder holding only them would list them
@@ -406,6 +545,34 @@ class PackedDataset(Dataset):
         return item
 
 
+class PackedBodies(PackedDataset):
+    """The frames of one split of a ``--bodies`` pack as POP and CloSET read them from a dataset
+    folder: :meth:`frame` gives a :class:`~pocoloco.data.frame.Frame` (world frame: ``points``
+    (P, 3), ``normals`` (P, 3), ``joints`` (24, 3), ``frame_index``, ``body_vertices`` (V, 3),
+    ``vtransf`` (V, 3, 3)) and :meth:`mean_shape` the mean-shape body in the frame's pose (V, 3),
+    centred on its root (POP's pose input), both rebuilt from the pack's rigs
+    (:class:`~pocoloco.body.rig.SkeletonRig`). ``subjects``: as :class:`PackedDataset`."""
+
+    def __init__(self, path: str | os.PathLike, split: str = "train", *, subjects: Sequence[str] | None = None):
+        super().__init__(path, split, subjects=subjects, _bodies=True)
+        self.rigs, self.assets = _load_rigs(self.root, os.stat(self.root).st_mtime_ns, os.path.getsize(self.root))
+
+    def frame(self, index: int) -> Frame:
+        if not 0 <= index < len(self):
+            raise IndexError(f"index {index} out of range for {len(self)} frames")
+        r = self._rows[index]
+        root = self._root[r]
+        body, vtransf = self.rigs[self.subject_names[self._index[r, 0]]].pose(self._transforms[r, :1])
+        return Frame(points=self._points[r] + root, normals=np.array(self._normals[r]), joints=self._joints[r] + root,
+                     frame_index=int(self._index[r, 2]), body_vertices=body[0] + root, vtransf=vtransf[0])  # fmt: skip
+
+    def mean_shape(self, index: int) -> np.ndarray:
+        """(V, 3) float32 the mean-shape body in frame ``index``'s pose, centred on its root joint."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"index {index} out of range for {len(self)} frames")
+        return self.rigs["mean"].pose(self._transforms[self._rows[index], 1:])[0][0]
+
+
 def open_point_clouds(data: str | os.PathLike, split: str = "train", **kwargs: Any) -> PointCloudDataset | PackedDataset:
     """A split of a dataset folder (:class:`PointCloudDataset`, all of ``kwargs``) or of a training
     pack (:class:`PackedDataset`: ``subjects``, ``with_normals``, ``body_point_ids``, ``heading``,
@@ -423,6 +590,7 @@ def pack_summary(meta: dict[str, Any]) -> str:
     """One line: frames per split, points per frame, size."""
     splits = ", ".join(f"{n:,} {sp}" for sp, n in meta["splits"].items())
     size = f", {meta['bytes'] / 1e6:.1f} MB" if "bytes" in meta else ""
+    extra = ", with normals and posed bodies" if meta.get("bodies") else ""
     return (f"{splits} frames x {meta['points_per_frame']:,} points ({len(meta['subjects'])} subjects, every "
-            f"{meta['every']} train frame, {meta['resolution_m'] * 1e3:g} mm){size}")  # fmt: skip
+            f"{meta['every']} train frame, {meta['resolution_m'] * 1e3:g} mm{extra}){size}")  # fmt: skip
 

@@ -28,11 +28,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 from abc import abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -41,10 +42,12 @@ from torch import nn
 from pocoloco.data.dataset import Normalisation, OpenedDataset, PointCloudDataset
 from pocoloco.data.format import (
     DatasetLayout,
+    Frame,
     read_frame,
     read_subject,
 )
-from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, pose_from_frame
+from pocoloco.data.pack import PackedBodies, is_pack, read_pack_meta, read_pack_subjects
+from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, motion_path_of, pose_from_frame
 from pocoloco.data.step_batches import StepBatches
 from pocoloco.engine.checkpoint import Checkpoint, one_line
 from pocoloco.engine.trainer import LoopSettings, TrainingTask
@@ -241,31 +244,41 @@ def _outfits_meta(assets: dict[str, Any], source: str) -> list[dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------------------ training
+class StepFrame(NamedTuple):
+    """One frame of a training step: its subject, where it came from (a frame file, or
+    ``PACK[subject/split/sequence/index]``), the :class:`~pocoloco.data.frame.Frame` (points,
+    normals, joints, frame_index, body_vertices, vtransf), its global position in the run's frame
+    order and, when the method asks for it, the posed mean-shape body (V, 3), centred on its root."""
+
+    subject: str
+    path: Path
+    frame: Frame
+    position: int
+    mean_shape: np.ndarray | None = None
+
+
 class SkinnedBatches(torch.utils.data.Dataset):
-    """The frames of each step (``StepBatches`` order over the train split, all subjects) turned
-    into a method's batch by ``make_batch(items, step)``; item ``step`` is a pure function of
-    (seed, step, rank)."""
+    """The frames of each step (``StepBatches`` order over the train split, all subjects) of a
+    dataset folder or a ``--bodies`` training pack turned into a method's batch by
+    ``make_batch(items, step)``; item ``step`` is a pure function of (seed, step, rank)."""
 
     def __init__(self, task: SkinnedTask, rank: int = 0, world: int = 1):
         c = task.config
         self.task = task
-        self.dataset = PointCloudDataset(task.data, "train", num_points=None, subjects=list(task.outfits),
-                                         random_subsample=False)  # fmt: skip
+        if is_pack(task.data):
+            self.dataset = PackedBodies(task.data, "train", subjects=list(task.outfits))
+        else:
+            self.dataset = PointCloudDataset(task.data, "train", num_points=None, subjects=list(task.outfits),
+                                             random_subsample=False)  # fmt: skip
         self.order = StepBatches(self.dataset, c.batch_size, c.num_points, c.seed, c.steps, rank, world)
 
     def __len__(self) -> int:
         return len(self.order)
 
-    def frames(self, step: int) -> list[tuple[str, Path, Any, int]]:
-        """[(subject, frame path, Frame, global position)] of the step."""
+    def frames(self, step: int) -> list[StepFrame]:
+        """The step's frames."""
         g, idx = self.order.frame_indices(step)
-        out = []
-        for gk, i in zip(g, idx, strict=True):
-            subject, _, path = self.dataset.frames[int(i)]
-            fr = read_frame(path, ["points", "normals", "joints", "frame_index", "body_vertices", "vtransf"],
-                            allow_missing=True)  # fmt: skip
-            out.append((subject, Path(path), fr, int(gk)))
-        return out
+        return [self.task.step_frame(self.dataset, int(i), int(gk)) for gk, i in zip(g, idx, strict=True)]
 
     def __getitem__(self, step: int):
         return self.task.make_batch(self.frames(int(step)), int(step))
@@ -279,25 +292,53 @@ class SkinnedTask(TrainingTask):
     method: type[SkinnedMethod]
 
     def __init__(self, config: SkinnedTrainConfig, data: str | Path):
-        opened = OpenedDataset.open(data, subjects=[])  # the card (read here unless the caller opened it)
         self.config, self.kind = config, config.model
-        self.normalisation = Normalisation.from_card(opened.card)
-        names = opened.layout.subjects()
+        if is_pack(data):  # a --bodies training pack: its rigs give the subjects' assets
+            meta = read_pack_meta(data)
+            self.normalisation = Normalisation.from_card({"normalisation": meta["normalisation"]})
+            packed = read_pack_subjects(data)  # a one-line error for a pack without bodies
+            names = sorted(packed)
+        else:
+            opened = OpenedDataset.open(data, subjects=[])  # the card (read here unless the caller opened it)
+            self.normalisation = Normalisation.from_card(opened.card)
+            names = opened.layout.subjects()
         if config.subjects is not None:
             unknown = [x for x in config.subjects if x not in names]
             if unknown:
-                raise ValueError(f"{data}: unknown subjects {unknown}; the dataset has {names}")
+                raise ValueError(f"{data}: unknown subjects {unknown}; the {'pack' if is_pack(data) else 'dataset'} "
+                                 f"has {names}")  # fmt: skip
             names = list(config.subjects)
         if not names:
             raise ValueError(f"{data}: no subjects")
-        self.data = opened.ensure_checked(names)  # a missing or damaged frame: one line, before training
-        self.assets = read_subjects(data, names)
+        if is_pack(data):
+            self.data = os.fspath(data)
+            self.assets = {s: packed[s] for s in names}
+        else:
+            self.data = opened.ensure_checked(names)  # a missing or damaged frame: one line, before training
+            self.assets = read_subjects(data, names)
         self.outfits = {s: i for i, s in enumerate(names)}
         self.model: nn.Module | None = None
         self.mean_cache = MeanShapeCache()
 
+    @property
+    def needs_mean_shape(self) -> bool:
+        """Whether the steps' frames carry the posed mean shape (POP's pose input)."""
+        return False
+
+    def step_frame(self, dataset: PointCloudDataset | PackedBodies, index: int, position: int) -> StepFrame:
+        """Frame ``index`` of the train split (a dataset folder's or a pack's) as a :class:`StepFrame`."""
+        if isinstance(dataset, PackedBodies):
+            subject, _, label = dataset.frames[index]
+            mean = dataset.mean_shape(index) if self.needs_mean_shape else None
+            return StepFrame(subject, Path(label), dataset.frame(index), position, mean)
+        subject, _, path = dataset.frames[index]
+        fr = read_frame(path, ["points", "normals", "joints", "frame_index", "body_vertices", "vtransf"],
+                        allow_missing=True)  # fmt: skip
+        mean = self.mean_cache.get(motion_path_of(Path(path)), int(fr.frame_index)) if self.needs_mean_shape else None
+        return StepFrame(subject, Path(path), fr, position, mean)
+
     @abstractmethod
-    def make_batch(self, items: list[tuple[str, Path, Any, int]], step: int):
+    def make_batch(self, items: list[StepFrame], step: int):
         """The method's batch from the step's frames (:meth:`SkinnedBatches.frames`)."""
 
     def step_batches(self, model: nn.Module, rank: int, world: int) -> SkinnedBatches:
@@ -318,20 +359,23 @@ class SkinnedTask(TrainingTask):
     def preview(self, model: nn.Module, step: int, out: Path, device: torch.device) -> Path | None:
         """GT next to the model's prediction for two frames (test split if any): ``samples/step_XXXXXX.png``."""
         config = self.config
-        layout = DatasetLayout(self.data)
-        frames = layout.iter_frames("test") or layout.iter_frames("train")
-        frames = [frames[i] for i in sorted({0, len(frames) // 2})]
+        if is_pack(self.data):
+            split = "test" if "test" in read_pack_meta(self.data)["splits"] else "train"
+            dataset: PointCloudDataset | PackedBodies = PackedBodies(self.data, split, subjects=list(self.outfits))
+        else:
+            split = "test" if DatasetLayout(self.data).iter_frames("test", list(self.outfits)) else "train"
+            dataset = PointCloudDataset(self.data, split, num_points=None, subjects=list(self.outfits),
+                                        random_subsample=False)  # fmt: skip
         method = self.method(model, config, Normalisation.identity(), out, step,
                              {"outfits": [{"id": i, "name": s} for s, i in self.outfits.items()]})  # fmt: skip
         panels = []
         was_training = model.training
         try:
-            for subject, seq, path in frames:
-                if subject not in self.outfits:
-                    continue
-                fr = read_frame(path, ["points", "joints", "frame_index", "body_vertices", "vtransf"],
-                                allow_missing=True)  # fmt: skip
-                pose = method.pose_from_frame(path, subject, frame=fr)
+            for i in sorted({0, len(dataset) // 2}):
+                item = self.step_frame(dataset, i, 0)
+                subject, seq, fr = item.subject, dataset.frames[i][1], item.frame
+                pose = Pose(np.asarray(fr.joints, np.float32), fr.body_vertices, fr.vtransf, item.mean_shape,
+                            subject, os.fspath(item.path))  # fmt: skip
                 pred = method.predict(pose, 2048, seeds=(0,), outfit=self.outfits[subject])
                 sel = np.random.default_rng([config.seed, 3]).choice(len(fr.points), min(2048, len(fr.points)),
                                                                      replace=False)  # fmt: skip

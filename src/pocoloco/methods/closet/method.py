@@ -82,12 +82,11 @@ class CloSETTask(SkinnedTask):
     def make_batch(self, items, step: int) -> CloSETBatch:
         c = self.config
         q = self.model.sample_query_points(c.query_points, seed=seed_of(c.seed, 4, step) % (2**31))
-        frames = [fr for _, _, fr, _ in items]
-        for _, path, fr, _ in items:
-            if fr.body_vertices is None or fr.vtransf is None:
-                raise ValueError(f"{path}: frame has no posed body (body_vertices / vtransf); CloSET needs it")
-        return make_closet_batch(frames, [self.outfits[s] for s, _, _, _ in items], q, c.num_points,
-                                 seed=seed_of(c.seed, 1, step) % (2**31))  # fmt: skip
+        for it in items:
+            if it.frame.body_vertices is None or it.frame.vtransf is None:
+                raise ValueError(f"{it.path}: frame has no posed body (body_vertices / vtransf); CloSET needs it")
+        return make_closet_batch([it.frame for it in items], [self.outfits[it.subject] for it in items], q,
+                                 c.num_points, seed=seed_of(c.seed, 1, step) % (2**31))  # fmt: skip
 
     def loss(self, net: nn.Module, batch: CloSETBatch, step: int, rank: int):
         w = CloSETLossWeights(**self.config.closet_weights)

@@ -142,15 +142,17 @@ class POPTask(SkinnedTask):
     def make_optimizer(self, model: nn.Module) -> torch.optim.Optimizer:
         return make_optimizer(model, self.config.lr, self.config.lr_codes)
 
+    @property
+    def needs_mean_shape(self) -> bool:
+        return self.config.net.get("pose_input") == "mean_shape"
+
     def make_batch(self, items, step: int):
         c = self.config
-        need_mean = c.net.get("pose_input") == "mean_shape"
         samples = []
-        for subject, path, fr, g in items:
-            mean = self.mean_cache.get(path.parent.parent / "motion.npz", int(fr.frame_index)) if need_mean else None
-            rng = np.random.default_rng([c.seed, 1, g])
-            samples.append(pop_sample_from_frame(fr, self.outfits[subject], c.num_points, rng, mean,
-                                                 num_vertices=int(self.model.num_vertices), src=os.fspath(path)))  # fmt: skip
+        for it in items:
+            rng = np.random.default_rng([c.seed, 1, it.position])
+            samples.append(pop_sample_from_frame(it.frame, self.outfits[it.subject], c.num_points, rng, it.mean_shape,
+                                                 num_vertices=int(self.model.num_vertices), src=os.fspath(it.path)))  # fmt: skip
         return collate_pop(samples)
 
     def loss(self, net: nn.Module, batch: POPBatch, step: int, rank: int):
