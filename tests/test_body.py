@@ -134,6 +134,8 @@ def test_skeleton_rig_rebuilds_anny_exactly(body):
     assert verts.shape == ref.vertices.shape and vtransf.shape == ref.vtransf.shape
     assert np.abs(verts - (ref.vertices - ref.joints[:, :1])).max() < 1e-5
     assert np.abs(vtransf - ref.vtransf).max() < 1e-5
+    slow_v, slow_t = rig.pose_reference(body.joint_transforms(rot))  # bone by bone, float64
+    assert np.abs(verts - slow_v).max() < 2e-6 and np.abs(vtransf - slow_t).max() < 2e-6
     assert np.abs(rig.rest_vertices - rig.rest_vertices[0] + body.template[0] - body.template).max() < 1e-6
     with pytest.raises(ValueError, match="joint_transforms must have shape"):
         rig.pose(np.zeros((1, 23, 3, 4)))

@@ -16,6 +16,7 @@ Shapes: T frames, V vertices, K weights per vertex, B bones, J = 24 joints. Tran
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,9 +65,40 @@ class SkeletonRig:
     def num_vertices(self) -> int:
         return int(self.rest_vertices.shape[0])
 
+    @functools.cached_property
+    def _per_joint(self) -> tuple[np.ndarray, np.ndarray]:
+        """The weights folded onto the joints: ``M_v = sum_j A_j D_vj`` with ``D_vj = sum_{k: j(b_vk)
+        = j} w_vk C_b(vk)`` (as 4 x 4 affine maps), kept as ``P = D_vj [r_v; 1]`` (V, 24 * 4) and the
+        linear parts of ``D`` (V * 3, 24 * 3), float32: a frame is then two small matrix products."""
+        V, K = self.weights.shape
+        c = np.zeros((self.bone_offsets.shape[0], 4, 4))
+        c[:, :3], c[:, 3, 3] = self.bone_offsets, 1.0
+        d = np.zeros((V, 24, 4, 4))
+        rows = np.repeat(np.arange(V), K)
+        np.add.at(d, (rows, self.bone_joint[self.bones].ravel()),
+                  self.weights.astype(np.float64).reshape(-1)[:, None, None] * c[self.bones.ravel()])  # fmt: skip
+        rest_h = np.concatenate([self.rest_vertices.astype(np.float64), np.ones((V, 1))], axis=1)
+        p = np.einsum("vjab,vb->vja", d, rest_h).reshape(V, 24 * 4)
+        lin = d[:, :, :3, :3].transpose(0, 3, 1, 2).reshape(V * 3, 24 * 3)  # [v, c] x [j, b]
+        return p.astype(np.float32), np.ascontiguousarray(lin, np.float32)
+
     def pose(self, joint_transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(T, 24, 3, 4) per-joint transforms ``A_j`` -> posed vertices (T, V, 3) and ``vtransf``
-        (T, V, 3, 3), float32 (computed in float64)."""
+        (T, V, 3, 3), float32 (two matrix products a frame; :meth:`pose_reference` is the same
+        per bone, in float64)."""
+        a = np.asarray(joint_transforms, np.float32)
+        if a.ndim != 4 or a.shape[1:] != (24, 3, 4):
+            raise ValueError(f"joint_transforms must have shape (T, 24, 3, 4), got {a.shape}")
+        p, lin = self._per_joint
+        T, V = a.shape[0], self.num_vertices
+        # A as [j, b] x [a]: translation column included for positions, rotation only for vtransf
+        verts = np.stack([p @ a[t].transpose(0, 2, 1).reshape(24 * 4, 3) for t in range(T)])
+        rot = a[:, :, :, :3].transpose(0, 1, 3, 2).reshape(T, 24 * 3, 3)  # [j, b] x [a]
+        vt = np.stack([(lin @ rot[t]).reshape(V, 3, 3).transpose(0, 2, 1) for t in range(T)])
+        return verts, np.ascontiguousarray(vt)
+
+    def pose_reference(self, joint_transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`pose` bone by bone, as anny skins (``A_b = A_j(b) C_b``, 9 bones a vertex), in float64."""
         a = np.asarray(joint_transforms, np.float64)
         if a.ndim != 4 or a.shape[1:] != (24, 3, 4):
             raise ValueError(f"joint_transforms must have shape (T, 24, 3, 4), got {a.shape}")

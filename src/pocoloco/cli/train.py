@@ -215,13 +215,13 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fine-tune: start from this checkpoint's weights (e.g. default), with its training config "
                              "unless --preset is given (the network must match); step, optimiser and schedule start "
                              "afresh")  # fmt: skip
+    parser.add_argument("--workers", type=int, help="DataLoader worker processes (default 0: load in the main process)")
     parser.add_argument("--ema-decay", type=float, help="EMA decay of the weights" + d("ema_decay"))
     parser.add_argument("--grad-clip", type=float, help="max gradient L2 norm" + d("grad_clip"))
     g = parser.add_argument_group("pocoloco only")
     g.add_argument("--schedule", choices=SCHEDULE_KINDS, help="beta schedule (default four = PocoLoco's quartic)")
     g.add_argument("--prediction-type", choices=PREDICTION_TYPES, help="network target (default epsilon)")
     g.add_argument("--min-snr", type=float, metavar="GAMMA", help="min-SNR-gamma loss weighting, e.g. 5 (default off)")
-    g.add_argument("--workers", type=int, help="DataLoader worker processes (default 0: load in the main process)")
     g.add_argument("--outfit-codes", action="store_true", default=None,
                    help="condition on a learned code per subject's outfit (default off: joints only, as the paper)")  # fmt: skip
     g.add_argument("--body-shape", action="store_true", default=None,

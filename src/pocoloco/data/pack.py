@@ -170,7 +170,7 @@ def write_pack(
     seq_id: dict[str, int] = {}
     members: dict[str, np.ndarray] = {}
     skipped: dict[str, int] = {}
-    rigs = _PackRigs(data, layout, card, chosen) if bodies else None
+    rigs = _PackRigs(data, layout, card, chosen, plan) if bodies else None
     if rigs is not None:
         members.update(rigs.members())
     for split_id, (split, frames) in enumerate(plan.items()):
@@ -259,8 +259,13 @@ class _PackRigs:
     (anny), the mesh they share, and each frame's skinning transforms, checked against the frame's
     stored body."""
 
-    def __init__(self, data, layout: fmt.DatasetLayout, card: dict[str, Any], subjects: Sequence[str]):
+    def __init__(self, data, layout: fmt.DatasetLayout, card: dict[str, Any], subjects: Sequence[str],
+                 plan: dict[str, list[tuple[str, str, Path]]]):  # fmt: skip
         self.data, self.layout, self.subjects = os.fspath(data), layout, list(subjects)
+        self.needed: dict[tuple[str, str, str], list[int]] = {}  # the frame indices packed of each sequence
+        for split, frames in plan.items():
+            for subject, seq, path in frames:
+                self.needed.setdefault((subject, split, seq), []).append(int(Path(path).stem))
         self.assets = {s: fmt.read_subject(layout.subject_path(s)) for s in self.subjects}
         first = self.assets[self.subjects[0]]
         for s, a in self.assets.items():
@@ -275,7 +280,7 @@ class _PackRigs:
             if first.template.shape[0] != self.rigs[s].num_vertices or err > BODY_TOLERANCE_M:
                 raise ValueError(f"{self.data}: subject {s!r}: its stored template is not anny's body for its phenotype "
                                  "(another anny version?): it cannot be packed with --bodies")  # fmt: skip
-        self._sequence: tuple[tuple[str, str, str], np.ndarray] | None = None
+        self._sequence: tuple[tuple[str, str, str], dict[int, np.ndarray]] | None = None
 
     def meta(self) -> dict[str, Any]:
         rig = self.rigs["mean"]
@@ -308,17 +313,19 @@ class _PackRigs:
         """(2, 24, 3, 4) the frame's transforms (subject, mean shape), after checking the subject's
         rebuilt body against the frame's stored one."""
         key = (subject, split, sequence)
-        if self._sequence is None or self._sequence[0] != key:
+        if self._sequence is None or self._sequence[0] != key:  # the sequence's packed frames, posed at once
             rot = fmt.read_motion(self.layout.motion_path(subject, split, sequence)).joint_rotvecs
-            self._sequence = key, np.stack([self.bodies[subject].joint_transforms(rot),
-                                            self.bodies["mean"].joint_transforms(rot)], 1)  # fmt: skip
-        seq = self._sequence[1]
+            idx = [i for i in self.needed.get(key, []) if 0 <= i < len(rot)]
+            both = np.stack([self.bodies[subject].joint_transforms(rot[idx]),
+                             self.bodies["mean"].joint_transforms(rot[idx])], 1) if idx else []  # fmt: skip
+            self._sequence = key, dict(zip(idx, both, strict=True))
         i = int(frame.frame_index)
-        if not 0 <= i < len(seq):
-            raise ValueError(f"{path}: frame {i} is beyond its motion.npz ({len(seq)} frames)")
+        if i not in self._sequence[1]:
+            raise ValueError(f"{path}: frame {i} is not in its motion.npz")
         if frame.body_vertices is None or frame.normals is None:
             raise ValueError(f"{path}: --bodies needs each frame's normals and posed body; this frame has none")
-        body, _ = self.rigs[subject].pose(seq[i, :1])
+        seq = self._sequence[1]
+        body, _ = self.rigs[subject].pose(seq[i][:1])
         err = float(np.abs(body[0] - (frame.body_vertices - frame.joints[0])).max())
         if err > BODY_TOLERANCE_M:
             raise ValueError(f"{path}: the stored body differs from anny's by {err * 1e3:.1f} mm (another anny "

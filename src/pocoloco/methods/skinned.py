@@ -62,7 +62,7 @@ __all__ = ["NORMAL_START_FRACTION", "SKINNED_PRESETS", "SkinnedMethod", "Skinned
 
 SKINNED_KINDS = ("pop", "closet")
 #: SkinnedTrainConfig fields that may change when resuming (they do not affect the optimisation)
-RESUMABLE_CHANGES = frozenset({"steps", "ckpt_every", "sample_every", "log_every", "keep_checkpoints"})
+RESUMABLE_CHANGES = frozenset({"steps", "ckpt_every", "sample_every", "log_every", "keep_checkpoints", "num_workers"})
 #: the paper switches POP's normal loss on at epoch 250 of 400
 NORMAL_START_FRACTION = 250 / 400
 
@@ -85,6 +85,7 @@ class SkinnedTrainConfig(Config):
     ckpt_every / sample_every / log_every: periods in steps (0 disables checkpoints / renders).
     keep_checkpoints: step folders kept. ema_decay: EMA of the weights (None: off, as the papers);
     grad_clip: max gradient L2 norm (None: off); bf16: bf16 autocast (CloSET only).
+    num_workers: DataLoader worker processes building the steps' batches (0: the main process).
     """
 
     model: str = "pop"
@@ -108,6 +109,7 @@ class SkinnedTrainConfig(Config):
     ema_decay: float | None = None
     grad_clip: float | None = None
     bf16: bool = False
+    num_workers: int = 0
 
     def __post_init__(self):
         if self.model not in SKINNED_KINDS:
@@ -117,7 +119,7 @@ class SkinnedTrainConfig(Config):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
-        for name in ("normal_start", "ckpt_every", "sample_every"):
+        for name in ("normal_start", "ckpt_every", "sample_every", "num_workers"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("lr", "lr_codes"):
@@ -168,7 +170,7 @@ class SkinnedTrainConfig(Config):
             preset=self.preset, steps=self.steps, lr=self.lr, seed=self.seed, warmup_steps=0,
             lr_schedule="constant", decay_steps=0, ema_decay=self.ema_decay, grad_clip=self.grad_clip, bf16=self.bf16,
             ckpt_every=self.ckpt_every, sample_every=self.sample_every, log_every=self.log_every,
-            keep_checkpoints=self.keep_checkpoints, num_workers=0,
+            keep_checkpoints=self.keep_checkpoints, num_workers=self.num_workers,
         )  # fmt: skip
 
     def net_config(self) -> POPConfig | CloSETConfig:
