@@ -18,6 +18,10 @@
 #   RUNS="s256:--preset latent_small --batch-size 256 --lr 2e-3;s1024:--preset latent_small --batch-size 1024"
 # A run's own --steps / --decay-steps win over the defaults (100,000 steps, wsd over the last fifth:
 # the clock ends it, cooled down).
+# MODEL=pop (or closet) trains that method on a `pocoloco data pack --bodies` pack instead: no bench and
+# no search, the RUNS given (default: one run continuing the shipped model at its constant learning
+# rate, "cont:--init-from default:pop --normal-start 0 --steps 1000000", which the clock ends), e.g.
+#   MODEL=pop RUNS="cont:--init-from default:pop --normal-start 0 --steps 1000000 --batch-size 16"
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PACK=$1
@@ -36,11 +40,21 @@ exec > >(tee -a "$OUT/job.log") 2>&1
 elapsed() { echo $(( $(date +%s) - START )); }
 # seconds left for training after HEADROOM (start-up, final checkpoints, exports, packing), at least 30
 left_seconds() { local left=$(( TOTAL - $(elapsed) - $1 )); echo $(( left < 30 ? 30 : left )); }
-# what every training run here shares: the full recipe (outfit codes + body shape, bf16), no previews
-TRAIN=($PY -m pocoloco train --data "$PACK" --outfit-codes --body-shape --bf16 --device "$DEVICE" --ckpt-every 1000
-       --sample-every 0 --log-every 50 --no-progress)
+MODEL=${MODEL:-pocoloco}
+if [ "$MODEL" = pocoloco ]; then
+  # what every training run here shares: the full recipe (outfit codes + body shape, bf16), no previews
+  TRAIN=($PY -m pocoloco train --data "$PACK" --outfit-codes --body-shape --bf16 --device "$DEVICE" --ckpt-every 1000
+         --sample-every 0 --log-every 50 --no-progress)
+  RUN_DEFAULTS="--steps 100000 --lr-schedule wsd --decay-steps 20000"
+else  # POP / CloSET: constant learning rate as their papers, the run's own --steps
+  TRAIN=($PY -m pocoloco train --model "$MODEL" --data "$PACK" --device "$DEVICE" --ckpt-every 1000 --sample-every 0
+         --log-every 50 --no-progress)
+  RUN_DEFAULTS=""
+  SKIP_BENCH=1
+  RUNS=${RUNS:-"cont:--init-from default:$MODEL --normal-start 0 --steps 1000000"}
+fi
 
-echo "== $(date -u +%FT%TZ) job: pack $PACK, $TOTAL s"
+echo "== $(date -u +%FT%TZ) job: $MODEL, pack $PACK, $TOTAL s"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
 $PY -c "import torch, numpy; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), 'numpy', numpy.__version__)"
 
@@ -63,8 +77,8 @@ if [ -n "${RUNS:-}" ]; then
     ARGS=${spec#*:}
     echo "   $NAME: $ARGS"
     # shellcheck disable=SC2086
-    "${TRAIN[@]}" --out "$OUT/$NAME" --workers "$W" --threads "$T" --steps 100000 --lr-schedule wsd \
-      --decay-steps 20000 --time-budget "$MINUTES" $ARGS > "$OUT/$NAME.log" 2>&1 &
+    "${TRAIN[@]}" --out "$OUT/$NAME" --workers "$W" --threads "$T" $RUN_DEFAULTS --time-budget "$MINUTES" $ARGS \
+      > "$OUT/$NAME.log" 2>&1 &
     PIDS+=($!)
   done
   for pid in "${PIDS[@]}"; do wait "$pid" || echo "a run failed (pid $pid)"; done
