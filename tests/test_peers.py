@@ -66,6 +66,14 @@ def test_presets_roundtrip_and_schedule():
         skinned_preset("pop", "tiny", decomposition=False)
     with pytest.raises(ValueError, match="unknown training preset 'huge' for pop"):
         skinned_preset("pop", "huge")
+    # a cool-down (wsd): constant, then linear to 0 over the last decay_steps; constant by default
+    from pocoloco.engine.trainer import lr_at
+
+    cool = skinned_preset("pop", "small", steps=10, lr_schedule="wsd", decay_steps=4).loop()
+    assert [round(lr_at(cool, s) / 3e-4, 6) for s in (0, 5, 6, 7, 9)] == [1, 1, 1, 0.75, 0.25]
+    assert {lr_at(skinned_preset("pop", "small").loop(), s) for s in (0, 9999)} == {3e-4}
+    with pytest.raises(ValueError, match="wsd needs 0 < decay_steps"):
+        skinned_preset("pop", "small", lr_schedule="wsd")
 
 
 def test_a_pop_run_stored_with_training_fields_in_its_network_config_still_loads():

@@ -156,6 +156,8 @@ def lr_at(config: LoopSettings, step: int, time_share: float | None = None) -> f
     return config.lr
 
 
+#: the learning-rate curves :func:`lr_at` draws
+LR_SCHEDULES = ("constant", "cosine", "wsd")
 LR_SCALING_RULES = ("sqrt", "linear", "none")
 
 

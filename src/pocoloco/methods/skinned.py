@@ -50,7 +50,7 @@ from pocoloco.data.pack import PackedBodies, is_pack, read_pack_meta, read_pack_
 from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, motion_path_of, pose_from_frame
 from pocoloco.data.step_batches import StepBatches
 from pocoloco.engine.checkpoint import Checkpoint, one_line
-from pocoloco.engine.trainer import LoopSettings, TrainingTask
+from pocoloco.engine.trainer import LR_SCHEDULES, LoopSettings, TrainingTask
 from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.models.closet import CLOSET_PRESETS, CloSETConfig, CloSETLossWeights
 from pocoloco.models.pop import LEGACY_LOSS_WEIGHTS, POP_PRESETS, POPConfig, POPLossWeights
@@ -86,6 +86,8 @@ class SkinnedTrainConfig(Config):
     keep_checkpoints: step folders kept. ema_decay: EMA of the weights (None: off, as the papers);
     grad_clip: max gradient L2 norm (None: off); bf16: bf16 autocast (CloSET only).
     num_workers: DataLoader worker processes building the steps' batches (0: the main process).
+    lr_schedule: ``constant`` (both papers), ``cosine`` or ``wsd`` (constant, then linear to 0 over the
+    last ``decay_steps``: a cool-down, e.g. of a shipped model with ``--init-from``).
     """
 
     model: str = "pop"
@@ -110,6 +112,8 @@ class SkinnedTrainConfig(Config):
     grad_clip: float | None = None
     bf16: bool = False
     num_workers: int = 0
+    lr_schedule: str = "constant"
+    decay_steps: int = 0
 
     def __post_init__(self):
         if self.model not in SKINNED_KINDS:
@@ -126,6 +130,13 @@ class SkinnedTrainConfig(Config):
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a positive number, got {v}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
+        if isinstance(self.decay_steps, bool) or not isinstance(self.decay_steps, int) or self.decay_steps < 0:
+            raise ValueError(f"decay_steps must be an integer >= 0, got {self.decay_steps!r}")
+        if self.lr_schedule == "wsd" and not 0 < self.decay_steps <= self.steps:
+            raise ValueError(f"lr_schedule wsd needs 0 < decay_steps <= steps, got decay_steps={self.decay_steps} "
+                             f"and steps={self.steps}")  # fmt: skip
         if self.ema_decay is not None and not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1) or None, got {self.ema_decay}")
         if self.grad_clip is not None and not self.grad_clip > 0:
@@ -164,11 +175,12 @@ class SkinnedTrainConfig(Config):
         return POPLossWeights.from_dict(self.pop_weights)
 
     def loop(self) -> LoopSettings:
-        """What the training loop reads (:class:`pocoloco.engine.trainer.LoopSettings`): a constant
-        learning rate without warm-up, as in both papers."""
+        """What the training loop reads (:class:`pocoloco.engine.trainer.LoopSettings`): no warm-up;
+        by default a constant learning rate, as in both papers."""
         return LoopSettings(
             preset=self.preset, steps=self.steps, lr=self.lr, seed=self.seed, warmup_steps=0,
-            lr_schedule="constant", decay_steps=0, ema_decay=self.ema_decay, grad_clip=self.grad_clip, bf16=self.bf16,
+            lr_schedule=self.lr_schedule, decay_steps=self.decay_steps, ema_decay=self.ema_decay,
+            grad_clip=self.grad_clip, bf16=self.bf16,
             ckpt_every=self.ckpt_every, sample_every=self.sample_every, log_every=self.log_every,
             keep_checkpoints=self.keep_checkpoints, num_workers=self.num_workers,
         )  # fmt: skip

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
-from pocoloco.engine.trainer import LoopSettings
+from pocoloco.engine.trainer import LR_SCHEDULES, LoopSettings
 from pocoloco.models.denoisers import ARCHITECTURES, denoiser_config_from_dict
 from pocoloco.models.latent import LATENT_PRESETS, LatentDenoiserConfig
 from pocoloco.models.pocoloco import DENOISER_PRESETS, PocoLocoDenoiserConfig
@@ -21,7 +21,6 @@ from pocoloco.utils.config import Config
 __all__ = ["LR_SCHEDULES", "SCHEDULE_KINDS", "TRAIN_PRESETS", "PocoLocoTrainConfig", "train_preset"]
 
 SCHEDULE_KINDS = ("four", "linear", "cosine")
-LR_SCHEDULES = ("constant", "cosine", "wsd")
 #: TrainConfig fields that may change when resuming (they do not affect the optimisation; the
 #: learning-rate curve's fields may too, if the steps already taken keep their rates: trainer.LR_FIELDS).
 RESUMABLE_CHANGES = frozenset({"steps", "ckpt_every", "sample_every", "log_every", "sample_steps", "keep_checkpoints",
