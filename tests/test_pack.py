@@ -207,6 +207,13 @@ def test_pop_and_closet_train_from_a_bodies_pack(bodies_pack, tmp_path, capsys, 
     argv = ["train", "--model", model, "--preset", "tiny", "--data", str(path), "--out", str(run), "--steps", "2",
             "--num-points", "300", "--sample-every", "2", "--no-progress", "--threads", "1"]  # fmt: skip
     assert cli_main(argv) == 0
+    from safetensors import safe_open
+
+    with safe_open(str(run / "model" / "model.safetensors"), "pt") as f:  # the run's own export
+        floats = {k: f.get_tensor(k).dtype for k in f.keys() if f.get_tensor(k).is_floating_point()}
+    geometry = {"pop": "surface_uv", "closet": "template"}[model]
+    assert any(geometry in k and d == torch.float32 for k, d in floats.items()), floats  # buffers stay float32
+    assert torch.float16 in floats.values()  # the weights are halved
     ck = ckpt_io.load_checkpoint(run, expect_model=model)
     assert ck.step == 2 and [o["name"] for o in ck.meta["outfits"]] == ["skirt", "tight"]
     assert (run / "samples" / "step_000002.png").is_file()

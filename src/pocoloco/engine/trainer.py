@@ -48,6 +48,7 @@ import math
 import os
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -681,21 +682,22 @@ def train(
     elapsed = time.perf_counter() - t0
     exported = None
     if export_to is not None and rank == 0:
-        exported = export_run(out, export_to)
+        exported = export_run(out, export_to, [n for n, b in model.named_buffers() if b.is_floating_point()])
     return TrainResult(model=model, ema=model if ema is None else ema.module, step=step, last_checkpoint=last_ckpt,
                        steps_per_s=(step - start_step) / max(elapsed, 1e-9), final_loss=loss_val,
                        stopped_by_budget=stopped_by_budget, export=exported)  # fmt: skip
 
 
-def export_run(run: str | os.PathLike, out: str | os.PathLike) -> Path:
-    """A sampling-only copy of the newest intact checkpoint of ``run`` at ``out`` (EMA weights, fp16),
-    replacing an older copy only once the new one is complete."""
+def export_run(run: str | os.PathLike, out: str | os.PathLike, keep_float32: Sequence[str] = ()) -> Path:
+    """A sampling-only copy of the newest intact checkpoint of ``run`` at ``out`` (EMA weights, fp16;
+    the tensors ``keep_float32`` float32, as ``pocoloco export-model`` keeps a model's floating
+    buffers: templates, UV queries), replacing an older copy only once the new one is complete."""
     import shutil
     import uuid
 
     out = Path(out)
     tmp = out.parent / f".{out.name}.export-{uuid.uuid4().hex[:8]}"
-    ckpt_io.export_for_sampling(Path(run) / "checkpoints", tmp, dtype="float16")
+    ckpt_io.export_for_sampling(Path(run) / "checkpoints", tmp, dtype="float16", keep_float32=keep_float32)
     old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
     if out.exists():
         os.replace(out, old)
