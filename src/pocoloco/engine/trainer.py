@@ -159,6 +159,19 @@ def lr_at(config: LoopSettings, step: int, time_share: float | None = None) -> f
 
 #: the learning-rate curves :func:`lr_at` draws
 LR_SCHEDULES = ("constant", "cosine", "wsd")
+
+
+def check_lr_schedule(lr_schedule: str, decay_steps: int, steps: int) -> None:
+    """One-line ValueError unless ``lr_schedule`` is one of :data:`LR_SCHEDULES` and ``decay_steps``
+    an integer >= 0 (wsd: 0 < decay_steps <= steps); what every training config checks."""
+    if lr_schedule not in LR_SCHEDULES:
+        raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
+    if isinstance(decay_steps, bool) or not isinstance(decay_steps, int) or decay_steps < 0:
+        raise ValueError(f"decay_steps must be an integer >= 0, got {decay_steps!r}")
+    if lr_schedule == "wsd" and not 0 < decay_steps <= steps:
+        raise ValueError(f"lr_schedule wsd needs 0 < decay_steps <= steps, got decay_steps={decay_steps} "
+                         f"and steps={steps}")  # fmt: skip
+
 LR_SCALING_RULES = ("sqrt", "linear", "none")
 
 

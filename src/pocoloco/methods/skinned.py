@@ -50,7 +50,7 @@ from pocoloco.data.pack import PackedBodies, is_pack, read_pack_meta, read_pack_
 from pocoloco.data.poses import MeanShapeCache, Pose, load_body_pose, motion_path_of, pose_from_frame
 from pocoloco.data.step_batches import StepBatches
 from pocoloco.engine.checkpoint import Checkpoint, one_line
-from pocoloco.engine.trainer import LR_SCHEDULES, LoopSettings, TrainingTask
+from pocoloco.engine.trainer import LoopSettings, TrainingTask, check_lr_schedule
 from pocoloco.methods.base import Method, SampledClouds, SamplerOptions
 from pocoloco.models.closet import CLOSET_PRESETS, CloSETConfig, CloSETLossWeights
 from pocoloco.models.pop import LEGACY_LOSS_WEIGHTS, POP_PRESETS, POPConfig, POPLossWeights
@@ -130,13 +130,7 @@ class SkinnedTrainConfig(Config):
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a positive number, got {v}")
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
-        if isinstance(self.decay_steps, bool) or not isinstance(self.decay_steps, int) or self.decay_steps < 0:
-            raise ValueError(f"decay_steps must be an integer >= 0, got {self.decay_steps!r}")
-        if self.lr_schedule == "wsd" and not 0 < self.decay_steps <= self.steps:
-            raise ValueError(f"lr_schedule wsd needs 0 < decay_steps <= steps, got decay_steps={self.decay_steps} "
-                             f"and steps={self.steps}")  # fmt: skip
+        check_lr_schedule(self.lr_schedule, self.decay_steps, self.steps)
         if self.ema_decay is not None and not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1) or None, got {self.ema_decay}")
         if self.grad_clip is not None and not self.grad_clip > 0:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
-from pocoloco.engine.trainer import LR_SCHEDULES, LoopSettings
+from pocoloco.engine.trainer import LR_SCHEDULES, LoopSettings, check_lr_schedule
 from pocoloco.models.denoisers import ARCHITECTURES, denoiser_config_from_dict
 from pocoloco.models.latent import LATENT_PRESETS, LatentDenoiserConfig
 from pocoloco.models.pocoloco import DENOISER_PRESETS, PocoLocoDenoiserConfig
@@ -125,13 +125,7 @@ class PocoLocoTrainConfig(Config):
             raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
         if len(self.adam_betas) != 2 or not all(0 <= b < 1 for b in self.adam_betas):
             raise ValueError(f"adam_betas must be two numbers in [0, 1), got {self.adam_betas}")
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
-        if isinstance(self.decay_steps, bool) or not isinstance(self.decay_steps, int) or self.decay_steps < 0:
-            raise ValueError(f"decay_steps must be an integer >= 0, got {self.decay_steps!r}")
-        if self.lr_schedule == "wsd" and not 0 < self.decay_steps <= self.steps:
-            raise ValueError(f"lr_schedule wsd needs 0 < decay_steps <= steps, got decay_steps={self.decay_steps} "
-                             f"and steps={self.steps}")  # fmt: skip
+        check_lr_schedule(self.lr_schedule, self.decay_steps, self.steps)
         if self.grad_clip is not None and not self.grad_clip > 0:
             raise ValueError(f"grad_clip must be > 0 or None, got {self.grad_clip}")
         if not 0 <= self.ema_decay < 1:
