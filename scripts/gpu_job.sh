@@ -19,9 +19,10 @@
 # A run's own --steps / --decay-steps win over the defaults (100,000 steps, wsd over the last fifth:
 # the clock ends it, cooled down).
 # MODEL=pop (or closet) trains that method on a `pocoloco data pack --bodies` pack instead: no bench and
-# no search, the RUNS given (default: one run continuing the shipped model at its constant learning
-# rate, "cont:--init-from default:pop --normal-start 0 --steps 1000000", which the clock ends), e.g.
-#   MODEL=pop RUNS="cont:--init-from default:pop --normal-start 0 --steps 1000000 --batch-size 16"
+# no search, the RUNS given (default: one run continuing the shipped model at batch 16 on all the
+# pack's points of each frame, its learning rate cooled down to 0 over the last fifth of the clock,
+# which ends it: on this CPU a cool-down was worth -0.08 cm to both, BENCHMARKS.md "POP from a pack"), e.g.
+#   MODEL=pop RUNS="b16:--init-from default:pop --normal-start 0 --steps 1000000 --lr-schedule wsd --decay-steps 200000 --batch-size 16 --num-points 3840"
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PACK=$1
@@ -46,12 +47,13 @@ if [ "$MODEL" = pocoloco ]; then
   TRAIN=($PY -m pocoloco train --data "$PACK" --outfit-codes --body-shape --bf16 --device "$DEVICE" --ckpt-every 1000
          --sample-every 0 --log-every 50 --no-progress)
   RUN_DEFAULTS="--steps 100000 --lr-schedule wsd --decay-steps 20000"
-else  # POP / CloSET: constant learning rate as their papers, the run's own --steps
+else  # POP / CloSET: the run's own --steps and learning-rate schedule
   TRAIN=($PY -m pocoloco train --model "$MODEL" --data "$PACK" --device "$DEVICE" --ckpt-every 1000 --sample-every 0
          --log-every 50 --no-progress)
   RUN_DEFAULTS=""
   SKIP_BENCH=1
-  RUNS=${RUNS:-"cont:--init-from default:$MODEL --normal-start 0 --steps 1000000"}
+  POINTS=$($PY -c "import sys; from pocoloco.data.pack import read_pack_meta; print(read_pack_meta(sys.argv[1])['points_per_frame'])" "$PACK")
+  RUNS=${RUNS:-"cont:--init-from default:$MODEL --normal-start 0 --steps 1000000 --lr-schedule wsd --decay-steps 200000 --batch-size 16 --num-points $POINTS"}
 fi
 
 echo "== $(date -u +%FT%TZ) job: $MODEL, pack $PACK, $TOTAL s"

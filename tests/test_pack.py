@@ -221,6 +221,15 @@ def test_pop_and_closet_train_from_a_bodies_pack(bodies_pack, tmp_path, capsys, 
     assert ckpt_io.load_checkpoint(run, expect_model=model).step == 3
 
 
+def test_a_pack_with_too_few_points_for_the_recipe_is_one_line(bodies_pack, tmp_path, capsys):
+    path, _ = bodies_pack
+    argv = ["train", "--model", "pop", "--preset", "tiny", "--data", str(path), "--out", str(tmp_path / "r"),
+            "--num-points", "601", "--no-progress"]  # fmt: skip
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err
+    assert "holds 600 scan points per frame" in err and "--num-points 600" in err and len(err.strip().splitlines()) == 1
+
+
 def test_pop_batches_from_a_pack_use_the_posed_mean_shape(bodies_pack):
     from pocoloco.methods.pop.method import POPTask
     from pocoloco.methods.skinned import SkinnedBatches, skinned_preset

@@ -319,6 +319,10 @@ class SkinnedTask(TrainingTask):
         if not names:
             raise ValueError(f"{data}: no subjects")
         if is_pack(data):
+            held = int(meta["points_per_frame"])
+            if config.num_points > held:
+                raise ValueError(f"{data}: the pack holds {held:,} scan points per frame, fewer than the {config.num_points:,} "
+                                 f"{config.model} draws per frame: pass --num-points {held} (or pack more points)")  # fmt: skip
             self.data = os.fspath(data)
             self.assets = {s: packed[s] for s in names}
         else:
