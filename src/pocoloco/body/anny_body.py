@@ -161,9 +161,9 @@ class AnnyBody:
     def num_vertices(self) -> int:
         return self.template.shape[0]
 
-    def _vertex_joint(self, labels: list[str]) -> np.ndarray:
-        """Map each vertex to the skeleton joint of its heaviest-weighted bone's
-        nearest skeleton ancestor (fingers -> hand, toes -> foot, ...)."""
+    def _bone_joint(self) -> np.ndarray:
+        """(B,) int64: the skeleton joint of each anny bone's nearest skeleton ancestor (itself for
+        a skeleton bone; fingers -> hand, toes -> foot, ...)."""
         parents = self.model.bone_parents
         parents = parents.tolist() if torch.is_tensor(parents) else list(parents)
         joint_of_bone = {int(b): j for j, b in enumerate(self.bone_of_joint.tolist())}
@@ -173,10 +173,15 @@ class AnnyBody:
             while a not in joint_of_bone and parents[a] >= 0:
                 a = parents[a]
             bone_to_joint[b] = joint_of_bone.get(a, 0)
+        return bone_to_joint
+
+    def _vertex_joint(self, labels: list[str]) -> np.ndarray:
+        """Map each vertex to the skeleton joint of its heaviest-weighted bone's
+        nearest skeleton ancestor (:meth:`_bone_joint`)."""
         w = self.model.vertex_bone_weights.cpu().numpy()
         idx = self.model.vertex_bone_indices.cpu().numpy()
         heaviest = idx[np.arange(len(idx)), w.argmax(1)]
-        return bone_to_joint[heaviest]
+        return self._bone_joint()[heaviest]
 
     def run_anny(self, joint_rotvecs: torch.Tensor) -> dict[str, torch.Tensor]:
         """joint_rotvecs (T, J, 3) -> anny's raw output (bones not in the skeleton keep zero rotation)."""
@@ -221,15 +226,7 @@ class AnnyBody:
         """This subject's :class:`~pocoloco.body.rig.SkeletonRig`: anny's rest vertices, weights and
         bones, each bone's skeleton ancestor and its constant offset ``C_b = inv(A_j(b)) A_b``
         (taken at the zero pose; the same at every pose)."""
-        parents = self.model.bone_parents
-        parents = parents.tolist() if torch.is_tensor(parents) else list(parents)
-        joint_of_bone = {int(b): j for j, b in enumerate(self.bone_of_joint.tolist())}
-        bone_joint = np.zeros(self.num_bones, np.int64)
-        for b in range(self.num_bones):
-            a = b
-            while a not in joint_of_bone and parents[a] >= 0:
-                a = parents[a]
-            bone_joint[b] = joint_of_bone.get(a, 0)
+        bone_joint = self._bone_joint()
         r = self.run_anny(torch.zeros(1, NUM_JOINTS, 3))
         skin = r["bone_poses"][0].double() @ torch.linalg.inv(r["rest_bone_poses"][0].double())  # (B, 4, 4)
         offsets = torch.linalg.inv(skin[torch.as_tensor(self.bone_of_joint)[bone_joint]]) @ skin

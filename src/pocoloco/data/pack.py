@@ -235,7 +235,7 @@ def write_pack(
         members[f"{split}_joints"] = bytes_member(encode_int16(joints_rel, JOINT_RESOLUTION_M, f"{split} joints"))
         members[f"{split}_points"] = bytes_member(encode_points(rel, resolution))
         if vel is not None:
-            members[f"{split}_velocity"] = bytes_member(lzma.compress(vel.astype("<f2").tobytes(), preset=9))
+            members[f"{split}_velocity"] = lzma_array(vel.astype("<f2"))
     meta = {
         "format": PACK_FORMAT, "version": PACK_VERSION, "source": os.fspath(data),
         "subject_names": names,
@@ -274,9 +274,10 @@ class _PackRigs:
         self.bodies = {s: AnnyBody((card["subjects"][s].get("phenotype") or {})) for s in self.subjects}
         self.bodies["mean"] = AnnyBody()
         self.rigs = {s: b.skeleton_rig() for s, b in self.bodies.items()}
+        # the bind-pose pelvis: anny's rest frame minus the subject.npz template's (pelvis at the origin)
+        self.origins = {s: self.rigs[s].rest_vertices[0] - b.template[0] for s, b in self.bodies.items()}
         for s in self.subjects:
-            origin = self.rigs[s].rest_vertices[0] - self.bodies[s].template[0]
-            err = np.abs(self.rigs[s].rest_vertices - origin - self.assets[s].template).max()
+            err = np.abs(self.rigs[s].rest_vertices - self.origins[s] - self.assets[s].template).max()
             if first.template.shape[0] != self.rigs[s].num_vertices or err > BODY_TOLERANCE_M:
                 raise ValueError(f"{self.data}: subject {s!r}: its stored template is not anny's body for its phenotype "
                                  "(another anny version?): it cannot be packed with --bodies")  # fmt: skip
@@ -294,11 +295,10 @@ class _PackRigs:
         names = self.subjects + ["mean"]
         rigs = [self.rigs[n] for n in names]
         first = self.assets[self.subjects[0]]
-        origins = [r.rest_vertices[0] - self.bodies[n].template[0] for n, r in zip(names, rigs, strict=True)]
         rest = np.stack([r.rest_vertices for r in rigs])
         return {
             "body_rest": bytes_member(encode_int16(rest, REST_RESOLUTION_M, "rest vertices")),
-            "body_origin": lzma_array(np.stack(origins).astype(np.float64)),
+            "body_origin": lzma_array(np.stack([self.origins[n] for n in names]).astype(np.float64)),
             "body_offsets": lzma_array(np.stack([r.bone_offsets for r in rigs]).astype(np.float64)),
             "body_weights": lzma_array(rigs[0].weights.astype(np.float32)),
             "body_bones": lzma_array(rigs[0].bones.astype(np.uint8)),
@@ -413,8 +413,7 @@ def _load_split(src: str, mtime_ns: int, size: int, split: str, velocity: bool, 
         root = arrays[f"{split}_root"].reshape(F, 3)
         joints = decode_int16(arrays[f"{split}_joints"].tobytes(), (F, 24, 3), meta["joint_resolution_m"])
         points = decode_points(arrays[f"{split}_points"].tobytes(), F, P, meta["resolution_m"])
-        vel = (np.frombuffer(lzma.decompress(arrays[f"{split}_velocity"].tobytes()), "<f2")
-               .reshape(F, 24, 3).astype(np.float32) if velocity else None)  # fmt: skip
+        vel = unlzma_array(arrays[f"{split}_velocity"], "<f2", (F, 24, 3)).astype(np.float32) if velocity else None
         normals = transforms = None
         if bodies:
             normals = decode_normals(unlzma_array(arrays[f"{split}_normals"], "<i1", (F, P, 2)))

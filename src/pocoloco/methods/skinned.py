@@ -301,11 +301,12 @@ class SkinnedTask(TrainingTask):
 
     def __init__(self, config: SkinnedTrainConfig, data: str | Path):
         self.config, self.kind = config, config.model
-        if is_pack(data):  # a --bodies training pack: its rigs give the subjects' assets
+        packed = is_pack(data)
+        if packed:  # a --bodies training pack: its rigs give the subjects' assets
             meta = read_pack_meta(data)
             self.normalisation = Normalisation.from_card({"normalisation": meta["normalisation"]})
-            packed = read_pack_subjects(data)  # a one-line error for a pack without bodies
-            names = sorted(packed)
+            pack_assets = read_pack_subjects(data)  # a one-line error for a pack without bodies
+            names = sorted(pack_assets)
         else:
             opened = OpenedDataset.open(data, subjects=[])  # the card (read here unless the caller opened it)
             self.normalisation = Normalisation.from_card(opened.card)
@@ -313,18 +314,18 @@ class SkinnedTask(TrainingTask):
         if config.subjects is not None:
             unknown = [x for x in config.subjects if x not in names]
             if unknown:
-                raise ValueError(f"{data}: unknown subjects {unknown}; the {'pack' if is_pack(data) else 'dataset'} "
+                raise ValueError(f"{data}: unknown subjects {unknown}; the {'pack' if packed else 'dataset'} "
                                  f"has {names}")  # fmt: skip
             names = list(config.subjects)
         if not names:
             raise ValueError(f"{data}: no subjects")
-        if is_pack(data):
+        if packed:
             held = int(meta["points_per_frame"])
             if config.num_points > held:
                 raise ValueError(f"{data}: the pack holds {held:,} scan points per frame, fewer than the {config.num_points:,} "
                                  f"{config.model} draws per frame: pass --num-points {held} (or pack more points)")  # fmt: skip
             self.data = os.fspath(data)
-            self.assets = {s: packed[s] for s in names}
+            self.assets = {s: pack_assets[s] for s in names}
         else:
             self.data = opened.ensure_checked(names)  # a missing or damaged frame: one line, before training
             self.assets = read_subjects(data, names)
