@@ -21,7 +21,9 @@
 # MODEL=pop (or closet) trains that method on a `pocoloco data pack --bodies` pack instead: no bench and
 # no search, the RUNS given (default: one run continuing the shipped model at batch 16 on all the
 # pack's points of each frame, its learning rate cooled down to 0 over the last fifth of the clock,
-# which ends it: on this CPU a cool-down was worth -0.08 cm to both, BENCHMARKS.md "POP from a pack"), e.g.
+# which ends it: on this CPU a cool-down was worth -0.08 cm to both, BENCHMARKS.md "POP from a pack"). Expect
+# no gain: POP's curve is flat on this CPU and it over-fits a pack's 1,288 frames when passed over them
+# many times (BENCHMARKS.md "Longer cool-downs, and how many frames POP needs"); e.g.
 #   MODEL=pop RUNS="b16:--init-from default:pop --normal-start 0 --steps 1000000 --lr-schedule wsd --decay-steps 200000 --batch-size 16 --num-points 3840"
 set -uo pipefail
 cd "$(dirname "$0")/.."
