@@ -19,8 +19,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
 from collections.abc import Callable
 
 import torch
@@ -36,16 +34,7 @@ from pocoloco.ops import (
 )
 from pocoloco.ops.sampling import fpsample_available
 from pocoloco.utils.atomic import write_json_atomic
-
-
-def _time(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from pocoloco.utils.timing import median_seconds
 
 
 def _scipy_chamfer(x, y) -> float:
@@ -76,7 +65,7 @@ def bench(n: int, reference_max: int, repeats: int) -> list[dict]:
     rows = []
     for op, impl, fn in cases:
         r = repeats if impl != "reference" else 1
-        rows.append({"op": op, "impl": impl, "num_points": n, "median_s": _time(fn, r), "repeats": r})
+        rows.append({"op": op, "impl": impl, "num_points": n, "median_s": median_seconds(fn, r), "repeats": r})
     return rows
 
 

@@ -23,25 +23,13 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import sys
-import time
-from collections.abc import Callable
 
 import numpy as np
 
 from pocoloco.body.anny_body import NUM_JOINTS, AnnyBody
 from pocoloco.utils.atomic import write_json_atomic
-
-
-def _time(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from pocoloco.utils.timing import median_seconds
 
 
 def bench(frames: int, repeats: int, seed: int = 0) -> list[dict]:
@@ -57,7 +45,7 @@ def bench(frames: int, repeats: int, seed: int = 0) -> list[dict]:
         ("reference", lambda: rig.pose_reference(transforms)),
         ("rig", lambda: rig.pose(transforms)),
     ]:
-        seconds = _time(fn, repeats)
+        seconds = median_seconds(fn, repeats)
         if name == "anny":
             err_v = err_t = 0.0
         else:

@@ -15,9 +15,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
-from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -30,16 +27,7 @@ from pocoloco.body.surface import (
     rasterize_uv_reference,
 )
 from pocoloco.utils.atomic import write_json_atomic
-
-
-def _time(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from pocoloco.utils.timing import median_seconds
 
 
 def main() -> None:
@@ -64,13 +52,13 @@ def main() -> None:
         rb = rasterize_uv(uv, uv_faces, R, face_mask=body_only)
         rows.append({
             "resolution": R,
-            "rasterize_s": _time(lambda: rasterize_uv(uv, uv_faces, R), args.repeats),
-            "position_map_s": _time(lambda: position_map(verts, body.faces, r), args.repeats),
+            "rasterize_s": median_seconds(lambda: rasterize_uv(uv, uv_faces, R), args.repeats),
+            "position_map_s": median_seconds(lambda: position_map(verts, body.faces, r), args.repeats),
             "valid_pixels": r.num_valid, "overlapping_pixels": r.num_overlapping,
             "valid_pixels_body_only": rb.num_valid, "faces_hit": int(np.unique(r.face_idx[r.mask]).size),
         })
-    ref_s = _time(lambda: rasterize_uv_reference(uv, uv_faces, 16), 1)
-    fast16 = _time(lambda: rasterize_uv(uv, uv_faces, 16), args.repeats)
+    ref_s = median_seconds(lambda: rasterize_uv_reference(uv, uv_faces, 16), 1)
+    fast16 = median_seconds(lambda: rasterize_uv(uv, uv_faces, 16), args.repeats)
 
     print(f"{'R':>5} {'raster s':>9} {'posmap s':>9} {'valid':>8} {'body only':>9} {'overlap':>8} {'faces hit':>9}")
     for w in rows:
