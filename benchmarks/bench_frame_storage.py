@@ -23,13 +23,13 @@ import json
 import os
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from pocoloco.data import format as fmt
 from pocoloco.utils.atomic import jsonable
+from pocoloco.utils.timing import median_seconds
 
 TRAIN_KEYS = ["points", "joints", "labels"]  # what PointCloudDataset reads per item
 
@@ -42,15 +42,6 @@ def pick_frames(root: Path, count: int) -> list[Path]:
         raise ValueError(f"{root}: no frame files")
     idx = np.unique(np.linspace(0, len(paths) - 1, min(count, len(paths))).round().astype(int))
     return [paths[i] for i in idx]
-
-
-def median_seconds(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def pelvis_float16_error(frame: fmt.Frame) -> dict[str, float]:
@@ -87,11 +78,11 @@ def main() -> None:
             for storage in fmt.FRAME_STORAGES:
                 dst = Path(tmp) / f"{n:03d}_{storage}.npz"
                 per[storage]["write"].append(median_seconds(lambda: fmt.write_frame(dst, frame, storage=storage),
-                                                            args.repeats))  # fmt: skip
+                                                            args.repeats, warmup=0))  # fmt: skip
                 per[storage]["bytes"].append(os.path.getsize(dst))
-                per[storage]["read"].append(median_seconds(lambda: fmt.read_frame(dst), args.repeats))
+                per[storage]["read"].append(median_seconds(lambda: fmt.read_frame(dst), args.repeats, warmup=0))
                 read_train = lambda: fmt.read_frame(dst, TRAIN_KEYS, allow_missing=True)  # noqa: E731
-                per[storage]["read_train"].append(median_seconds(read_train, args.repeats))
+                per[storage]["read_train"].append(median_seconds(read_train, args.repeats, warmup=0))
                 back = fmt.read_frame(dst)
                 for key in fmt.FRAME_KEYS:
                     a, b = getattr(frame, key), getattr(back, key)
