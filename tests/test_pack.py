@@ -210,7 +210,8 @@ def test_pop_and_closet_train_from_a_bodies_pack(bodies_pack, tmp_path, capsys, 
     from safetensors import safe_open
 
     with safe_open(str(run / "model" / "model.safetensors"), "pt") as f:  # the run's own export
-        floats = {k: f.get_tensor(k).dtype for k in f.keys() if f.get_tensor(k).is_floating_point()}
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    floats = {k: t.dtype for k, t in tensors.items() if t.is_floating_point()}
     geometry = {"pop": "surface_uv", "closet": "template"}[model]
     assert any(geometry in k and d == torch.float32 for k, d in floats.items()), floats  # buffers stay float32
     assert torch.float16 in floats.values()  # the weights are halved

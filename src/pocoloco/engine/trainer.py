@@ -172,6 +172,7 @@ def check_lr_schedule(lr_schedule: str, decay_steps: int, steps: int) -> None:
         raise ValueError(f"lr_schedule wsd needs 0 < decay_steps <= steps, got decay_steps={decay_steps} "
                          f"and steps={steps} (pass --decay-steps, or another --lr-schedule)")  # fmt: skip
 
+
 LR_SCALING_RULES = ("sqrt", "linear", "none")
 
 
