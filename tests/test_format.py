@@ -177,8 +177,11 @@ def test_read_frame_corrupt_bytes_and_not_npz(tmp_path):
         fmt.read_frame(p)
     q = tmp_path / "text.npz"
     q.write_text("hello")
-    with pytest.raises(ValueError, match="text.npz: corrupt or truncated npz"):
+    with pytest.raises(ValueError, match="text.npz: not a NumPy file"):
         fmt.read_frame(q)
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    with pytest.raises(ValueError, match=r"array.npy: a NumPy .npy array, not a .npz archive"):
+        fmt.read_frame(tmp_path / "array.npy")
     with pytest.raises(FileNotFoundError):
         fmt.read_frame(tmp_path / "nope.npz")
 

@@ -42,7 +42,11 @@ def test_hidden_temporary_files_are_reported_by_the_users_name():
     (["train", "--data", "DATA", "--steps", "1", "--out", "FILE"], "FILE: exists and is not a folder"),
     (["data", "export", "DATA", "--out", "FILE"], "FILE: exists and is not a folder"),
     (["mesh", "CLOUD", "--out", f"{LONG}.ply"], "longer than the filesystem allows"),
-    (["animate", "--motion", "GARBAGE", "--outfit", "skirt_a", "--out", "OUT"], "GARBAGE: not a NumPy .npy / .npz file"),
+    (["animate", "--motion", "GARBAGE", "--outfit", "skirt_a", "--out", "OUT"], "GARBAGE: not a NumPy file"),
+    (["sample", "--joints", "GARBAGE.npz", "--out", "OUT"], "GARBAGE.npz: cannot read joints: not a NumPy file"),
+    (["complete", "--partial", "GARBAGE.npy", "--joints", "demo:skirt", "--out", "OUT"],
+     "GARBAGE.npy: cannot read a (N, 3) points array: not a NumPy file"),
+    (["complete", "--partial", "EMPTY.npy", "--joints", "demo:skirt", "--out", "OUT"], "EMPTY.npy: cannot read a (N, 3) points array: empty file"),
     (["complete", "--partial", "FOLDER", "--joints", "demo:skirt", "--out", "OUT"], "FOLDER: is a folder, not a file"),
     (["bench", "quality", "--data", "DATA", "--split", "heldout", "--ckpt-pocoloco", "default", "--out", "OUT"],
      "no frames in split 'heldout'"),
@@ -50,7 +54,9 @@ def test_hidden_temporary_files_are_reported_by_the_users_name():
 def test_paths_the_os_refuses_are_one_line(tiny_dataset, tmp_path, capsys, monkeypatch, argv, message):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "FILE").write_text("not a folder")
-    (tmp_path / "GARBAGE").write_bytes(os.urandom(300))
+    for name in ("GARBAGE", "GARBAGE.npz", "GARBAGE.npy"):
+        (tmp_path / name).write_bytes(b"not numpy " + os.urandom(300))
+    (tmp_path / "EMPTY.npy").write_bytes(b"")
     (tmp_path / "FOLDER").mkdir()
     pts = np.random.default_rng(0).normal(size=(500, 3)) * 0.1
     np.save(tmp_path / "cloud.npy", pts)

@@ -40,6 +40,7 @@ from pocoloco.data.poses import check_joints, check_skeleton
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.evaluation.metrics import chamfer_cm, nearest
 from pocoloco.methods.base import PointPrior
+from pocoloco.utils.npfile import numpy_file_kind, numpy_file_problem
 
 __all__ = ["METHODS", "Animation", "MotionInput", "animate",
            "evaluate_animation", "flicker_cm", "load_motion", "warp_by_body"]  # fmt: skip
@@ -80,11 +81,9 @@ def load_motion(spec: str | os.PathLike, num_joints: int = 24, any_pose: bool = 
     spec = os.fspath(spec)
     path = Path(spec)
     if path.is_file():
-        with open(path, "rb") as f:
-            magic = f.read(6)
-        if magic != b"\x93NUMPY" and not magic.startswith(b"PK"):
-            raise ValueError(f"{spec}: not a NumPy .npy / .npz file (a motion is a (T, J, 3) joints .npy, an .npz "
-                             "with 'joints', or DATASET:subject/split/sequence)")  # fmt: skip
+        if numpy_file_kind(path) is None:
+            raise ValueError(f"{spec}: {numpy_file_problem(path)}; a motion is a (T, J, 3) joints .npy, an .npz "
+                             "with 'joints', or DATASET:subject/split/sequence")  # fmt: skip
         try:
             loaded = np.load(path, allow_pickle=False)
             if hasattr(loaded, "files"):

@@ -27,6 +27,7 @@ from pocoloco.diffusion.chains import chain_timesteps, renoise, repaint_resampli
 from pocoloco.diffusion.samplers import PerSampleRNG, sample
 from pocoloco.methods.base import PointPrior
 from pocoloco.utils.atomic import atomic_write, no_file_reason, output_folder
+from pocoloco.utils.npfile import numpy_file_problem
 
 #: a scan whose bounding box is larger than this (metres) is taken to be in the wrong unit
 MAX_EXTENT_M = 5.0
@@ -191,8 +192,9 @@ def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     if src.endswith(".npy"):
         try:
             arr = np.load(src, allow_pickle=False)
-        except Exception as e:
-            raise ValueError(f"{src}: cannot read ({type(e).__name__})") from None
+        except Exception as e:  # ValueError, EOFError, OSError ...
+            problem = numpy_file_problem(src, "npy") or f"{type(e).__name__}: {' '.join(str(e).split())}"
+            raise ValueError(f"{src}: cannot read a (N, 3) points array: {problem}") from None
         return arr, None
     ply = read_ply(src)
     return ply.points, ply.normals

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..body.skeleton import NUM_JOINTS
 from ..utils.atomic import no_file_reason, save_npz_atomic, write_json_atomic
+from ..utils.npfile import numpy_file_problem
 
 
 #: Point labels: body, loose garment; unknown for points whose class is unknown (imported data
@@ -287,6 +288,9 @@ def load_npz(path: str, keys: Iterable[str] | None) -> tuple[set[str], dict[str,
             wanted = names if keys is None else [k for k in keys if k in names]
             return names, {k: z[k] for k in wanted}
     except Exception as e:  # zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error ...
+        problem = numpy_file_problem(path, "npz")
+        if problem is not None:
+            raise ValueError(f"{path}: {problem}") from None
         msg = " ".join(str(e).split()) or type(e).__name__
         raise ValueError(f"{path}: corrupt or truncated npz ({type(e).__name__}: {msg})") from None
 

@@ -37,6 +37,7 @@ from pocoloco.data.format import (
     read_motion,
 )
 from pocoloco.data.published import read_joints_txt
+from pocoloco.utils.npfile import numpy_file_problem
 
 __all__ = [
     "DEMO_POSES_DIR",
@@ -168,11 +169,12 @@ def _load_array_file(path: Path) -> np.ndarray:
             if len(z.files) == 1:
                 return z[z.files[0]]
             raise ValueError(f"{path}: npz has no 'joints' array (arrays: {', '.join(sorted(z.files))})")
-    except ValueError as e:
-        if str(e).startswith(str(path)):
+    except Exception as e:  # zipfile.BadZipFile, EOFError, OSError, ValueError ...
+        if isinstance(e, ValueError) and str(e).startswith(str(path)):
             raise
-        raise ValueError(f"{path}: cannot read joints ({type(e).__name__}: {' '.join(str(e).split())})") from None
-    except Exception as e:  # zipfile.BadZipFile, EOFError, OSError ...
+        problem = numpy_file_problem(path)
+        if problem is not None:
+            raise ValueError(f"{path}: cannot read joints: {problem}") from None
         raise ValueError(f"{path}: cannot read joints ({type(e).__name__}: {' '.join(str(e).split())})") from None
 
 
@@ -344,8 +346,9 @@ def pose_from_anny_file(path: str | os.PathLike, phenotype: dict[str, float], ne
         with np.load(src, allow_pickle=False) as z:
             rot = np.asarray(z["joint_rotvecs"], np.float32)
             trans = np.asarray(z["root_translation"], np.float32) if "root_translation" in z.files else None
-    except Exception as e:
-        raise ValueError(f"{src}: cannot read anny pose parameters ({type(e).__name__}: {e})") from None
+    except Exception as e:  # KeyError, ValueError, OSError, zipfile.BadZipFile ...
+        why = numpy_file_problem(src, "npz") or f"{type(e).__name__}: {e}"
+        raise ValueError(f"{src}: cannot read anny pose parameters ({why})") from None
     if rot.ndim == 3 and rot.shape[0] == 1:
         rot = rot[0]
     if rot.shape != (NUM_JOINTS, 3) or not np.isfinite(rot).all():

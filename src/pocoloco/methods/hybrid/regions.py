@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from pocoloco.data.format import LABEL_GARMENT, DatasetLayout, read_frame, read_subject
 from pocoloco.engine.checkpoint import load_checkpoint
 from pocoloco.utils.atomic import atomic_open
+from pocoloco.utils.npfile import numpy_file_problem
 from pocoloco.viz.render import render_grid
 
 __all__ = ["MIN_FREE_SHARE", "FreeRegionMaps", "inside_depth", "learn_free_maps", "point_regions",
@@ -122,7 +123,8 @@ class FreeRegionMaps:
         except FileNotFoundError:
             raise ValueError(f"{path}: no such free-region map file") from None
         except (KeyError, ValueError, OSError, EOFError) as e:
-            raise ValueError(f"{path}: not a free-region map file ({type(e).__name__}: {e})") from None
+            why = numpy_file_problem(path, "npz") or f"{type(e).__name__}: {e}"
+            raise ValueError(f"{path}: not a free-region map file ({why})") from None
 
 
 def stored_vertex_share(state: dict[str, Any], num_vertices: int) -> np.ndarray:
