@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+import warnings
 
 import torch
 
@@ -44,6 +45,8 @@ def cmd_sample(args: argparse.Namespace) -> None:
             raise ValueError(f"--num {args.num}: {method.title} is deterministic (one cloud per pose and outfit); "
                              "use --num 1")  # fmt: skip
         num = 1
+        if args.steps is not None or args.sampler != "dpm++sde":
+            warnings.warn(f"{method.title} is deterministic: --sampler / --steps do not apply and are ignored")
     else:
         num = 3 if args.num is None else args.num
     options = SamplerOptions(sampler=args.sampler, steps=args.steps, clip=args.clip or None,
