@@ -56,6 +56,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default="benchmarks/results/resolution.json")
     ap.add_argument("--figure", default=None, help="PNG of Chamfer / S2M / M2S against N")
+    ap.add_argument("--pop-decoded", action="store_true",
+                    help="for each POP checkpoint, a second row that decodes points off its training UV map at their "
+                         "own UVs (the behaviour before interpolation, POPMethod.finer_map = 'decode')")  # fmt: skip
     args = ap.parse_args()
 
     import torch
@@ -73,8 +76,15 @@ def main() -> None:
     chosen = [frames[i] for i in select_frames(frames, args.frames)]
     results: dict = {"data": args.data, "split": args.split, "frames": [str(p) for _, _, p in chosen],
                      "seeds": args.seeds, "steps": args.steps, "threads": args.threads, "models": {}}  # fmt: skip
-    for ckpt in args.ckpt:
+    arms = [(c, None) for c in args.ckpt]
+    if args.pop_decoded:
+        arms += [(c, "decode") for c in args.ckpt if load_method(resolve_ckpt_arg(c)).kind == "pop"]
+    for ckpt, finer_map in arms:
         method = load_method(resolve_ckpt_arg(ckpt))
+        if finer_map is not None:
+            method.finer_map = finer_map
+            ckpt = f"{ckpt} (decoded off its UV map)"
+        seeds = args.seeds[:1] if method.deterministic else args.seeds  # a regressor: one cloud per pose
         options = SamplerOptions(steps=args.steps)
         per_n: dict = {}
         for n in args.points:
@@ -85,10 +95,10 @@ def main() -> None:
                 pose = method.pose_from_frame(path, subject, frame=fr)
                 outfit = method.outfit_id(subject) if method.outfit_names() else None
                 t0 = time.perf_counter()
-                pred = method.predict(pose, n, args.seeds, outfit, options)
-                seconds.append((time.perf_counter() - t0) / len(args.seeds))
+                pred = method.predict(pose, n, seeds, outfit, options)
+                seconds.append((time.perf_counter() - t0) / len(seeds))
                 scan = fr.points.astype(np.float64)
-                rows += [score(pred.points[k].astype(np.float64), scan) for k in range(len(args.seeds))]
+                rows += [score(pred.points[k].astype(np.float64), scan) for k in range(len(seeds))]
             mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
             mean["worst_over_10cm_percent"] = max(r["over_10cm_percent"] for r in rows)
             mean["seconds_per_sample"] = statistics.median(seconds)

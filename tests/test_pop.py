@@ -32,7 +32,7 @@ from pocoloco.methods.pop import (
     pop_sample_from_frame,
     train_step,
 )
-from pocoloco.models.pop import POP, POPBatch, POPConfig, POPLossWeights, pop_preset
+from pocoloco.models.pop import POP, POPBatch, POPConfig, POPLossWeights, POPQuery, pop_preset
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
@@ -140,6 +140,67 @@ def test_fast_decoder_matches_conv1d_reference(surface, mesh, training):
         torch.testing.assert_close(grads[0][n], grads[1][n], rtol=1e-8, atol=1e-10, msg=n)
     for (n, x), y in zip(fast.state_dict().items(), ref.state_dict().values()):  # BN running stats too
         torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-12, msg=n)
+
+
+def _interpolate_reference(values: np.ndarray, flat: np.ndarray, R: int, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Slow reference of ``POP.interpolate_pixels``: per query UV, the four pixel centres around
+    it (row i holds v = 1 - (i + .5) / R, column j u = (j + .5) / R), bilinear weights, only the
+    valid ones summed, divided by their total weight."""
+    valid = {int(f): k for k, f in enumerate(flat)}
+    out, total = np.zeros((len(uv), values.shape[1])), np.zeros(len(uv))
+    for q, (u, v) in enumerate(uv):
+        x, y = u * R - 0.5, (1 - v) * R - 0.5  # continuous column / row of the pixel centres
+        j0, i0 = int(np.floor(x)), int(np.floor(y))
+        for i, wi in ((i0, 1 - (y - i0)), (i0 + 1, y - i0)):
+            for j, wj in ((j0, 1 - (x - j0)), (j0 + 1, x - j0)):
+                k = valid.get(i * R + j) if 0 <= i < R and 0 <= j < R else None
+                if k is not None:
+                    out[q] += wi * wj * values[k]
+                    total[q] += wi * wj
+    return out / np.maximum(total, 1e-12)[:, None], total
+
+
+def test_interpolated_decoding_matches_reference_and_the_training_pixels(surface, mesh):
+    """Off the training map, POP interpolates what it decoded at the training pixels (normalised
+    bilinear over the valid ones, checked against a per-point loop); at the training pixels
+    themselves that is the decoder's output exactly; rim points without a valid neighbour are
+    decoded directly."""
+    model = make_model(surface, mesh, seed=4).double().eval()
+    b = make_batch(mesh, seed=2)
+    batch = POPBatch(*(t.double() for t in (b.pose_vertices, b.body_vertices, b.vtransf)), b.outfit)
+    R = model.config.query_resolution
+    vals = torch.randn(2, model.num_query_points, 4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    fine = model.query_points(3 * R + 1)
+    # three points whose UVs lie outside the layout (no valid pixel around them): the rim case
+    outside = torch.tensor([[0.01, 0.01], [0.99, 0.99], [0.02, 0.5]], dtype=fine.uv.dtype)
+    fine = POPQuery(torch.cat([fine.face_idx, fine.face_idx[:3]]), torch.cat([fine.barycentric, fine.barycentric[:3]]),
+                    torch.cat([fine.uv, outside]))  # fmt: skip
+    got, weight = model.interpolate_pixels(vals, fine.uv.double())
+    for k in range(2):
+        want, total = _interpolate_reference(vals[k].numpy(), model.q_flat.numpy(), R, fine.uv.double().numpy())
+        np.testing.assert_allclose(weight.numpy(), total, atol=1e-12)
+        ok = total > 1e-9
+        np.testing.assert_allclose(got[k].numpy()[ok], want[ok], rtol=1e-9, atol=1e-12)
+    at_pixels, w = model.interpolate_pixels(vals, model.q_uv.double())
+    torch.testing.assert_close(at_pixels, vals, rtol=0, atol=1e-12)
+    torch.testing.assert_close(w, torch.ones_like(w), rtol=0, atol=1e-12)
+
+    with torch.no_grad():
+        plain = model(batch)
+        same = model(batch, query=model.query_points(), interpolate=True)
+        torch.testing.assert_close(same.points, plain.points, rtol=0, atol=1e-12)
+        out = model(batch, query=fine, interpolate=True)
+        feats = model.feature_maps(model.input_posmap(batch.pose_vertices), model.geom[batch.outfit])
+        r_px, n_px = model.decode(feats, None)
+        r_q, _ = model.interpolate_pixels(torch.cat([r_px, n_px], -1), fine.uv.double())
+        rim = weight < 1e-3
+        assert rim[-3:].all() and not rim[:-3].any()
+        direct = model(batch, query=fine)  # decoded at the fine UVs
+        torch.testing.assert_close(out.points[:, rim], direct.points[:, rim])
+        scale = model.config.displacement_scale
+        torch.testing.assert_close(out.displacement[:, ~rim], scale * r_q[:, ~rim, :3])
+    assert out.points.shape == (2, len(fine.uv), 3) and bool(torch.isfinite(out.points).all())
+    torch.testing.assert_close(out.normals.norm(dim=-1), torch.ones(2, len(fine.uv), dtype=torch.float64))
 
 
 def _plain_layer(layer, *parts):
