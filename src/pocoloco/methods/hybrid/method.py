@@ -419,7 +419,8 @@ class HybridMethod(Method):
                         code: torch.Tensor | None = None) -> np.ndarray:  # fmt: skip
         """(n_att + n_free, 3) POP points (deterministic): n_att whose nearest posed body vertex is
         attached, then n_free whose nearest one is free. POP is queried at its training UV map's
-        pixels (or more, when that is too few): a finer map scores worse (BENCHMARKS). With
+        pixels (or more, when that is too few): N of them spread more evenly than N of a finer
+        map's (BENCHMARKS, "Is PocoLoco's gap surface noise or point layout?"). With
         ``area_weighted`` the points are drawn with weights = the posed surface area each pixel
         stands for (its face's area / the face's pixels), so they cover the body as a scan does
         rather than as the UV layout does (hands and face have more pixels per cm^2)."""
