@@ -519,5 +519,11 @@ def test_with_trust_generated_points_stay_near_pops_own_points_in_the_free_regio
     plain = ck.predict(pose, 300, seeds=(0, 1), outfit=o, options=SamplerOptions(steps=2)).points
     n_att, _ = m.split(o, 300)
     np.testing.assert_array_equal(clouds[:, :n_att], plain[:, :n_att])
+    calls = []  # POP runs once per prediction: both regions and the trust reference share its cloud
+    predict = m.attached.predict
+    m.attached.predict = lambda *a, **k: calls.append(a[1]) or predict(*a, **k)
+    again = m.predict(pose, 300, seeds=(0, 1), outfit=o, options=SamplerOptions(steps=2)).points
+    np.testing.assert_array_equal(again, clouds)
+    assert calls == [len(m.attached.model.query_points())], calls
     with pytest.raises(ValueError, match="trust must be a distance"):
         ck.config.replace(trust=-1.0)

@@ -334,12 +334,13 @@ class HybridMethod(Method):
         ``code``: a fitted outfit (:class:`HybridCode`) in place of ``outfit``'s features and map
         (the body shape still comes from ``outfit``)."""
         outfit, n_gen = self._plan(pose, outfit, num_points, code)
-        skinned = self._skinned_for(pose, outfit, num_points, code)  # shared by the hypotheses
+        pop: dict[int, np.ndarray] = {}  # POP's clouds at this pose, shared by the parts below
+        skinned = self._skinned_for(pose, outfit, num_points, code, pop=pop)  # shared by the hypotheses
         clouds = [skinned] * len(seeds)
         if n_gen:
             region = self._free_points(pose, outfit, self._free_mask(outfit, code), n_gen, seeds, options,
                                        None if code is None else code.free,
-                                       None if code is None else code.attached)  # fmt: skip
+                                       None if code is None else code.attached, pop=pop)  # fmt: skip
             clouds = [np.concatenate([skinned, r]) for r in region]
         return SampledClouds(np.stack(clouds).astype(np.float32), None)
 
@@ -352,13 +353,25 @@ class HybridMethod(Method):
         outfit = self.default_outfit(pose) if outfit is None else self.outfit_id(outfit)
         return outfit, int(round(self.config.generator_share * self.split(outfit, num_points, code)[1]))
 
-    def _skinned_for(self, pose: Pose, outfit: int, num_points: int, code: HybridCode | None = None) -> np.ndarray:
+    def _skinned_for(self, pose: Pose, outfit: int, num_points: int, code: HybridCode | None = None,
+                     pop: dict[int, np.ndarray] | None = None) -> np.ndarray:  # fmt: skip
         """The POP part of a cloud of ``num_points``: the attached region's points and the free
         region's share POP draws (:meth:`_skinned_points`)."""
         n_att, n_free = self.split(outfit, num_points, code)
         n_gen = int(round(self.config.generator_share * n_free))
         return self._skinned_points(pose, outfit, self._free_mask(outfit, code), n_att, n_free - n_gen,
-                                    None if code is None else code.attached)  # fmt: skip
+                                    None if code is None else code.attached, pop=pop)  # fmt: skip
+
+    def _pop_points(self, pose: Pose, outfit: int, m: int, code: torch.Tensor | None,
+                    pop: dict[int, np.ndarray] | None) -> np.ndarray:  # fmt: skip
+        """POP's (m, 3) points at ``m`` query pixels (seed 0) for ``pose``; ``pop``: the clouds
+        already predicted for this pose, outfit and code, by pixel count (filled here)."""
+        if pop is not None and m in pop:
+            return pop[m]
+        pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit, code=code).points[0]
+        if pop is not None:
+            pop[m] = pts
+        return pts
 
     def _kept(self, pose: Pose, free: np.ndarray, points: np.ndarray, normals: np.ndarray | None,
               reference: cKDTree | None = None) -> np.ndarray:  # fmt: skip
@@ -373,14 +386,14 @@ class HybridMethod(Method):
             keep &= reference.query(np.asarray(points, np.float64))[0] <= self.config.trust
         return keep
 
-    def _reference(self, pose: Pose, outfit: int, free: np.ndarray, code: torch.Tensor | None = None) -> cKDTree | None:
+    def _reference(self, pose: Pose, outfit: int, free: np.ndarray, code: torch.Tensor | None = None,
+                   pop: dict[int, np.ndarray] | None = None) -> cKDTree | None:  # fmt: skip
         """With ``trust``: a search tree over POP's points (at its training UV pixels) that fall in
         the free region, which the generated points must stay near; None without ``trust`` or when
-        POP puts no point there."""
+        POP puts no point there. ``pop``: as in :meth:`_pop_points`."""
         if self.config.trust is None:
             return None
-        pts = self.attached.predict(pose, len(self.attached.model.query_points()), seeds=(0,), outfit=outfit,
-                                    code=code).points[0]  # fmt: skip
+        pts = self._pop_points(pose, outfit, len(self.attached.model.query_points()), code, pop)
         ref = pts[point_regions(pts, pose.body_vertices, free, self.config.far)]
         return cKDTree(np.asarray(ref, np.float64)) if len(ref) else None
 
@@ -405,10 +418,12 @@ class HybridMethod(Method):
 
         def finish(pose: Pose, generated: np.ndarray, seed: int) -> np.ndarray:
             self._plan(pose, outfit, num_points)
-            skinned = self._skinned_for(pose, outfit, num_points)
+            pop: dict[int, np.ndarray] = {}
+            skinned = self._skinned_for(pose, outfit, num_points, pop=pop)
             if not n_gen:
                 return skinned
-            kept = generated[self._kept(pose, free, generated, self._normals(pose), self._reference(pose, outfit, free))]
+            reference = self._reference(pose, outfit, free, pop=pop)
+            kept = generated[self._kept(pose, free, generated, self._normals(pose), reference)]
             return np.concatenate([skinned, _exactly(kept, n_gen, np.random.default_rng([int(seed), 8]), generated)])
 
         # the generator draws half as many again as the free region keeps (it strays a little)
@@ -416,7 +431,7 @@ class HybridMethod(Method):
         return AnimationPrior(self.free.point_prior(self._free_outfit(outfit)), prior_points, finish)
 
     def _skinned_points(self, pose: Pose, outfit: int, free: np.ndarray, n_att: int, n_free: int,
-                        code: torch.Tensor | None = None) -> np.ndarray:  # fmt: skip
+                        code: torch.Tensor | None = None, pop: dict[int, np.ndarray] | None = None) -> np.ndarray:  # fmt: skip
         """(n_att + n_free, 3) POP points (deterministic): n_att whose nearest posed body vertex is
         attached, then n_free whose nearest one is free. POP is queried at its training UV map's
         pixels (or more, when that is too few): N of them spread more evenly than N of a finer
@@ -431,7 +446,7 @@ class HybridMethod(Method):
             if want == 0:
                 continue
             for _ in range(FREE_DRAWS):
-                pts = self.attached.predict(pose, m, seeds=(0,), outfit=outfit, code=code).points[0]
+                pts = self._pop_points(pose, outfit, m, code, {} if pop is None else pop)
                 inside = point_regions(pts, pose.body_vertices, free, self.config.far) == region
                 if inside.sum() >= want or m >= MAX_QUERY_FACTOR * max(pixels, want):
                     break
@@ -453,13 +468,13 @@ class HybridMethod(Method):
 
     def _free_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int, seeds: Sequence[int],
                      options: SamplerOptions, code: torch.Tensor | None = None,
-                     attached_code: torch.Tensor | None = None) -> list[np.ndarray]:  # fmt: skip
+                     attached_code: torch.Tensor | None = None, pop: dict[int, np.ndarray] | None = None) -> list[np.ndarray]:  # fmt: skip
         """Per seed, (n, 3) generated points whose nearest posed body vertex is free (and, with an
         ``inside_tolerance``, that lie no deeper inside the body): the generator's clouds are
         filtered and drawn again (new seeds derived from the seed) until n."""
         fo = self._free_outfit(outfit)
         normals = self._normals(pose)
-        reference = self._reference(pose, outfit, free, attached_code)
+        reference = self._reference(pose, outfit, free, attached_code, pop)
         found: list[list[np.ndarray]] = [[] for _ in seeds]
         last: list[np.ndarray] = [np.zeros((0, 3), np.float32)] * len(seeds)
         m, rate = n, 1.0
