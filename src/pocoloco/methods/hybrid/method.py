@@ -440,13 +440,14 @@ class HybridMethod(Method):
         stands for (its face's area / the face's pixels), so they cover the body as a scan does
         rather than as the UV layout does (hands and face have more pixels per cm^2)."""
         parts = []
+        pop = {} if pop is None else pop  # both regions start from the same POP cloud
         pixels = len(self.attached.model.query_points())
         m = pixels
         for want, region in ((n_att, False), (n_free, True)):
             if want == 0:
                 continue
             for _ in range(FREE_DRAWS):
-                pts = self._pop_points(pose, outfit, m, code, {} if pop is None else pop)
+                pts = self._pop_points(pose, outfit, m, code, pop)
                 inside = point_regions(pts, pose.body_vertices, free, self.config.far) == region
                 if inside.sum() >= want or m >= MAX_QUERY_FACTOR * max(pixels, want):
                     break
