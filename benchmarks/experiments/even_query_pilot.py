@@ -21,12 +21,10 @@ import sys
 
 import numpy as np
 import torch
+from quality_frames import quality_frames
 
 from pocoloco.body.surface import SurfacePoints, barycentric_interpolate
-from pocoloco.data import format as fmt
-from pocoloco.data.poses import MeanShapeCache
 from pocoloco.engine.shipped import resolve_ckpt_arg
-from pocoloco.evaluation.baselines import select_frames, subset
 from pocoloco.evaluation.metrics import m2s_cm, s2m_cm
 from pocoloco.methods import load_method
 from pocoloco.methods.pop import method as pop_method
@@ -82,15 +80,8 @@ def main() -> None:
         report["models"][name] = {}
         factors = [f for f in args.factors if name == "default:pop" or f > 1]
         for split in args.splits:
-            layout = fmt.DatasetLayout(args.data)
-            frames = layout.iter_frames(split, layout.subjects())
-            chosen = [frames[i] for i in select_frames(frames, args.frames)]
-            cache, rows = MeanShapeCache(), []
-            for i, (subject, sequence, path) in enumerate(chosen):
-                fr = fmt.read_frame(path, ["points", "normals", "labels", "joints", "frame_index", "body_vertices", "vtransf"],
-                                    allow_missing=True)  # fmt: skip
-                gt = fr.points[subset(fr.num_points, args.points, (0, i))].astype(np.float64)
-                pose = method.pose_from_frame(path, subject, frame=fr, cache=cache)
+            rows = []
+            for _, key, subject, gt, pose in quality_frames(method, args.data, split, args.frames, args.points):
                 o = method.outfit_id(subject)
                 clouds = {"random": method.predict(pose, args.points, (0,), o).points[0]}
                 for f in factors:
@@ -107,7 +98,7 @@ def main() -> None:
                             clouds[f"even_x{f}"] = method.predict(pose, args.points, (0,), o).points[0]
                         finally:
                             method.model.sample_query_points = saved
-                row = {"key": f"{subject}/{split}/{sequence}/{fr.frame_index:06d}"}
+                row = {"key": key}
                 for arm, c in clouds.items():
                     c = c.astype(np.float64)
                     m2s, s2m = m2s_cm(c, gt), s2m_cm(c, gt)

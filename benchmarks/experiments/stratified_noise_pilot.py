@@ -20,14 +20,12 @@ import sys
 
 import numpy as np
 import torch
+from quality_frames import quality_frames
 from scipy.stats import norm, qmc
 
 import pocoloco.methods.pocoloco.sampling as pocoloco_sampling
-from pocoloco.data import format as fmt
-from pocoloco.data.poses import MeanShapeCache
 from pocoloco.diffusion.sampler_base import PerSampleRNG
 from pocoloco.engine.shipped import resolve_ckpt_arg
-from pocoloco.evaluation.baselines import select_frames, subset
 from pocoloco.evaluation.metrics import chamfer_cm, m2s_cm, s2m_cm
 from pocoloco.methods import SamplerOptions, load_method
 from pocoloco.utils.atomic import write_json_atomic
@@ -70,16 +68,9 @@ def main() -> None:
     method = load_method(resolve_ckpt_arg(args.ckpt))
     report: dict = {"command": "python " + " ".join(sys.argv), "seeds": args.seeds, "points": args.points, "splits": {}}
     for split in args.splits:
-        layout = fmt.DatasetLayout(args.data)
-        frames = layout.iter_frames(split, layout.subjects())
-        chosen = [frames[i] for i in select_frames(frames, args.frames)]
-        cache, rows = MeanShapeCache(), []
-        for i, (subject, sequence, path) in enumerate(chosen):
-            fr = fmt.read_frame(path, ["points", "normals", "labels", "joints", "frame_index", "body_vertices", "vtransf"],
-                                allow_missing=True)  # fmt: skip
-            gt = fr.points[subset(fr.num_points, args.points, (0, i))].astype(np.float64)
-            pose = method.pose_from_frame(path, subject, frame=fr, cache=cache)
-            row = {"key": f"{subject}/{split}/{sequence}/{fr.frame_index:06d}"}
+        rows = []
+        for i, key, subject, gt, pose in quality_frames(method, args.data, split, args.frames, args.points):
+            row = {"key": key}
             for arm in args.arms:
                 noise, sampler, steps = arm.split(":")
                 pocoloco_sampling.PerSampleRNG = StratifiedFirstDraw if noise == "qmc" else PerSampleRNG
@@ -92,7 +83,7 @@ def main() -> None:
                                                                 for b in range(a + 1, K)])), 4)}  # fmt: skip
             pocoloco_sampling.PerSampleRNG = PerSampleRNG
             rows.append(row)
-            print(f"  {split} {i + 1}/{len(chosen)} {row['key']}: "
+            print(f"  {i + 1}/{args.frames} {key}: "
                   + ", ".join(f"{a} {row[a]['m2s_cm'] + row[a]['s2m_cm']:.2f}" for a in args.arms), flush=True)  # fmt: skip
         summary = {}
         for arm in args.arms:

@@ -22,12 +22,10 @@ import time
 
 import numpy as np
 import torch
+from quality_frames import quality_frames
 from scipy.spatial import cKDTree
 
-from pocoloco.data import format as fmt
-from pocoloco.data.poses import MeanShapeCache
 from pocoloco.engine.shipped import describe_checkpoint, resolve_ckpt_arg
-from pocoloco.evaluation.baselines import select_frames, subset
 from pocoloco.evaluation.metrics import m2s_cm, s2m_cm
 from pocoloco.methods import SamplerOptions, load_method
 from pocoloco.ops.sampling import farthest_point_sampling
@@ -55,15 +53,8 @@ def fps_subset(points: np.ndarray, n: int) -> np.ndarray:
 
 
 def probe(method, data: str, split: str, frames: int, points: int, factor: int, seeds: list[int]) -> list[dict]:
-    layout = fmt.DatasetLayout(data)
-    all_frames = layout.iter_frames(split, layout.subjects())
-    chosen = [all_frames[i] for i in select_frames(all_frames, frames)]
-    options, cache, rows = SamplerOptions(bf16=True), MeanShapeCache(), []
-    for n_done, (subject, sequence, path) in enumerate(chosen):
-        fr = fmt.read_frame(path, ["points", "normals", "labels", "joints", "frame_index", "body_vertices", "vtransf"],
-                            allow_missing=True)  # fmt: skip
-        gt = fr.points[subset(fr.num_points, points, (0, n_done))].astype(np.float64)  # bench quality's GT subset
-        pose = method.pose_from_frame(path, subject, frame=fr, cache=cache)
+    options, rows = SamplerOptions(bf16=True), []
+    for n_done, key, subject, gt, pose in quality_frames(method, data, split, frames, points):
         outfit = method.outfit_id(subject) if method.outfit_names() else None
         draws = seeds[:1] if method.deterministic else seeds  # a regressor: one cloud per pose
         direct = method.predict(pose, points, draws, outfit, options).points.astype(np.float64)
@@ -74,12 +65,12 @@ def probe(method, data: str, split: str, frames: int, points: int, factor: int, 
             clouds[f"plane_k{k}"] = [plane_project(c, k) for c in direct]
         clouds["dense_random"] = [c[rng.choice(len(c), points, replace=False)] for c in dense]
         clouds["dense_fps"] = [fps_subset(c, points) for c in dense]
-        row = {"key": f"{subject}/{split}/{sequence}/{fr.frame_index:06d}", "subject": subject}
+        row = {"key": key, "subject": subject}
         for name, cs in clouds.items():
             m2s, s2m = float(np.mean([m2s_cm(c, gt) for c in cs])), float(np.mean([s2m_cm(c, gt) for c in cs]))
             row[name] = {"chamfer_cm": round(m2s + s2m, 4), "m2s_cm": round(m2s, 4), "s2m_cm": round(s2m, 4)}
         rows.append(row)
-        print(f"  {n_done + 1}/{len(chosen)} {row['key']}: "
+        print(f"  {n_done + 1}/{frames} {key}: "
               + ", ".join(f"{n} {row[n]['chamfer_cm']:.2f}" for n in clouds), flush=True)  # fmt: skip
     return rows
 
