@@ -59,6 +59,9 @@ def main() -> None:
     ap.add_argument("--pop-decoded", action="store_true",
                     help="for each POP checkpoint, a second row that decodes points off its training UV map at their "
                          "own UVs (the behaviour before interpolation, POPMethod.finer_map = 'decode')")  # fmt: skip
+    ap.add_argument("--even", action="store_true",
+                    help="for each checkpoint, a second row with its points spread evenly (SamplerOptions.even, "
+                         "``sample --even``: more points drawn, N kept by farthest-point sampling)")  # fmt: skip
     args = ap.parse_args()
 
     import torch
@@ -66,7 +69,7 @@ def main() -> None:
     from pocoloco.data import format as fmt
     from pocoloco.engine.shipped import resolve_ckpt_arg
     from pocoloco.evaluation.baselines import select_frames
-    from pocoloco.methods import SamplerOptions, load_method
+    from pocoloco.methods import SamplerOptions, load_method, predict_clouds
 
     torch.set_num_threads(args.threads)
     layout = fmt.DatasetLayout(args.data)
@@ -76,16 +79,20 @@ def main() -> None:
     chosen = [frames[i] for i in select_frames(frames, args.frames)]
     results: dict = {"data": args.data, "split": args.split, "frames": [str(p) for _, _, p in chosen],
                      "seeds": args.seeds, "steps": args.steps, "threads": args.threads, "models": {}}  # fmt: skip
-    arms = [(c, None) for c in args.ckpt]
+    arms = [(c, None, False) for c in args.ckpt]
     if args.pop_decoded:
-        arms += [(c, "decode") for c in args.ckpt if load_method(resolve_ckpt_arg(c)).kind == "pop"]
-    for ckpt, finer_map in arms:
+        arms += [(c, "decode", False) for c in args.ckpt if load_method(resolve_ckpt_arg(c)).kind == "pop"]
+    if args.even:
+        arms += [(c, None, True) for c in args.ckpt]
+    for ckpt, finer_map, even in arms:
         method = load_method(resolve_ckpt_arg(ckpt))
         if finer_map is not None:
             method.finer_map = finer_map
             ckpt = f"{ckpt} (decoded off its UV map)"
+        if even:
+            ckpt = f"{ckpt} (even)"
         seeds = args.seeds[:1] if method.deterministic else args.seeds  # a regressor: one cloud per pose
-        options = SamplerOptions(steps=args.steps)
+        options = SamplerOptions(steps=args.steps, even=even)
         per_n: dict = {}
         for n in args.points:
             rows, seconds = [], []
@@ -95,7 +102,7 @@ def main() -> None:
                 pose = method.pose_from_frame(path, subject, frame=fr)
                 outfit = method.outfit_id(subject) if method.outfit_names() else None
                 t0 = time.perf_counter()
-                pred = method.predict(pose, n, seeds, outfit, options)
+                pred = predict_clouds(method, pose, n, seeds, outfit, options)
                 seconds.append((time.perf_counter() - t0) / len(seeds))
                 scan = fr.points.astype(np.float64)
                 rows += [score(pred.points[k].astype(np.float64), scan) for k in range(len(seeds))]
@@ -105,7 +112,7 @@ def main() -> None:
             per_n[str(n)] = {"mean": mean, "clouds": rows}
             print(f"{ckpt} N={n}: Chamfer {mean['chamfer_cm']:.2f} cm (S2M {mean['s2m_cm']:.2f}, M2S "
                   f"{mean['m2s_cm']:.2f}), > 10 cm {mean['over_10cm_percent']:.2f} % (worst cloud "
-                  f"{mean['worst_over_10cm_percent']:.1f} %), {mean['seconds_per_sample']:.1f} s/sample", flush=True)  # fmt: skip
+                  f"{mean['worst_over_10cm_percent']:.1f} %), {mean['seconds_per_sample']:.3f} s/sample", flush=True)  # fmt: skip
         results["models"][ckpt] = {"info": method.info(), "by_points": per_n}
 
     print(f"\n{len(chosen)} {args.split} frames x {len(args.seeds)} seeds, {args.steps} network calls, against the "
@@ -117,7 +124,7 @@ def main() -> None:
             m = r["mean"]
             print(f"| {ckpt} | {int(n):,} | {m['chamfer_cm']:.2f} | {m['s2m_cm']:.2f} | {m['m2s_cm']:.2f} | "
                   f"{m['over_5cm_percent']:.2f} | {m['over_10cm_percent']:.2f} ({m['worst_over_10cm_percent']:.1f}) | "
-                  f"{m['seconds_per_sample']:.1f} |")  # fmt: skip
+                  f"{m['seconds_per_sample']:.3f} |")  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1))

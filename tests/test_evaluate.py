@@ -186,6 +186,28 @@ def test_cli_writes_everything(run, tiny_dataset, tmp_path):
     assert doc["means"]["model"]["num_frames_garment"] in (0, 1)
 
 
+def test_eval_even_scores_the_evenly_spread_clouds(run, tiny_dataset):
+    """``EvalSettings.even`` (``eval`` / ``bench quality --even``): the model's clouds are
+    ``predict_clouds(..., even=True)``'s (the frame's Chamfer recomputed from them), the GT subset
+    stays random, and the settings record it."""
+    from pocoloco.evaluation.baselines import subset
+    from pocoloco.evaluation.metrics import chamfer_cm
+    from pocoloco.methods import SamplerOptions, load_method, predict_clouds
+
+    settings = EvalSettings(num_frames=1, num_points=64, seeds=(0,), sampler="ddim", steps=2, baselines=(), even=True)
+    result, _ = evaluate(run, tiny_dataset, settings, keep_examples=0)
+    assert result.settings["even"] is True
+    frame = result.frames[0]
+    subject, seq, path = next(f for f in DatasetLayout(tiny_dataset).iter_frames("test")
+                              if f"{f[0]}/test/{f[1]}/" in frame["key"])  # fmt: skip
+    method = load_method(run)
+    fr = read_frame(path, ["points"])
+    gt = fr.points[subset(fr.num_points, 64, (0, 0))].astype(np.float64)
+    pose = method.pose_from_frame(path, subject)
+    cloud = predict_clouds(method, pose, 64, (0,), None, SamplerOptions(sampler="ddim", steps=2, even=True)).points[0]
+    assert frame["model"]["chamfer_cm"] == pytest.approx(chamfer_cm(cloud.astype(np.float64), gt), rel=1e-5)
+
+
 def test_bench_quality_prints_the_new_columns(run, tiny_dataset, tmp_path):
     out = tmp_path / "q"
     r = run_cli("bench", "quality", "--data", str(tiny_dataset), "--ckpt-pocoloco", str(run), "--frames", "2",

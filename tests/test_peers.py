@@ -194,6 +194,55 @@ def test_pop_gives_more_points_than_its_query_map(runs, test_frame):
     assert d.max() < 1e-5
 
 
+@pytest.mark.parametrize("model", ["pop", "closet"])
+def test_even_cloud_is_the_farthest_point_subset_of_a_denser_draw(runs, test_frame, model):
+    """``SamplerOptions.even`` / ``--even``: the cloud drawn at ``even_candidates(N)`` points (POP: every
+    pixel of its training map while N fits in it, else 4 N; CloSET: 4 N), cut to N by farthest-point
+    sampling of its points (checked against the plain-loop reference), normals kept with their
+    points; it covers the dense cloud better than N random points do; off, it is ``predict``."""
+    from scipy.spatial import cKDTree
+
+    from pocoloco.methods import SamplerOptions, predict_clouds
+    from pocoloco.ops.sampling import farthest_point_sampling_reference
+
+    spec, subject, path = test_frame
+    loaded = load_method(runs[model])
+    pose = pose_from_frame(path, subject, loaded.needs_mean_shape)
+    o, n = loaded.outfit_id(subject), 40
+    pixels = loaded.model.num_query_points if model == "pop" else None
+    assert loaded.even_candidates(n) == (pixels if model == "pop" else 4 * n)
+    if model == "pop":
+        assert pixels > n and loaded.even_candidates(pixels + 1) == 4 * (pixels + 1)
+    dense = loaded.predict(pose, loaded.even_candidates(n), (2,), o)
+    even = predict_clouds(loaded, pose, n, (2,), o, SamplerOptions(even=True))
+    idx = farthest_point_sampling_reference(torch.from_numpy(dense.points), n)[0].numpy()
+    np.testing.assert_array_equal(even.points[0], dense.points[0][idx])
+    np.testing.assert_array_equal(even.normals[0], dense.normals[0][idx])
+    at_random = loaded.predict(pose, n, (2,), o)
+    np.testing.assert_array_equal(predict_clouds(loaded, pose, n, (2,), o).points, at_random.points)
+
+    def covering_radius(cloud):  # the farthest any dense point is from the cloud
+        return cKDTree(cloud).query(dense.points[0])[0].max()
+
+    assert covering_radius(even.points[0]) < 0.8 * covering_radius(at_random.points[0])
+
+
+def test_sample_cli_even(runs, test_frame, tmp_path, capsys):
+    """``sample --even`` writes the library's evenly spread cloud and says so in sample.json."""
+    from pocoloco.methods import SamplerOptions, predict_clouds
+
+    spec, subject, path = test_frame
+    out = tmp_path / "e"
+    assert main(["sample", "--ckpt", str(runs["pop"]), "--joints", spec, "--points", "50", "--even", "--no-render",
+                 "--out", str(out)]) == 0, capsys.readouterr().err  # fmt: skip
+    meta = json.loads((out / "sample.json").read_text())
+    assert meta["even"] is True and "farthest-point" in meta["query_points"]
+    loaded = load_method(runs["pop"])
+    pose = pose_from_frame(path, subject, loaded.needs_mean_shape)
+    ref = predict_clouds(loaded, pose, 50, (0,), loaded.outfit_id(subject), SamplerOptions(even=True))
+    np.testing.assert_allclose(read_ply(out / "sample_000.ply").points, ref.points[0], atol=1e-5)
+
+
 @pytest.mark.parametrize(
     "change, message",
     [

@@ -21,7 +21,7 @@ from pocoloco.methods import Method, load_method
 from pocoloco.utils.atomic import output_folder
 from pocoloco.utils.hardware import bf16_is_fast
 
-__all__ = ["EXIT_USER_ERROR", "MAX_SEED", "USER_ERRORS", "add_any_pose_argument", "check_seeds", "add_bf16_argument", "resolve_bf16", "add_app_arguments", "add_device_argument", "add_threads_argument",
+__all__ = ["EXIT_USER_ERROR", "MAX_SEED", "USER_ERRORS", "add_any_pose_argument", "check_seeds", "add_bf16_argument", "add_even_argument", "resolve_bf16", "add_app_arguments", "add_device_argument", "add_threads_argument",
            "apply_threads", "check_app_args", "choose_device", "pick_outfit", "steps_defaults", "console", "load_method_from_args", "progress_bar",
            "run_command"]  # fmt: skip
 
@@ -140,6 +140,14 @@ def add_bf16_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
                         help="run the denoiser under bf16 autocast (sampler arithmetic stays float32); default: on "
                              "where it runs natively (CPUs with avx512_bf16 / AMX, recent GPUs), off elsewhere")  # fmt: skip
+
+
+def add_even_argument(parser: argparse.ArgumentParser) -> None:
+    """``--even`` (``sample``, ``eval``, ``bench quality``): :func:`pocoloco.methods.predict_clouds`."""
+    parser.add_argument("--even", action="store_true",
+                        help="spread each cloud's points evenly over its surface: draw more points (POP: every pixel "
+                             "of its UV map; others: 4x) and keep N by farthest-point sampling (any method; "
+                             "default: each method's own random points)")  # fmt: skip
 
 
 def resolve_bf16(flag: bool | None, device) -> bool:

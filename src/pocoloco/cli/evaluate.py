@@ -8,6 +8,7 @@ from pathlib import Path
 
 from pocoloco.cli.common import (
     add_bf16_argument,
+    add_even_argument,
     add_threads_argument,
     console,
     progress_bar,
@@ -64,7 +65,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             baselines=() if args.no_baselines else EvalSettings.baselines,
                             subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
                             use_ema=not args.raw_weights, clip=args.clip or None, bf16=resolve_bf16(args.bf16, args.device),
-                            nearest_align=args.nearest_align, outfit=args.outfit)  # fmt: skip
+                            nearest_align=args.nearest_align, outfit=args.outfit, even=args.even)  # fmt: skip
     if settings.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {settings.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
     fmt.read_card(args.data)
@@ -94,6 +95,7 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--outfit", help="models with outfits: draw every frame in this trained outfit (e.g. a fitted one, "
                                          "or the nearest trained one for a subject the model never saw; default: each "
                                          "frame's subject)")  # fmt: skip
+    add_even_argument(parser)
     parser.add_argument("--no-baselines", action="store_true", help="skip the nearest-frame / posed-body / GT rows")
     parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
     add_nearest_align_argument(parser)
@@ -127,7 +129,7 @@ def _train_missing(key: str, data, work: Path, steps: int, preset: str) -> Path:
 def cmd_bench_quality(args: argparse.Namespace) -> None:
     settings = EvalSettings(split=args.split, num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
                             sampler=args.sampler, steps=args.steps, clip=5.0, nearest_align=args.nearest_align,
-                            subjects=tuple(args.subjects) if args.subjects else None)  # fmt: skip
+                            subjects=tuple(args.subjects) if args.subjects else None, even=args.even)  # fmt: skip
     con = console(stderr=True)
     ckpts = {key: getattr(args, f"ckpt_{key}") for key in QUALITY_ROWS}
     if args.train_steps is not None and (args.train_steps < 1 or args.work is None):
@@ -177,6 +179,7 @@ def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="PocoLoco samples per frame (default 0 1 2)")
     parser.add_argument("--sampler", default="dpm++sde", help=f"PocoLoco sampler (default dpm++sde, {SAMPLER_STEPS['dpm++sde']} steps)")
     parser.add_argument("--steps", type=int, help="PocoLoco sampler steps (default: the sampler's)")
+    add_even_argument(parser)
     add_nearest_align_argument(parser)
     add_threads_argument(parser)
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")

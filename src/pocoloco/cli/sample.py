@@ -12,6 +12,7 @@ import torch
 from pocoloco.cli.common import (
     add_any_pose_argument,
     add_bf16_argument,
+    add_even_argument,
     add_device_argument,
     add_threads_argument,
     load_method_from_args,
@@ -21,7 +22,7 @@ from pocoloco.cli.common import (
 )
 from pocoloco.data.poses import pose_spec_kind
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
-from pocoloco.methods import SamplerOptions, fit_to_memory
+from pocoloco.methods import SamplerOptions, fit_to_memory, predict_clouds
 from pocoloco.methods.outputs import write_samples
 from pocoloco.methods.pocoloco.sampling import DEFAULT_CLIP
 from pocoloco.utils.atomic import output_folder
@@ -51,7 +52,7 @@ def cmd_sample(args: argparse.Namespace) -> None:
         num = 3 if args.num is None else args.num
     options = SamplerOptions(sampler=args.sampler, steps=args.steps, clip=args.clip or None,
                              bf16=resolve_bf16(args.bf16, method.device),
-                             batch_size=args.batch_size)  # fmt: skip
+                             batch_size=args.batch_size, even=args.even)  # fmt: skip
     if not method.deterministic and args.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
     if method.needs_body:  # the body is posed with the outfit's phenotype
@@ -66,12 +67,12 @@ def cmd_sample(args: argparse.Namespace) -> None:
     seeds = [args.seed + k for k in range(num)]
 
     t0 = time.perf_counter()
-    clouds = method.predict(pose, args.points, seeds, outfit, options)
+    clouds = predict_clouds(method, pose, args.points, seeds, outfit, options)
     seconds = time.perf_counter() - t0
     settings = {
         "checkpoint": str(method.path), "model_kind": method.kind, "model": method.title, "step": method.step,
         "preset": method.config.preset, "joints": spec, "frame_id": args.frame_id, "joints_m": pose.joints.tolist(),
-        "num": num, "points": args.points, "seed": args.seed, "seeds": seeds, "deterministic": method.deterministic,
+        "num": num, "points": args.points, "seed": args.seed, "seeds": seeds, "deterministic": method.deterministic, "even": args.even,
         **method.sample_settings(options, args.points),
     }  # fmt: skip
     if outfit is not None:
@@ -108,6 +109,7 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int,
                         help=f"sampler steps (default: {steps_defaults()}; ddpm 1000 = the paper's)")  # fmt: skip
     parser.add_argument("--points", type=int, default=2048, help="N points per cloud (default 2048; any N works)")
+    add_even_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="cloud k uses seed SEED + k (default 0)")
     parser.add_argument("--batch-size", type=int, default=8, help="clouds denoised together (default 8)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")

@@ -54,7 +54,7 @@ from pocoloco.evaluation.baselines import (
 )
 from pocoloco.evaluation.metrics import (chamfer_cm, diversity_cm, evaluate_frame, nearest, partly_shared_floor_cm,
                                          shared_fraction, summarise, summarise_samples)
-from pocoloco.methods import SamplerOptions, fit_to_memory, load_method
+from pocoloco.methods import SamplerOptions, fit_to_memory, load_method, predict_clouds
 from pocoloco.utils.atomic import (
     jsonable,
     output_folder,
@@ -127,7 +127,8 @@ class EvalSettings:
     bf16: the denoiser under bf16 autocast (``sample_clouds``). nearest_align: ``root`` or ``yaw``
     (``NearestFrameBaseline``). outfit: draw every frame in this trained outfit (models with outfit
     codes, e.g. a fitted outfit or the nearest trained one for an unseen subject; None: each
-    frame's subject).
+    frame's subject). even: the models' points spread evenly (``SamplerOptions.even``; the GT
+    subsets and the baselines stay random).
     """
 
     split: str = "test"
@@ -144,6 +145,7 @@ class EvalSettings:
     bf16: bool = False
     nearest_align: str = "root"
     outfit: str | None = None
+    even: bool = False
 
     def __post_init__(self):
         if self.split not in fmt.SPLITS:
@@ -216,7 +218,7 @@ def evaluate(
 
     info: dict[str, Any] = {"data": os.fspath(data), **_settings_dict(settings)}
     options = SamplerOptions(sampler=settings.sampler, steps=settings.steps, clip=settings.clip, bf16=settings.bf16,
-                             batch_size=settings.batch_size)  # fmt: skip
+                             batch_size=settings.batch_size, even=settings.even)  # fmt: skip
     methods = _load_methods(ckpt, data, card, sorted({s for s, _, _ in chosen}), settings, options, device, info)
     if methods:  # a request larger than free memory: fewer clouds at a time, or one line
         options = fit_to_memory(next(iter(methods.values())), settings.num_points, len(settings.seeds), options)
@@ -252,7 +254,7 @@ def evaluate(
             pose = method.pose_from_frame(path, subject, frame=fr, cache=mean_cache)
             outfit = method.outfit_id(settings.outfit or subject) if method.outfit_names() else None
             t0 = time.perf_counter()
-            pred = method.predict(pose, settings.num_points, seeds, outfit, options)
+            pred = predict_clouds(method, pose, settings.num_points, seeds, outfit, options)
             per_sample = (time.perf_counter() - t0) / len(seeds)
             normals = [None if pred.normals is None else pred.normals[k] for k in range(len(seeds))]
             if method.deterministic:
@@ -356,7 +358,7 @@ def _settings_dict(s: EvalSettings) -> dict[str, Any]:
     return {"split": s.split, "num_frames": s.num_frames, "num_points": s.num_points, "seeds": list(s.seeds),
             "sampler": s.sampler, "steps": s.steps, "baselines": list(s.baselines),
             "subjects": None if s.subjects is None else list(s.subjects), "weights": "ema" if s.use_ema else "raw",
-            "clip": s.clip, "outfit": s.outfit}  # fmt: skip
+            "clip": s.clip, "outfit": s.outfit, "even": s.even}  # fmt: skip
 
 
 def _check_normalisation(normalisation, card: dict[str, Any], ckpt: Path, data) -> None:

@@ -10,7 +10,7 @@ each a folder behind one interface (:class:`~pocoloco.methods.base.Method`) and 
 ``load_method(ckpt)`` loads any checkpoint; ``train(config, data, out)`` trains any method.
 """
 
-from pocoloco.methods.base import Method, SampledClouds, SamplerOptions, check_memory, fit_to_memory
+from pocoloco.methods.base import Method, SampledClouds, SamplerOptions, check_memory, fit_to_memory, predict_clouds
 from pocoloco.methods.registry import (
            METHODS,
            checkpoint_kind,
@@ -21,4 +21,4 @@ from pocoloco.methods.registry import (
 )
 
 __all__ = ["METHODS", "Method", "SampledClouds", "SamplerOptions", "check_memory", "fit_to_memory", "checkpoint_kind", "load_method", "method_class",
-           "train", "train_preset"]
+           "predict_clouds", "train", "train_preset"]

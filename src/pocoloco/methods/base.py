@@ -31,16 +31,19 @@ from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
+import torch
 from torch import nn
 
 from pocoloco.data.dataset import Normalisation
+from pocoloco.data.frame import read_frame
 from pocoloco.data.poses import MeanShapeCache, Pose, outfit_of_spec
 from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.engine.checkpoint import Checkpoint, save_checkpoint
 from pocoloco.engine.trainer import TrainingTask
+from pocoloco.ops.sampling import farthest_point_sampling
 from pocoloco.utils.hardware import available_memory_bytes
 
-__all__ = ["MEMORY_SHARE", "AnimationPrior", "Method", "PointPrior", "SampledClouds", "SamplerOptions", "check_memory", "fit_to_memory"]
+__all__ = ["MEMORY_SHARE", "AnimationPrior", "Method", "PointPrior", "SampledClouds", "SamplerOptions", "check_memory", "fit_to_memory", "predict_clouds"]
 
 #: meta.json entries that ``save_checkpoint`` writes itself
 _META_OWN = frozenset({"format", "version", "model_kind", "preset", "step", "config", "normalisation", "has_ema",
@@ -60,12 +63,13 @@ class SampledClouds(NamedTuple):
 
 @dataclass(frozen=True)
 class SamplerOptions:
-    """How a generative method samples (deterministic methods ignore these).
+    """How a generative method samples (deterministic methods ignore all but ``even``).
 
     sampler / steps: see :data:`pocoloco.diffusion.SAMPLER_STEPS` (steps None: the sampler's
     default). clip: clamp of the sampler's x0 estimates in normalised units (None: off).
     bf16: the network under bf16 autocast. batch_size: clouds denoised together (speed and
-    memory only). progress: optional ``callable(done_clouds, K)``.
+    memory only). progress: optional ``callable(done_clouds, K)``. even: spread each cloud's
+    points evenly over its surface (:func:`predict_clouds`; every method).
     """
 
     sampler: str = "dpm++sde"
@@ -74,6 +78,7 @@ class SamplerOptions:
     bf16: bool = False
     batch_size: int = 8
     progress: Callable[[int, int], None] | None = None
+    even: bool = False
 
 
 @dataclass(frozen=True)
@@ -229,7 +234,8 @@ class Method(ABC):
 
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
         """The pose of a dataset frame file (``frame``: the already read ``Frame``, if any)."""
-        return Pose(np.asarray(frame.joints, np.float32), subject=subject, source=str(path))
+        joints = (frame if frame is not None else read_frame(path, ["joints"])).joints
+        return Pose(np.asarray(joints, np.float32), subject=subject, source=str(path))
 
     def save(self, root: str | Path, extra: dict[str, Any] | None = None) -> Path:
         """Write the model as a new checkpoint (weights only, no training state) into the
@@ -270,6 +276,33 @@ class Method(ABC):
         """Method-specific entries of ``sample.json``."""
         return {}
 
+    def even_candidates(self, num_points: int) -> int:
+        """How many points a cloud is drawn with when its ``num_points`` are to be spread evenly
+        (``SamplerOptions.even``, :func:`predict_clouds`): 4 N unless a method knows better."""
+        return EVEN_FACTOR * int(num_points)
+
+
+#: candidates per kept point of an evenly spread cloud (:meth:`Method.even_candidates`)
+EVEN_FACTOR = 4
+
+
+def predict_clouds(method: Method, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
+                   options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
+    """:meth:`Method.predict`, with the options every method shares: with ``options.even`` each
+    cloud is drawn at ``method.even_candidates(N)`` points and cut to N by farthest-point sampling
+    of its points (Eldar et al. 1997; PointNet++ Sec. 3.2), normals kept with their points. The same
+    surface, evenly covered instead of sampled at random; the points come in farthest-point order,
+    so any prefix of a cloud is evenly spread too. Returns (K, N, 3) points (and normals)."""
+    if not options.even:
+        return method.predict(pose, num_points, seeds, outfit, options)
+    dense = method.predict(pose, method.even_candidates(num_points), seeds, outfit, options)
+    idx = farthest_point_sampling(torch.from_numpy(np.ascontiguousarray(dense.points)), num_points).numpy()  # (K, N)
+
+    def keep(a: np.ndarray) -> np.ndarray:
+        return np.take_along_axis(a, idx[:, :, None], axis=1)
+
+    return SampledClouds(keep(dense.points), None if dense.normals is None else keep(dense.normals))
+
 
 #: share of the free memory one request may plan to use
 MEMORY_SHARE = 0.8
@@ -305,7 +338,14 @@ def check_memory(method: Method, num_points: int, num_clouds: int) -> tuple[int,
 def fit_to_memory(method: Method, num_points: int, num_clouds: int, options: SamplerOptions) -> SamplerOptions:
     """``options`` with a batch size (clouds denoised together) that fits in the free memory of the
     model's device (a one-line warning when it had to be lowered), after :func:`check_memory`."""
-    known = check_memory(method, num_points, num_clouds)
+    if options.even:  # the candidates are what is drawn
+        drawn = method.even_candidates(num_points)
+        try:
+            known = check_memory(method, drawn, num_clouds)
+        except ValueError as e:
+            raise ValueError(f"--even draws {drawn:,} points a cloud to keep {num_points:,}: {e}") from None
+    else:
+        known = check_memory(method, num_points, num_clouds)
     if known is None:
         return options
     free, per_cloud = known

@@ -131,8 +131,18 @@ class POPMethod(SkinnedMethod):
         return new_id
 
     def sample_settings(self, options, num_points: int) -> dict[str, Any]:
+        drawn = ("every valid pixel of the training UV map" if self.even_candidates(num_points) == len(self.model.query_points())
+                 else f"{self.even_candidates(num_points):,} valid pixels of a finer UV map")  # fmt: skip
+        if options.even:
+            return {"query_points": f"{drawn}, N of them kept by farthest-point sampling of the output points"}
         return {"query_points": "N of the valid pixels of the UV query map (finer than the training map if needed, "
                                 "displacements interpolated from the training pixels), without replacement"}  # fmt: skip
+
+    def even_candidates(self, num_points: int) -> int:
+        """Every pixel of the training map while N fits in it (a finer map's pixels are decoded no
+        better, and farthest-point sampling reaches their rims first), else 4 N of a finer map's."""
+        pixels = len(self.model.query_points())
+        return pixels if num_points <= pixels else super().even_candidates(num_points)
 
 
 class POPTask(SkinnedTask):
