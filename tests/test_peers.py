@@ -198,10 +198,12 @@ def test_pop_gives_more_points_than_its_query_map(runs, test_frame):
 def test_even_cloud_is_the_farthest_point_subset_of_a_denser_draw(runs, test_frame, model):
     """``SamplerOptions.even`` / ``--even``: the cloud drawn at ``even_candidates(N)`` points (POP: every
     pixel of its training map while N fits in it, else 4 N; CloSET: 4 N), cut to N by farthest-point
-    sampling of its points (checked against the plain-loop reference), normals kept with their
-    points; it covers the dense cloud better than N random points do; off, it is ``predict``."""
+    sampling of the spots on the posed body they are decoded from (checked against the plain-loop
+    reference), normals kept with their points; those spots cover the body better than N random
+    ones do; off, it is ``predict``."""
     from scipy.spatial import cKDTree
 
+    from pocoloco.body.surface import barycentric_interpolate
     from pocoloco.methods import SamplerOptions, predict_clouds
     from pocoloco.ops.sampling import farthest_point_sampling_reference
 
@@ -213,18 +215,29 @@ def test_even_cloud_is_the_farthest_point_subset_of_a_denser_draw(runs, test_fra
     assert loaded.even_candidates(n) == (pixels if model == "pop" else 4 * n)
     if model == "pop":
         assert pixels > n and loaded.even_candidates(pixels + 1) == 4 * (pixels + 1)
-    dense = loaded.predict(pose, loaded.even_candidates(n), (2,), o)
+    m = loaded.even_candidates(n)
+    dense = loaded.predict(pose, m, (2,), o)
+
+    def spots(count):  # the query points of predict(pose, count, (2,)) on the posed body, by hand
+        face_idx, bary = loaded.query_surface(count, 2)
+        body = torch.from_numpy(pose.body_vertices.astype(np.float32))[None]
+        return barycentric_interpolate(body, loaded.model.faces, torch.as_tensor(face_idx), torch.as_tensor(bary))[0].numpy()
+
+    dense_spots = spots(m)
+    np.testing.assert_allclose(loaded.even_layout_points(pose, m, (2,))[0], dense_spots, atol=1e-6)
+    # the decoded points belong to those spots: each is its own spot's nearest decoded point more often than not
+    assert (cKDTree(dense.points[0]).query(dense_spots)[1] == np.arange(m)).mean() > 0.5
     even = predict_clouds(loaded, pose, n, (2,), o, SamplerOptions(even=True))
-    idx = farthest_point_sampling_reference(torch.from_numpy(dense.points), n)[0].numpy()
+    idx = farthest_point_sampling_reference(torch.from_numpy(dense_spots)[None], n)[0].numpy()
     np.testing.assert_array_equal(even.points[0], dense.points[0][idx])
     np.testing.assert_array_equal(even.normals[0], dense.normals[0][idx])
     at_random = loaded.predict(pose, n, (2,), o)
     np.testing.assert_array_equal(predict_clouds(loaded, pose, n, (2,), o).points, at_random.points)
 
-    def covering_radius(cloud):  # the farthest any dense point is from the cloud
-        return cKDTree(cloud).query(dense.points[0])[0].max()
+    def covering_radius(points):  # the farthest any dense spot is from the set
+        return cKDTree(points).query(dense_spots)[0].max()
 
-    assert covering_radius(even.points[0]) < 0.8 * covering_radius(at_random.points[0])
+    assert covering_radius(dense_spots[idx]) < 0.8 * covering_radius(spots(n))
 
 
 def test_sample_cli_even(runs, test_frame, tmp_path, capsys):

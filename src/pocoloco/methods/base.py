@@ -9,7 +9,8 @@ they hold: they load a checkpoint with :func:`pocoloco.methods.load_method` and 
   body for methods that need it, ``needs_body``);
 * ``method.predict(pose, num_points, seeds, outfit, options)`` -> :class:`SampledClouds`
   (one cloud per seed; a deterministic method (``deterministic``) takes one seed, which only
-  picks its query points);
+  picks its query points), through :func:`predict_clouds`, which adds what every method shares
+  (``options.even``: evenly spread points, via ``method.even_candidates``);
 * ``method.outfit_id(name)`` / ``outfit_names()`` (methods with outfit codes; PocoLoco has none);
 * ``method.info()`` (what reports say about the checkpoint);
 * ``method.point_prior(outfit)`` -> :class:`PointPrior`, the hook completion, editing and animation
@@ -281,6 +282,13 @@ class Method(ABC):
         (``SamplerOptions.even``, :func:`predict_clouds`): 4 N unless a method knows better."""
         return EVEN_FACTOR * int(num_points)
 
+    def even_layout_points(self, pose: Pose, num_points: int, seeds: Sequence[int]) -> np.ndarray | None:
+        """(K, M, 3): the points by whose spread :func:`predict_clouds` picks an even subset of the
+        clouds ``predict(pose, M, seeds)`` draws, point for point; None (the default): the clouds'
+        own points. A method that decodes points from spots on a surface (POP, CloSET) answers with
+        those spots, so a point flung off the surface is not favoured for being far from the rest."""
+        return None
+
 
 #: candidates per kept point of an evenly spread cloud (:meth:`Method.even_candidates`)
 EVEN_FACTOR = 4
@@ -290,13 +298,17 @@ def predict_clouds(method: Method, pose: Pose, num_points: int, seeds: Sequence[
                    options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
     """:meth:`Method.predict`, with the options every method shares: with ``options.even`` each
     cloud is drawn at ``method.even_candidates(N)`` points and cut to N by farthest-point sampling
-    of its points (Eldar et al. 1997; PointNet++ Sec. 3.2), normals kept with their points. The same
-    surface, evenly covered instead of sampled at random; the points come in farthest-point order,
-    so any prefix of a cloud is evenly spread too. Returns (K, N, 3) points (and normals)."""
+    of its points (Eldar et al. 1997; PointNet++ Sec. 3.2) — or of the spots they are decoded from,
+    :meth:`Method.even_layout_points` — normals kept with their points. The same surface, evenly
+    covered instead of sampled at random; the points come in farthest-point order, so any prefix of
+    a cloud is evenly spread too. Returns (K, N, 3) points (and normals)."""
     if not options.even:
         return method.predict(pose, num_points, seeds, outfit, options)
-    dense = method.predict(pose, method.even_candidates(num_points), seeds, outfit, options)
-    idx = farthest_point_sampling(torch.from_numpy(np.ascontiguousarray(dense.points)), num_points).numpy()  # (K, N)
+    drawn = method.even_candidates(num_points)
+    dense = method.predict(pose, drawn, seeds, outfit, options)
+    space = method.even_layout_points(pose, drawn, seeds)
+    space = dense.points if space is None else np.broadcast_to(space, dense.points.shape)
+    idx = farthest_point_sampling(torch.from_numpy(np.array(space, np.float32)), num_points).numpy()  # (K, N)
 
     def keep(a: np.ndarray) -> np.ndarray:
         return np.take_along_axis(a, idx[:, :, None], axis=1)

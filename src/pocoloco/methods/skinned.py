@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from pocoloco.body.surface import barycentric_interpolate
 from pocoloco.data.dataset import Normalisation, OpenedDataset, PointCloudDataset
 from pocoloco.data.format import (
     DatasetLayout,
@@ -466,6 +467,19 @@ class SkinnedMethod(Method):
         return pose_from_frame(path, subject, self.needs_mean_shape, cache=cache, frame=frame)
 
     # ---------------------------------------------------------------------------- predicting
+    @abstractmethod
+    def query_surface(self, num_points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """Where on the body the ``num_points`` points of ``predict(..., seeds=(seed,))`` are decoded
+        from: face indices (N,) and barycentric coordinates (N, 3) on the model's faces."""
+
+    def even_layout_points(self, pose: Pose, num_points: int, seeds: Sequence[int]) -> np.ndarray:
+        """(1, N, 3): the cloud's query points on the posed body (an even cloud is an even set of
+        them, not of the decoded points, which would favour points flung off the body)."""
+        face_idx, bary = self.query_surface(num_points, int(seeds[0]))
+        body = torch.from_numpy(np.asarray(pose.body_vertices, np.float32))[None]
+        return barycentric_interpolate(body, self.model.faces.cpu(), torch.as_tensor(face_idx, dtype=torch.long),
+                                       torch.as_tensor(bary, dtype=torch.float32)).numpy()  # fmt: skip
+
     @abstractmethod
     def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, code: torch.Tensor | None = None):
         """The network's output (``points`` (1, N, 3), ``normals`` (1, N, 3), pelvis-centred) in eval mode."""

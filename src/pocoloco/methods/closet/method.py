@@ -51,16 +51,23 @@ class CloSETMethod(SkinnedMethod):
     def title(self) -> str:
         return "CloSET" if self.config.net.get("decomposition", True) else "CloSET (no decomposition)"
 
+    def query_surface(self, num_points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        q = self.model.sample_query_points(num_points, seed=int(seed))
+        return q.face_idx, q.barycentric
+
     def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, code: torch.Tensor | None = None):
         if code is not None:
             raise ValueError("CloSET cannot take an outfit code from outside (it does not fit new outfits)")
         body, vt = self.body_tensors(pose)
         outfit_t = torch.tensor([int(outfit)], dtype=torch.long, device=body.device)
-        q = self.model.sample_query_points(num_points, seed=int(seed))
-        return self.model(body, vt, outfit_t, torch.as_tensor(q.face_idx, dtype=torch.long, device=body.device),
-                          torch.as_tensor(q.barycentric, dtype=torch.float32, device=body.device))  # fmt: skip
+        face_idx, bary = self.query_surface(num_points, seed)
+        return self.model(body, vt, outfit_t, torch.as_tensor(face_idx, dtype=torch.long, device=body.device),
+                          torch.as_tensor(bary, dtype=torch.float32, device=body.device))  # fmt: skip
 
     def sample_settings(self, options, num_points: int) -> dict[str, Any]:
+        if options.even:
+            return {"query_points": f"{self.even_candidates(num_points):,} area-uniform points on the template surface, "
+                                    "N of them kept by farthest-point sampling of their spots on the posed body"}  # fmt: skip
         return {"query_points": "N area-uniform points on the template surface"}
 
 

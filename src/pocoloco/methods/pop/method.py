@@ -72,6 +72,10 @@ class POPMethod(SkinnedMethod):
     def needs_mean_shape(self) -> bool:
         return self.config.net.get("pose_input") == "mean_shape"
 
+    def query_surface(self, num_points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        q, _ = pop_query_for(self.model, num_points, seed)
+        return q.face_idx, q.barycentric
+
     def _predict_one(self, pose: Pose, outfit: int, num_points: int, seed: int, code: torch.Tensor | None = None):
         body, vt = self.body_tensors(pose)
         outfit_t = torch.tensor([int(outfit)], dtype=torch.long, device=body.device)
@@ -134,7 +138,7 @@ class POPMethod(SkinnedMethod):
         drawn = ("every valid pixel of the training UV map" if self.even_candidates(num_points) == len(self.model.query_points())
                  else f"{self.even_candidates(num_points):,} valid pixels of a finer UV map")  # fmt: skip
         if options.even:
-            return {"query_points": f"{drawn}, N of them kept by farthest-point sampling of the output points"}
+            return {"query_points": f"{drawn}, N of them kept by farthest-point sampling of their spots on the posed body"}
         return {"query_points": "N of the valid pixels of the UV query map (finer than the training map if needed, "
                                 "displacements interpolated from the training pixels), without replacement"}  # fmt: skip
 
