@@ -62,6 +62,7 @@ def main() -> None:
     ap.add_argument("--even", action="store_true",
                     help="for each checkpoint, a second row with its points spread evenly (SamplerOptions.even, "
                          "``sample --even``: more points drawn, N kept by farthest-point sampling)")  # fmt: skip
+    ap.add_argument("--means-only", action="store_true", help="write the means only, not every cloud's row (small JSON)")
     args = ap.parse_args()
 
     import torch
@@ -109,7 +110,7 @@ def main() -> None:
             mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
             mean["worst_over_10cm_percent"] = max(r["over_10cm_percent"] for r in rows)
             mean["seconds_per_sample"] = statistics.median(seconds)
-            per_n[str(n)] = {"mean": mean, "clouds": rows}
+            per_n[str(n)] = {"mean": mean} if args.means_only else {"mean": mean, "clouds": rows}
             print(f"{ckpt} N={n}: Chamfer {mean['chamfer_cm']:.2f} cm (S2M {mean['s2m_cm']:.2f}, M2S "
                   f"{mean['m2s_cm']:.2f}), > 10 cm {mean['over_10cm_percent']:.2f} % (worst cloud "
                   f"{mean['worst_over_10cm_percent']:.1f} %), {mean['seconds_per_sample']:.3f} s/sample", flush=True)  # fmt: skip

@@ -197,7 +197,7 @@ def test_pop_gives_more_points_than_its_query_map(runs, test_frame):
 @pytest.mark.parametrize("model", ["pop", "closet"])
 def test_even_cloud_is_the_farthest_point_subset_of_a_denser_draw(runs, test_frame, model):
     """``SamplerOptions.even`` / ``--even``: the cloud drawn at ``even_candidates(N)`` points (POP: every
-    pixel of its training map while N fits in it, else 4 N; CloSET: 4 N), cut to N by farthest-point
+    pixel of its training map while N fits in it, else its own N; CloSET: 4 N), cut to N by farthest-point
     sampling of the spots on the posed body they are decoded from (checked against the plain-loop
     reference), normals kept with their points; those spots cover the body better than N random
     ones do; off, it is ``predict``."""
@@ -214,7 +214,10 @@ def test_even_cloud_is_the_farthest_point_subset_of_a_denser_draw(runs, test_fra
     pixels = loaded.model.num_query_points if model == "pop" else None
     assert loaded.even_candidates(n) == (pixels if model == "pop" else 4 * n)
     if model == "pop":
-        assert pixels > n and loaded.even_candidates(pixels + 1) == 4 * (pixels + 1)
+        # beyond its training map POP's finer map is already near a grid: --even keeps its own layout
+        assert pixels > n and loaded.even_candidates(pixels + 1) == pixels + 1
+        np.testing.assert_array_equal(predict_clouds(loaded, pose, pixels + 1, (2,), o, SamplerOptions(even=True)).points,
+                                      loaded.predict(pose, pixels + 1, (2,), o).points)  # fmt: skip
     m = loaded.even_candidates(n)
     dense = loaded.predict(pose, m, (2,), o)
 

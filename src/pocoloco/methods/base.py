@@ -301,11 +301,14 @@ def predict_clouds(method: Method, pose: Pose, num_points: int, seeds: Sequence[
     of its points (Eldar et al. 1997; PointNet++ Sec. 3.2) — or of the spots they are decoded from,
     :meth:`Method.even_layout_points` — normals kept with their points. The same surface, evenly
     covered instead of sampled at random; the points come in farthest-point order, so any prefix of
-    a cloud is evenly spread too. Returns (K, N, 3) points (and normals)."""
+    a cloud is evenly spread too (unless the method draws no more than N: its own layout, as
+    drawn). Returns (K, N, 3) points (and normals)."""
     if not options.even:
         return method.predict(pose, num_points, seeds, outfit, options)
     drawn = method.even_candidates(num_points)
     dense = method.predict(pose, drawn, seeds, outfit, options)
+    if drawn == num_points:  # the method's own layout is already even at this N (POP beyond its UV map)
+        return dense
     space = method.even_layout_points(pose, drawn, seeds)
     space = dense.points if space is None else np.broadcast_to(space, dense.points.shape)
     idx = farthest_point_sampling(torch.from_numpy(np.array(space, np.float32)), num_points).numpy()  # (K, N)
