@@ -243,6 +243,24 @@ def test_even_cloud_is_the_farthest_point_subset_of_a_denser_draw(runs, test_fra
     assert covering_radius(dense_spots[idx]) < 0.8 * covering_radius(spots(n))
 
 
+def test_even_warns_when_farthest_point_sampling_will_be_slow(runs, test_frame, monkeypatch):
+    """Past SLOW_FPS_WORK kept x candidate points, on a CPU without fpsample: one warning saying so."""
+    import warnings
+
+    from pocoloco.methods import SamplerOptions, base, predict_clouds
+
+    spec, subject, path = test_frame
+    loaded = load_method(runs["closet"])
+    pose = pose_from_frame(path, subject, loaded.needs_mean_shape)
+    monkeypatch.setattr(base, "fpsample_available", lambda: False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # below the threshold: silent
+        predict_clouds(loaded, pose, 30, (0,), 0, SamplerOptions(even=True))
+    monkeypatch.setattr(base, "SLOW_FPS_WORK", 30 * 120 - 1)
+    with pytest.warns(UserWarning, match="farthest-point sampling of 30 of 120 points a cloud takes minutes"):
+        predict_clouds(loaded, pose, 30, (0,), 0, SamplerOptions(even=True))
+
+
 def test_sample_cli_even(runs, test_frame, tmp_path, capsys):
     """``sample --even`` writes the library's evenly spread cloud and says so in sample.json."""
     from pocoloco.methods import SamplerOptions, predict_clouds
