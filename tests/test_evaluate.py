@@ -196,7 +196,7 @@ def test_eval_even_scores_the_evenly_spread_clouds(run, tiny_dataset):
 
     settings = EvalSettings(num_frames=1, num_points=64, seeds=(0,), sampler="ddim", steps=2, baselines=(), even=True)
     result, _ = evaluate(run, tiny_dataset, settings, keep_examples=0)
-    assert result.settings["even"] is True
+    assert result.settings["even"] is True and "evenly spread (`--even`)" in markdown_tables(result)
     frame = result.frames[0]
     subject, seq, path = next(f for f in DatasetLayout(tiny_dataset).iter_frames("test")
                               if f"{f[0]}/test/{f[1]}/" in frame["key"])  # fmt: skip
@@ -206,6 +206,17 @@ def test_eval_even_scores_the_evenly_spread_clouds(run, tiny_dataset):
     pose = method.pose_from_frame(path, subject)
     cloud = predict_clouds(method, pose, 64, (0,), None, SamplerOptions(sampler="ddim", steps=2, even=True)).points[0]
     assert frame["model"]["chamfer_cm"] == pytest.approx(chamfer_cm(cloud.astype(np.float64), gt), rel=1e-5)
+
+
+def test_bench_quality_even(run, tiny_dataset, tmp_path):
+    """``bench quality --even`` reaches the settings and says so in quality.md."""
+    from pocoloco.cli import main
+
+    out = tmp_path / "qe"
+    assert main(["bench", "quality", "--data", str(tiny_dataset), "--ckpt-pocoloco", str(run), "--frames", "1",
+                 "--points", "64", "--seeds", "0", "--sampler", "ddim", "--steps", "2", "--even", "--out", str(out)]) == 0  # fmt: skip
+    assert json.loads((out / "quality.json").read_text())["settings"]["even"] is True
+    assert "evenly spread (`--even`" in (out / "quality.md").read_text()
 
 
 def test_bench_quality_prints_the_new_columns(run, tiny_dataset, tmp_path):

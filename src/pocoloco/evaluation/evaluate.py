@@ -410,7 +410,8 @@ def markdown_tables(result: EvalResult) -> str:
     n = len(result.frames)
     head.append(f"Data `{s['data']}`, split `{s['split']}`: {n} frames, {s['num_points']} points per cloud "
                 f"(GT subsampled to the same N), model samples: {len(s['seeds'])} seeds {s['seeds']} with "
-                f"{s['sampler']} ({s['steps'] or 'default'} steps), metrics averaged over seeds and frames.")  # fmt: skip
+                f"{s['sampler']} ({s['steps'] or 'default'} steps), metrics averaged over seeds and frames."
+                + (" Model points evenly spread (`--even`)." if s.get("even") else ""))  # fmt: skip
     head += ["", "Chamfer = S2M + M2S (unsquared, cm; PocoLoco Table 2). CD 1e-4 m^2 = POP convention (squared, "
              "point-to-plane M2S). normal = L1 of unit normals x10. >5cm / >10cm % = share of generated points farther "
              "than that from every GT point (mean; max = the worst cloud). loose % = share of points whose nearest GT point is "

@@ -308,7 +308,9 @@ def quality_markdown(report: dict[str, Any]) -> str:
     lines = ["# pocoloco bench quality", "",
              f"Data `{s['data']}`, split `{s['split']}`: the same {len(report['frames']['baselines'])} frames and GT "
              f"subsets ({s['num_points']} points) for every row. PocoLoco: mean over seeds {s['seeds']} "
-             f"({s['sampler']}); POP / CloSET are deterministic (one cloud per frame, diversity 0).", "",
+             f"({s['sampler']}); POP / CloSET are deterministic (one cloud per frame, diversity 0)."
+             + (" Model points evenly spread (`--even`; energy scores are then not comparable with those of random layouts)."
+                if s.get("even") else ""), "",
              "Chamfer = S2M + M2S (unsquared, cm); CD 1e-4 m^2 = POP convention (squared, point-to-plane M2S); "
              "normal = L1 of unit normals x10; >5cm / >10cm % = share of generated points farther than that from "
              "every GT point (mean; max = the worst cloud); loose % = share of points whose nearest GT point is garment; "
