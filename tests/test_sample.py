@@ -392,3 +392,23 @@ def test_implausible_skeletons_are_refused_unless_asked(tmp_path, capsys, make, 
     assert message in err and "--any-pose" in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "out").exists()
     assert cli_main([*argv, "--any-pose"]) == 0
+
+
+def test_even_pocoloco_is_the_farthest_point_subset_of_its_own_denser_samples(run, frame):
+    """``predict_clouds(..., even=True)`` for PocoLoco (no spots to spread: its points themselves):
+    each seed's cloud of ``even_candidates(N)`` samples (4 N up to 4,096 points, 2 N beyond) cut to
+    N by farthest-point sampling, against the plain-loop reference; any prefix is the reference's
+    prefix (farthest-point order)."""
+    from pocoloco.data.poses import Pose
+    from pocoloco.methods import SamplerOptions, load_method, predict_clouds
+    from pocoloco.ops.sampling import farthest_point_sampling_reference
+
+    method = load_method(run)
+    assert method.even_candidates(4096) == 4 * 4096 and method.even_candidates(4097) == 2 * 4097
+    pose = Pose(_joints(frame))
+    options = SamplerOptions(sampler="ddim", steps=2, even=True)
+    even = predict_clouds(method, pose, 20, (3, 4), None, options)
+    dense = method.predict(pose, 80, (3, 4), None, SamplerOptions(sampler="ddim", steps=2)).points
+    idx = farthest_point_sampling_reference(torch.from_numpy(dense), 20).numpy()
+    assert even.points.shape == (2, 20, 3)
+    np.testing.assert_array_equal(even.points, np.take_along_axis(dense, idx[:, :, None], axis=1))

@@ -223,7 +223,14 @@ class PocoLocoMethod(Method):
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         steps = options.steps if options.steps is not None else SAMPLER_STEPS[options.sampler]
         return {"preset": self.config.preset, "weights": self.weights, "sampler": options.sampler, "steps": steps,
-                "batch_size": options.batch_size, "clip": options.clip, "bf16": options.bf16}  # fmt: skip
+                "batch_size": options.batch_size, "clip": options.clip, "bf16": options.bf16,
+                **({"even_candidates": self.even_candidates(num_points)} if options.even else {})}  # fmt: skip
+
+    def even_candidates(self, num_points: int) -> int:
+        """4 N up to 4,096 points, 2 N beyond: farthest-point sampling keeps stray samples first, and
+        more candidates hold more of them (against the whole scan at 10K: 2 N -0.08 cm, 4 N +0.00, at
+        half the time; at 2,048: 4 N -0.37, 2 N -0.27; BENCHMARKS "Evenly spread clouds")."""
+        return (4 if num_points <= 4096 else 2) * int(num_points)
 
 
 class LoadedDenoiser(NamedTuple):
