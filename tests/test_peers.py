@@ -244,7 +244,7 @@ def test_even_cloud_is_the_farthest_point_subset_of_a_denser_draw(runs, test_fra
 
 
 def test_even_warns_when_farthest_point_sampling_will_be_slow(runs, test_frame, monkeypatch):
-    """Past SLOW_FPS_WORK kept x candidate points, on a CPU without fpsample: one warning saying so."""
+    """Past SLOW_FPS_WORK kept x candidate points, on a CPU: one warning saying so."""
     import warnings
 
     from pocoloco.methods import SamplerOptions, base, predict_clouds
@@ -252,7 +252,6 @@ def test_even_warns_when_farthest_point_sampling_will_be_slow(runs, test_frame, 
     spec, subject, path = test_frame
     loaded = load_method(runs["closet"])
     pose = pose_from_frame(path, subject, loaded.needs_mean_shape)
-    monkeypatch.setattr(base, "fpsample_available", lambda: False)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # below the threshold: silent
         predict_clouds(loaded, pose, 30, (0,), 0, SamplerOptions(even=True))

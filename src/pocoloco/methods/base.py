@@ -41,7 +41,7 @@ from pocoloco.data.poses import MeanShapeCache, Pose, outfit_of_spec
 from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.engine.checkpoint import Checkpoint, save_checkpoint
 from pocoloco.engine.trainer import TrainingTask
-from pocoloco.ops.sampling import farthest_point_sampling, fpsample_available
+from pocoloco.ops.sampling import farthest_point_sampling
 from pocoloco.utils.hardware import available_memory_bytes
 
 __all__ = ["MEMORY_SHARE", "AnimationPrior", "Method", "PointPrior", "SampledClouds", "SamplerOptions", "check_memory", "fit_to_memory", "predict_clouds"]
@@ -292,8 +292,8 @@ class Method(ABC):
 
 #: candidates per kept point of an evenly spread cloud (:meth:`Method.even_candidates`)
 EVEN_FACTOR = 4
-#: kept x candidate points beyond which the torch farthest-point loop on a CPU is worth a warning
-#: (10,000 of 40,000: ~4 s on one core here; 50,000 of 200,000: ~2 min)
+#: kept x candidate points beyond which farthest-point sampling on a CPU is worth a warning (10,000
+#: of 40,000: ~4 s on one core here, 1 s with fpsample; 50,000 of 200,000: ~2 min with either)
 SLOW_FPS_WORK = 1e9
 
 
@@ -315,9 +315,9 @@ def predict_clouds(method: Method, pose: Pose, num_points: int, seeds: Sequence[
     space = method.even_layout_points(pose, drawn, seeds)
     space = dense.points if space is None else np.broadcast_to(space, dense.points.shape)
     space_t = torch.from_numpy(np.array(space, np.float32)).to(method.device)  # a GPU runs the loop faster
-    if space_t.device.type == "cpu" and not fpsample_available() and num_points * drawn > SLOW_FPS_WORK:
+    if space_t.device.type == "cpu" and num_points * drawn > SLOW_FPS_WORK:
         warnings.warn(f"--even: farthest-point sampling of {num_points:,} of {drawn:,} points a cloud takes minutes on a "
-                      "CPU (~2 min for 50,000 of 200,000 on one core); pip install 'pocoloco[fps]' for a C++ one, ~4x faster")  # fmt: skip
+                      "CPU (~2 min for 50,000 of 200,000 on one core); --even is meant for a few thousand points")  # fmt: skip
     idx = farthest_point_sampling(space_t, num_points).cpu().numpy()  # (K, N)
 
     def keep(a: np.ndarray) -> np.ndarray:
