@@ -187,6 +187,19 @@ def test_hybrid_splits_points_by_region_and_hypotheses_differ_only_where_free(hy
             assert n_free == 0
 
 
+def test_even_keeps_the_hybrids_own_layout(hybrid, tiny_dataset):
+    """``--even`` on the hybrid: its own clouds (FPS of its points measured worse), said in its settings."""
+    from pocoloco.methods import predict_clouds
+
+    m = load_method(hybrid)
+    _, _, path = _frame(tiny_dataset, "skirt")
+    pose = m.pose_from_frame(path, "skirt")
+    o, options = m.outfit_id("skirt"), SamplerOptions(steps=2, even=True)
+    assert m.even_candidates(300) == 300 and "own layout" in m.sample_settings(options, 300)["even"]
+    np.testing.assert_array_equal(predict_clouds(m, pose, 300, (0, 1), o, options).points,
+                                  m.predict(pose, 300, (0, 1), o, SamplerOptions(steps=2)).points)  # fmt: skip
+
+
 def test_hybrid_through_the_cli_and_its_one_line_errors(hybrid, tiny_dataset, tiny_run, tmp_path, capsys):
     s, seq, path = _frame(tiny_dataset, "skirt")
     idx = int(read_frame(path, ["frame_index"]).frame_index)
