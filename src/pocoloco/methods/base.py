@@ -294,7 +294,7 @@ class Method(ABC):
 EVEN_FACTOR = 4
 #: kept x candidate points beyond which farthest-point sampling on a CPU is worth a warning (10,000
 #: of 40,000: ~4 s on one core here, 1 s with fpsample; 50,000 of 200,000: ~2 min with either)
-SLOW_FPS_WORK = 1e9
+SLOW_FPS_WORK = 5e9
 
 
 def predict_clouds(method: Method, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
@@ -316,8 +316,9 @@ def predict_clouds(method: Method, pose: Pose, num_points: int, seeds: Sequence[
     space = dense.points if space is None else np.broadcast_to(space, dense.points.shape)
     space_t = torch.from_numpy(np.array(space, np.float32)).to(method.device)  # a GPU runs the loop faster
     if space_t.device.type == "cpu" and num_points * drawn > SLOW_FPS_WORK:
-        warnings.warn(f"--even: farthest-point sampling of {num_points:,} of {drawn:,} points a cloud takes minutes on a "
-                      "CPU (~2 min for 50,000 of 200,000 on one core); --even is meant for a few thousand points")  # fmt: skip
+        warnings.warn(f"--even: farthest-point sampling of {num_points:,} of {drawn:,} points a cloud may take a minute "
+                      "or more on a CPU (~2 min for 50,000 of 200,000 on one core); --even is meant for a few thousand "
+                      "points")  # fmt: skip
     idx = farthest_point_sampling(space_t, num_points).cpu().numpy()  # (K, N)
 
     def keep(a: np.ndarray) -> np.ndarray:
