@@ -135,7 +135,7 @@ class POPMethod(SkinnedMethod):
         return new_id
 
     def sample_settings(self, options, num_points: int) -> dict[str, Any]:
-        if options.even and num_points <= len(self.model.query_points()):
+        if options.even and self.even_candidates(num_points) > num_points:  # what predict_clouds keeps by FPS
             return {"query_points": "every valid pixel of the training UV map, N of them kept by farthest-point sampling "
                                     "of their spots on the posed body"}  # fmt: skip
         return {"query_points": "N of the valid pixels of the UV query map (finer than the training map if needed, "
