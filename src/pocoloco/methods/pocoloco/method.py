@@ -228,8 +228,9 @@ class PocoLocoMethod(Method):
 
     def even_candidates(self, num_points: int) -> int:
         """4 N up to 4,096 points, 2 N beyond: farthest-point sampling keeps stray samples first, and
-        more candidates hold more of them (against the whole scan at 10K: 2 N -0.08 cm, 4 N +0.00, at
-        half the time; at 2,048: 4 N -0.37, 2 N -0.27; BENCHMARKS "Evenly spread clouds")."""
+        more candidates hold more of them (against the whole scan at 10K, test frames: 2 N -0.08 cm,
+        4 N +0.00, at half the time; held out 2 N +0.10; at 2,048: 4 N -0.37, 2 N -0.27; BENCHMARKS
+        "Evenly spread clouds")."""
         return (4 if num_points <= 4096 else 2) * int(num_points)
 
 
