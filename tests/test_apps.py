@@ -459,7 +459,7 @@ def test_cli_bad_inputs_one_line_and_nothing_written(run, seq, tmp_path, capsys)
     common = ["--ckpt", str(run), "--steps", "2", "--device", "cpu", "--out", str(tmp_path / "out")]
     j = str(tmp_path / "j.npy")
     cases = [
-        (["complete", "--partial", str(tmp_path / "empty.ply"), "--joints", j], "the scan is empty"),
+        (["complete", "--partial", str(tmp_path / "empty.ply"), "--joints", j], "the cloud is empty"),
         (["complete", "--partial", str(tmp_path / "nan.npy"), "--joints", j], "NaN or inf"),
         (["complete", "--partial", str(tmp_path / "mm.ply"), "--joints", j], "millimetres"),
         (["complete", "--partial", str(tmp_path / "far.ply"), "--joints", j], "m from the pose's root joint"),

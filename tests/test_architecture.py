@@ -25,7 +25,7 @@ SRC = ROOT / "src" / "pocoloco"
 #: ``synth`` extra (newton, warp, open3d at import time: the rest runs without it) and the anny
 #: adapter (``import pocoloco.body`` stays instant; anny parses its assets on first use)
 OPTIONAL_EXTRA_MODULES = {"pocoloco.synth.pipeline", "pocoloco.synth.cloth_sim", "pocoloco.synth.capture",
-                          "pocoloco.synth.sdf", "pocoloco.synth.garments", "pocoloco.synth.motion",
+                          "pocoloco.synth.sdf", "pocoloco.synth.garments", "pocoloco.synth.motion", "pocoloco.synth.aero",
                           "pocoloco.body.anny_body", "pocoloco.body"}  # fmt: skip
 MAX_LINES = 650
 REASON_MARK = "Why this module is long:"

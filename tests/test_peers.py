@@ -144,7 +144,8 @@ def test_checkpoint_kind_mismatch_is_one_line(runs, tiny_run, tiny_dataset, test
         load_denoiser(runs["closet"])
     # a CloSET checkpoint given to an app that needs a generative point model (the Method hook), and to POP's fit
     scan = tmp_path / "scan.ply"
-    write_ply(scan, np.zeros((300, 3), np.float32), normals=np.tile([0, 0, 1.0], (300, 1)).astype(np.float32))
+    write_ply(scan, np.random.default_rng(0).normal(size=(300, 3)).astype(np.float32) * 0.2,
+              normals=np.tile([0, 0, 1.0], (300, 1)).astype(np.float32))
     err = _one_line_error(capsys, main(["complete", "--ckpt", str(runs["closet"]), "--partial", str(scan), "--joints",
                                         "demo:skirt", "--out", str(tmp_path / "c")]))  # fmt: skip
     assert "CloSET cannot complete, edit or animate point clouds" in err

@@ -22,7 +22,7 @@ import torch
 
 from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.format import read_frame
-from pocoloco.data.published import read_ply
+from pocoloco.data.published import MAX_CLOUD_EXTENT_M, check_cloud, read_ply
 from pocoloco.diffusion.chains import chain_timesteps, renoise, repaint_resampling
 from pocoloco.diffusion.samplers import PerSampleRNG, sample
 from pocoloco.methods.base import PointPrior
@@ -30,7 +30,7 @@ from pocoloco.utils.atomic import atomic_write, no_file_reason, output_folder
 from pocoloco.utils.npfile import numpy_file_problem
 
 #: a scan whose bounding box is larger than this (metres) is taken to be in the wrong unit
-MAX_EXTENT_M = 5.0
+MAX_EXTENT_M = MAX_CLOUD_EXTENT_M
 #: a scan whose centroid is farther than this from the pose's root joint is refused
 MAX_ROOT_DISTANCE_M = 1.0
 
@@ -180,7 +180,13 @@ def check_scan(name: str, points: np.ndarray, joints: np.ndarray, root_joint: in
 
 
 def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (N, 3) and normals (N, 3) or None of a .ply, or of a dataset frame .npz / .npy (N, 3)."""
+    """Points (N, 3) and normals (N, 3) or None of a .ply, or of a dataset frame .npz / .npy (N, 3);
+    degenerate clouds are refused in one line (``data.published.check_cloud``)."""
+    points, normals = _read_cloud(path)
+    return check_cloud(os.fspath(path), points), normals
+
+
+def _read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
 
     src = os.fspath(path)
     if not os.path.isfile(src):

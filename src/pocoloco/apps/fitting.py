@@ -21,7 +21,7 @@ import numpy as np
 from pocoloco.apps.common import check_scan
 from pocoloco.data.format import read_card, read_frame
 from pocoloco.data.poses import dataset_frame_path
-from pocoloco.data.published import read_ply
+from pocoloco.data.published import check_cloud, read_ply
 from pocoloco.engine.checkpoint import META_FILE, latest_checkpoint
 from pocoloco.evaluation.metrics import evaluate_frame
 from pocoloco.methods import load_method
@@ -58,7 +58,7 @@ def _score(pred_points, pred_normals, scan, scan_n) -> dict[str, float]:
 def _read_scan(path: str | os.PathLike, need_normals: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(points, unit normals or None, per-point labels or None) of a scan PLY."""
     ply = read_ply(path, require_normals=need_normals)
-    scan, scan_n = ply.points, ply.normals
+    scan, scan_n = check_cloud(os.fspath(path), ply.points), ply.normals
     labels = None if ply.labels is None else np.asarray(ply.labels, np.int64)
     if len(scan) < MIN_SCAN_POINTS:
         raise ValueError(f"{path}: scan has {len(scan)} points; fitting needs at least {MIN_SCAN_POINTS}")

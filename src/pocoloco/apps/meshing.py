@@ -50,7 +50,7 @@ import numpy as np
 from pocoloco.apps.common import check_scan
 from pocoloco.body.anny_body import fit_body_to_cloud
 from pocoloco.body.skeleton import JOINT_PARENTS
-from pocoloco.data.published import read_ply, write_ply
+from pocoloco.data.published import check_cloud, read_ply, write_ply
 from pocoloco.viz.render import render_mesh, render_meshes
 
 __all__ = ["PoissonMesh", "MeshReport", "RefineReport", "estimate_normals", "skeleton_outward", "mesh_from_points",
@@ -389,6 +389,7 @@ def mesh_ply(
     if os.path.isdir(src):
         raise ValueError(f"{src}: is a folder, expected a .ply file")
     cloud = read_ply(src)
+    check_cloud(src, cloud.points)
     try:
         t0 = time.perf_counter()
         mesh = mesh_from_points(cloud.points, cloud.normals, depth=depth, density_quantile=density_quantile, **kwargs)
@@ -484,6 +485,7 @@ def refine_body_ply(src: str | os.PathLike, out: str | os.PathLike, joints: np.n
     if os.path.isdir(src):
         raise ValueError(f"{src}: is a folder, expected a .ply file")
     cloud = read_ply(src)
+    check_cloud(src, cloud.points)
     try:
         pts = check_scan("cloud", cloud.points, joints)
         if len(pts) < MIN_POINTS:

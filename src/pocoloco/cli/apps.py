@@ -38,7 +38,7 @@ from pocoloco.cli.common import (
     progress_bar,
 )
 from pocoloco.data.poses import load_joints, subject_of_spec
-from pocoloco.data.published import write_ply
+from pocoloco.data.published import CLOUD_CHECK_HELP, write_ply
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.methods import check_memory, checkpoint_kind
 from pocoloco.utils.atomic import jsonable, no_file_reason, write_json_atomic
@@ -58,7 +58,7 @@ MAX_CANDIDATES = 64
 
 def add_complete_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco complete`` options."""
-    parser.add_argument("--partial", required=True, help="partial scan: .ply (or a dataset frame .npz / (M, 3) .npy)")
+    parser.add_argument("--partial", required=True, help="partial scan: .ply (or a dataset frame .npz / (M, 3) .npy); " + CLOUD_CHECK_HELP)
     parser.add_argument("--joints", required=True, help="the scan's pose, as for `pocoloco sample --joints`")
     parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
     parser.add_argument("--points", type=int, default=4096, help="N points per completed cloud (default 4096)")
@@ -166,7 +166,7 @@ def cmd_complete(args: argparse.Namespace) -> None:
 # ------------------------------------------------------------------------------------ editing
 def add_edit_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco edit`` options."""
-    parser.add_argument("--source", required=True, help="source cloud: .ply (or a dataset frame .npz / (M, 3) .npy)")
+    parser.add_argument("--source", required=True, help="source cloud: .ply (or a dataset frame .npz / (M, 3) .npy); " + CLOUD_CHECK_HELP)
     parser.add_argument("--joints", required=True, help="TARGET pose, as for `pocoloco sample --joints`")
     parser.add_argument("--source-joints", help="the source's pose (same forms; needed by --mode region)")
     parser.add_argument("--mode", default="renoise", help="renoise (SDEdit) or region (inpaint the moving parts)")
@@ -364,7 +364,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                              "code to one or a few scans")  # fmt: skip
     parser.add_argument("--ckpt", required=True, help="trained POP or PocoLoco checkpoint / run folder")
     parser.add_argument("--scan", required=True, nargs="+",
-                        help="PLY(s) of the unseen outfit (world frame of the matching --frame; POP needs normals)")  # fmt: skip
+                        help="PLY(s) of the unseen outfit (world frame of the matching --frame; POP needs normals); "
+                             + CLOUD_CHECK_HELP)  # fmt: skip
     parser.add_argument("--frame", required=True, nargs="+",
                         help="DATASET:subject/split/sequence/index per --scan: the body and pose it was taken in")  # fmt: skip
     parser.add_argument("--name", help="name of the new outfit (default: the first scan file's stem)")
@@ -403,7 +404,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
 # ---------------------------------------------------------------------------------------- mesh
 def add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco mesh`` options."""
-    parser.add_argument("input", help="point cloud .ply (normals used when present, estimated otherwise)")
+    parser.add_argument("input", help="point cloud .ply (normals used when present, estimated otherwise); " + CLOUD_CHECK_HELP)
     parser.add_argument("--out", help="mesh .ply to write (default: INPUT_mesh.ply next to the input)")
     parser.add_argument("--depth", type=int, default=8, help="Poisson octree depth (default 8; +1 ~ 4x the faces)")
     parser.add_argument("--density-quantile", type=float, default=0.0,

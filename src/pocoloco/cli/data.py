@@ -15,6 +15,7 @@ from pathlib import Path
 from pocoloco.cli.common import console, progress_bar
 from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.synth.config import SYNTH_PRESETS, synth_preset
+from pocoloco.synth.fabric import DAMPING_MODELS
 from pocoloco.synth.distributed import BACKENDS, LaunchSettings, launch_synth
 from pocoloco.data.format import (
     FRAME_STORAGES,
@@ -27,7 +28,7 @@ from pocoloco.data.format import (
     verify_dataset,
 )
 from pocoloco.data.pack import pack_summary, write_pack
-from pocoloco.data.published import export_frame, import_loose_style
+from pocoloco.data.published import CLOUD_CHECK_HELP, export_frame, import_loose_style
 from pocoloco.viz.preview import preview_dataset
 
 __all__ = ["register"]
@@ -95,6 +96,8 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
             raise ValueError(f"--{k.replace('_', '-')} must be positive, got {v}")
     if args.frame_storage is not None:
         overrides["frame_storage"] = args.frame_storage
+    if args.cloth_damping is not None:
+        overrides["cloth_damping"] = args.cloth_damping
     config = dataclasses.replace(config, **overrides)
     out = Path(args.out or f"data/{args.preset}")
     workers = args.workers or 1
@@ -221,6 +224,7 @@ def print_card(card: dict, path: Path) -> None:
     cfg = card.get("generation_config", {})
     keys = ("train_sequences", "test_sequences", "heldout_sequences", "frames_per_sequence", "fps", "num_points", "capture_cameras", "seed")
     keys += ("frame_storage",) if "frame_storage" in cfg else ()
+    keys += ("cloth_damping",) if "cloth_damping" in cfg else ()
     con.print("config: " + ", ".join(f"{k}={cfg.get(k)}" for k in keys))
     norm = card.get("normalisation")
     if norm:
@@ -358,6 +362,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--frame-storage", choices=FRAME_STORAGES,
                    help="float32: exact, uncompressed frame files; compact: deflated, float16 normals and skinning "
                         "transforms, positions within 0.1 mm, ~37%% of the bytes (default: the preset's, float32)")  # fmt: skip
+    s.add_argument("--cloth-damping", choices=DAMPING_MODELS,
+                   help="none: data v1 / v2's cloth (no air, almost no damping); physical: air drag, the fabric's "
+                        "damping and cloth-skin friction (synth.fabric; does not yet bring the cloth to rest, "
+                        "README) (default: the preset's, none)")  # fmt: skip
     g = s.add_argument_group("shards (big datasets; README: Generating big datasets on a cluster)")
     g.add_argument("--shard", metavar="K/N",
                    help="generate only shard K of N (a fixed, cost-balanced share of the sequences) into --out; "
@@ -416,7 +424,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.set_defaults(func=cmd_data_export)
 
     s = data.add_parser("import", help="convert a LOOSE/DynaCap-style sequence (one .ply per frame + a joints text file)")
-    s.add_argument("ply_dir", help="folder with one .ply per frame (frame id = last integer in the file name)")
+    s.add_argument("ply_dir", help="folder with one .ply per frame (frame id = last integer in the file name); "
+                   + CLOUD_CHECK_HELP)
     s.add_argument("--joints", required=True, help="text file: per line a frame id then 3 x 24 floats")
     s.add_argument("--out", required=True, help="dataset folder (created or extended; left as it was if the import fails)")
     s.add_argument("--subject", required=True, help="subject name in the dataset")

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 
 from pocoloco.apps.meshing import estimate_normals, mesh_from_points
 from pocoloco.body.surface import write_uv_map
-from pocoloco.data.published import read_ply
+from pocoloco.data.published import CLOUD_CHECK_HELP, check_cloud, read_ply
 from pocoloco.engine.checkpoint import WEIGHTS_DTYPES, export_for_sampling, resolve_checkpoint
 from pocoloco.methods import load_method
 from pocoloco.viz.render import (
@@ -32,7 +33,7 @@ MAX_PANELS = 16
 
 def add_render_arguments(parser) -> None:
     """The ``pocoloco render`` options."""
-    parser.add_argument("input", help="a .ply (point cloud or mesh) or a folder of .ply files (one panel row each)")
+    parser.add_argument("input", help="a .ply (point cloud or mesh) or a folder of .ply files (one panel row each); " + CLOUD_CHECK_HELP)
     parser.add_argument("--out", required=True, help="PNG to write")
     parser.add_argument("--views", nargs="+", default=["front", "side", "back"],
                         help=f"views per input, from {', '.join(VIEWS)} (default front side back)")  # fmt: skip
@@ -56,6 +57,7 @@ def _read_for_render(path, max_points: int, need_normals: bool, as_mesh: bool, s
     n = len(ply.points)
     if n == 0:
         raise ValueError(f"{path}: has no points")
+    check_cloud(os.fspath(path), ply.points)
     item = {"points": ply.points, "labels": ply.labels, "normals": ply.normals, "faces": ply.faces}
     if as_mesh:
         if item["faces"] is None or len(item["faces"]) == 0:
@@ -132,7 +134,7 @@ def cmd_render(args) -> None:
 # ---------------------------------------------------------------------------------------- view
 def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco view`` options."""
-    parser.add_argument("result_dir", help="folder of .ply clouds (sample_000.ply ... or frame_0000.ply ...)")
+    parser.add_argument("result_dir", help="folder of .ply clouds (sample_000.ply ... or frame_0000.ply ...); " + CLOUD_CHECK_HELP)
     parser.add_argument("--out", help="HTML file to write (default: RESULT_DIR/viewer.html)")
     parser.add_argument("--max-points", type=int, default=20000,
                         help="subsample each cloud to at most this many points (default 20000)")  # fmt: skip

@@ -41,7 +41,7 @@ from . import format as fmt
 from .format import read_frame
 
 __all__ = [
-    "PlyData", "read_ply", "write_ply", "read_joints_txt", "write_joints_txt", "LooseFrame",
+    "PlyData", "read_ply", "write_ply", "check_cloud", "CLOUD_CHECK_HELP", "read_joints_txt", "write_joints_txt", "LooseFrame",
     "LooseStyleSequence", "import_loose_style", "POP_KEYS", "read_pop_npz", "write_pop_npz",
 ]  # fmt: skip
 
@@ -240,6 +240,51 @@ def _triangulate(path: str, lists: Any, num_vertices: int) -> np.ndarray:
     if tris.size and (tris.min() < 0 or tris.max() >= num_vertices):
         raise ValueError(f"{path}: face index out of range [0, {num_vertices})")
     return tris
+
+
+#: input clouds (``check_cloud``): fewer distinct points than this (0.1 mm apart) are refused
+MIN_DISTINCT_POINTS = 16
+#: a cloud whose bounding box is smaller than this along its longest side (metres) is refused
+MIN_CLOUD_EXTENT_M = 0.01
+#: a cloud whose points lie within this of a line (second-longest box side, metres) is refused
+MIN_CLOUD_WIDTH_M = 0.001
+#: a cloud whose bounding box is larger than this (metres) is taken to be in the wrong unit
+MAX_CLOUD_EXTENT_M = 5.0
+#: the thresholds, for the help of every command that reads a cloud
+CLOUD_CHECK_HELP = (f"input clouds need >= {MIN_DISTINCT_POINTS} distinct points, finite coordinates in metres, "
+                    f"a bounding box {MIN_CLOUD_EXTENT_M * 100:g} cm to {MAX_CLOUD_EXTENT_M:g} m across and not all "
+                    f"within {MIN_CLOUD_WIDTH_M * 1000:g} mm of a line")  # fmt: skip
+
+
+def check_cloud(name: str, points: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 points of an input cloud, or a one-line ValueError naming ``name`` and what is
+    wrong: not (N, 3), non-finite values, fewer than MIN_DISTINCT_POINTS distinct points (0.1 mm
+    grid), a bounding box under MIN_CLOUD_EXTENT_M (a point, a blob) or thinner than
+    MIN_CLOUD_WIDTH_M across its second side (a line), or larger than MAX_CLOUD_EXTENT_M (not in
+    metres). Every command that reads a cloud a user gives calls it before any model sees it."""
+    p = np.asarray(points)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name}: expected points of shape (N, 3), got {p.shape}")
+    if not np.isfinite(p).all():
+        bad = int((~np.isfinite(p).all(1)).sum())
+        raise ValueError(f"{name}: {bad} of {len(p)} points have NaN or inf coordinates")
+    if len(p) == 0:
+        raise ValueError(f"{name}: the cloud is empty (0 points)")
+    p = p.astype(np.float32)
+    distinct = len(np.unique(np.round(p.astype(np.float64) * 1e4), axis=0))
+    if distinct < MIN_DISTINCT_POINTS:
+        raise ValueError(f"{name}: degenerate cloud: {distinct} distinct point(s) of {len(p)} "
+                         f"(need at least {MIN_DISTINCT_POINTS})")  # fmt: skip
+    extent = np.sort(np.ptp(p.astype(np.float64), axis=0))[::-1]
+    if extent[0] < MIN_CLOUD_EXTENT_M:
+        raise ValueError(f"{name}: degenerate cloud: all {len(p)} points within {extent[0] * 1000:.3g} mm "
+                         f"(need a bounding box at least {MIN_CLOUD_EXTENT_M * 100:g} cm across)")  # fmt: skip
+    if extent[1] < MIN_CLOUD_WIDTH_M:
+        raise ValueError(f"{name}: degenerate cloud: all points within {extent[1] * 1000:.3g} mm of a line")
+    if extent[0] > MAX_CLOUD_EXTENT_M:
+        raise ValueError(f"{name}: the cloud is {extent[0]:.3g} units across, more than {MAX_CLOUD_EXTENT_M:g} m "
+                         "(not in metres? millimetres must be divided by 1000)")  # fmt: skip
+    return p
 
 
 def read_ply(path: str | os.PathLike, require_normals: bool = False) -> PlyData:
@@ -511,7 +556,7 @@ class LooseStyleSequence:
             normals = np.asarray(mesh.face_normals[face_idx], np.float32)
         else:
             raise ValueError(f"{path}: has no normals (nx, ny, nz) and no faces to compute them from")
-        return LooseFrame(int(self.frame_ids[i]), points, normals, self.joints[i], path)
+        return LooseFrame(int(self.frame_ids[i]), check_cloud(path, points), normals, self.joints[i], path)
 
 
 def import_loose_style(

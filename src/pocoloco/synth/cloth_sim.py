@@ -85,6 +85,9 @@ class ClothSimSettings:
     stretch/area stiffness and damping; edge_ke/edge_kd: bending.
     particle_radius, contact_margin: collision thickness and detection gap [m].
     contact_ke/kd/mu: cloth-body contact stiffness, damping, friction.
+    air_drag_normal, air_drag_tangential: drag coefficients (dimensionless) of the cloth's
+        motion through still air along its normal and along its plane (``synth.aero``);
+        0 = no air (data v1 / v2). ``synth.fabric`` gives physical values per fabric.
     self_contact: newton VBD cloth self-contact (vertex-triangle and edge-edge).
     self_contact_margin: distance [m] at which two cloth layers start to repel.
     self_contact_gap: extra detection reach [m]. VBD's divide-and-truncate bound
@@ -126,6 +129,8 @@ class ClothSimSettings:
     contact_ke: float = 3.0e4
     contact_kd: float = 1.0e-2
     contact_mu: float = 0.05
+    air_drag_normal: float = 0.0
+    air_drag_tangential: float = 0.0
     self_contact: bool = False
     self_contact_margin: float = 0.004
     self_contact_gap: float = 0.012
@@ -426,6 +431,12 @@ def simulate_garment(
         builder.add_shape_mesh(bid, mesh=body_mesh, cfg=cfg)
     builder.color()
     model = builder.finalize(device=device)
+    drag = None
+    if s.air_drag_normal > 0.0 or s.air_drag_tangential > 0.0:
+        from .aero import AirDrag
+
+        drag = AirDrag(garment.faces, model.particle_mass.numpy(), s.air_drag_normal, s.air_drag_tangential,
+                       1.0 / (s.fps * s.substeps), device)  # fmt: skip
     model.soft_contact_ke = s.contact_ke
     model.soft_contact_kd = s.contact_kd
     model.soft_contact_mu = s.contact_mu
@@ -471,6 +482,8 @@ def simulate_garment(
 
     def collide_and_step(a, b) -> None:
         """The substep's kernels: contacts of state a, then one solver step a -> b."""
+        if drag is not None:  # air drag first: an implicit velocity update (synth.aero)
+            drag.apply(a.particle_q, a.particle_qd)
         pipeline.collide(a, contacts)
         solvers[0].step(a, b, control, contacts, dt)
 
@@ -526,6 +539,8 @@ def simulate_garment(
             dv = frame_velocity[t] - frame_velocity[t - 1]
             if dv.any():  # the frame changes velocity: the cloth keeps its world velocity
                 state0.particle_qd.assign(state0.particle_qd.numpy() - dv.astype(np.float32))
+                if drag is not None:  # the still air moves at minus the frame's velocity
+                    drag.set_air_velocity(-frame_velocity[t])
             vel = (posed.vertices[t] - posed.vertices[t - 1]) / frame_dt if body_mesh is not None else None
             for k in range(s.substeps):
                 substep(t - 1, (k + 1) / s.substeps, vel)

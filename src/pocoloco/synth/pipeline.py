@@ -54,6 +54,7 @@ from ..utils.seeding import torch_threads
 from .capture import LABEL_GARMENT, LABEL_NAMES
 from .cloth_stats import merge_cloth_stats, summarise_cloth_stats
 from .config import SubjectSpec, SynthConfig, config_of_card
+from .fabric import fabric_for
 from ..data.format import (
     FRAME_STORAGES,
     DatasetLayout,
@@ -291,12 +292,16 @@ def _subject_assets(subject: SubjectSpec, config: SynthConfig):
     return _BODIES[key]
 
 
-def cloth_settings(config: SynthConfig):
-    """The cloth simulation settings of a run."""
+def cloth_settings(config: SynthConfig, garment_kind: str = "skirt"):
+    """The cloth simulation settings of a run for a garment of ``garment_kind``: the solver's, and the
+    dissipation of the garment's fabric under the run's damping model (``synth.fabric``)."""
     from .cloth_sim import ClothSimSettings
 
+    fabric = fabric_for(garment_kind, config.cloth_damping)
     return ClothSimSettings(fps=config.fps, substeps=config.cloth_substeps, iterations=config.cloth_iterations,
-                            self_contact=config.cloth_self_contact, frame=config.cloth_frame)  # fmt: skip
+                            self_contact=config.cloth_self_contact, frame=config.cloth_frame,
+                            tri_kd=fabric.membrane_damping, edge_kd=fabric.bend_damping, contact_mu=fabric.friction,
+                            air_drag_normal=fabric.drag_normal, air_drag_tangential=fabric.drag_tangential)  # fmt: skip
 
 
 def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
@@ -368,7 +373,8 @@ def _run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Ca
     cloth_vertices, cloth_stats = None, None
     if garment is not None:
         cloth_vertices, cloth_stats, timings["simulation"] = _simulate_cached(
-            body, garment, posed, seq_dir, start, cloth_settings(config), _subject_key(job.subject, config),
+            body, garment, posed, seq_dir, start, cloth_settings(config, job.subject.garment),
+            _subject_key(job.subject, config),
             config.self_intersection_every,
         )
 

@@ -157,7 +157,13 @@ def exclusive_lock(folder: str | os.PathLike, what: str, name: str = ".lock", sh
     naming the holder (``what``: the kind of work, for the message). ``shared``: a shared lock
     instead, which any number of shared holders may hold at once but no exclusive one (the shards
     of one dataset; each also locks its own shard exclusively). Where ``fcntl`` does not exist
-    (Windows) the block runs unlocked."""
+    (Windows) the block runs unlocked.
+
+    Nothing is left behind on any way out, a refusal included: a lock file this call created is
+    removed (while still locked; a shared holder removes it only when no other holder has it), a
+    folder it created is removed when nothing else was written into it; a lock file that was there
+    before stays. A holder that finds its lock file unlinked by the previous holder retries on the
+    new one, so two holders never lock two different files."""
     folder = Path(folder)
     created = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)
@@ -167,16 +173,32 @@ def exclusive_lock(folder: str | os.PathLike, what: str, name: str = ".lock", sh
     except ImportError:  # pragma: no cover - not POSIX
         yield path
         return
-    f = open(path, "a+", encoding="utf-8")  # noqa: SIM115 - closed below
-    locked = False
-    try:
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+            made = True
+        except FileExistsError:
+            try:
+                fd = os.open(path, os.O_RDWR)
+            except FileNotFoundError:  # removed by its last holder in between: try again
+                continue
+            made = False
+        f = os.fdopen(fd, "r+", encoding="utf-8")
         try:
             fcntl.flock(f.fileno(), (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except BlockingIOError:
             f.seek(0)
             holder = f.read().strip() or "another process"
+            f.close()
             raise ValueError(f"{folder}: in use by {holder}; wait for it to end or choose another folder") from None
-        locked = True
+        try:
+            same = os.fstat(f.fileno()).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        f.close()  # the file we locked was unlinked by its last holder: lock the current one
+    try:
         if not shared:  # the holder, for a refused second writer's message
             f.seek(0)
             f.truncate()
@@ -184,8 +206,18 @@ def exclusive_lock(folder: str | os.PathLike, what: str, name: str = ".lock", sh
             f.flush()
         yield path
     finally:
-        if locked and created and [p.name for p in folder.iterdir()] == [name]:
-            path.unlink()  # a run that failed before writing anything leaves no folder behind
-            with contextlib.suppress(OSError):
-                folder.rmdir()
-        f.close()  # releases the lock
+        try:
+            alone = True
+            if shared:  # the last shared holder removes it: none other holds it if we can take it alone
+                try:
+                    fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    alone = False
+            if (made or created) and alone:
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()  # removed while locked: a waiting holder sees the inode change
+            if created and alone:
+                with contextlib.suppress(OSError):
+                    folder.rmdir()  # a run that failed before writing anything leaves no folder behind
+        finally:
+            f.close()  # releases the lock

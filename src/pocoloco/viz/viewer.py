@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pocoloco.data.published import read_ply
+from pocoloco.data.published import check_cloud, read_ply
 from pocoloco.utils.atomic import write_text_atomic
 
 __all__ = ["ViewerCloud", "find_clouds", "load_clouds", "build_viewer_html", "write_viewer", "serve_file"]
@@ -76,6 +76,7 @@ def load_clouds(files: list[Path], max_points: int = 20000, seed: int = 0) -> li
         n = len(ply.points)
         if n == 0:
             raise ValueError(f"{path}: has no points")
+        check_cloud(os.fspath(path), ply.points)
         keep = slice(None)
         if n > max_points:
             keep = np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))

@@ -1,0 +1,90 @@
+"""Fabrics: what takes energy out of a garment's swing, with each value's physical meaning.
+
+Data v1 / v2 simulated cloth with almost nothing that dissipates energy: membrane
+damping 1e-5, no bending damping, no air, cloth-skin friction 0.05. A skirt's hem then
+swung at 30-40 cm/s seconds after the body stopped, so each frame's garment depended
+on an unbounded past. A real skirt loses its swing to three things, each modelled here:
+
+- **the air** (``synth.aero``): quadratic pressure drag along the cloth's normal and
+  skin-friction drag along its plane, relative to still air;
+- **the fabric's internal friction** in bending (the hysteresis of Kawabata's bending
+  test): a viscous damping of the dihedral angle's rate, newton VBD's ``edge_kd``;
+- **friction against the body**: the Coulomb coefficient of cloth on skin.
+
+``FABRICS`` holds the settings per fabric; ``GARMENT_FABRIC`` says which fabric each
+garment kind is made of; ``DAMPING_MODELS`` names the two ways a dataset can be
+simulated (``"physical"``, data v3; ``"none"``, v1 / v2's settings, for reproduction).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Fabric:
+    """The dissipative parameters of one fabric (SI units).
+
+    drag_normal: pressure-drag coefficient C_n of the sheet moving along its normal
+        (dimensionless). A flat plate broadside to the flow has C_d 1.1-1.3 (Hoerner,
+        *Fluid-Dynamic Drag*, 1965, ch. 3); a draped, curved garment less: 1.0.
+    drag_tangential: skin-friction coefficient C_t of the sheet moving in its own plane,
+        both faces together (dimensionless). A smooth flat plate at the Reynolds numbers of a
+        swinging hem (1e4-1e5) has C_f 0.005-0.013 per face (Blasius / Prandtl); a woven
+        surface is rougher: 0.02 for the two faces.
+    bend_damping: viscous damping of the bending angle, newton VBD's ``edge_kd`` (N m s per
+        rad^2 per m of edge: the damping force of an edge is ``-edge_kd * L * dtheta/dt``
+        along dtheta/dx). Its ratio to the bending stiffness ``edge_ke`` is a relaxation time
+        tau; the loss factor at angular frequency w is w tau. Woven fabrics lose a large
+        share of their bending energy per cycle (Kawabata's bending hysteresis 2HB is of the
+        order of the bending rigidity B times a curvature of 1/cm: a loss factor of order 0.5 at
+        the curvatures of a swinging skirt; Miguel et al., SCA 2013, measure and model it as
+        internal friction). At a hem's pendulum frequency (~0.7 Hz, w ~ 4.4 rad/s) a loss
+        factor of 0.5 is tau ~ 0.1 s.
+    membrane_damping: viscous damping of in-plane strain rate, newton VBD's ``tri_kd`` (Pa s m:
+        force ``-tri_kd * area * dC/dt`` on the Green strain's metric C). Cloth barely
+        stretches; a small value removes membrane jitter without slowing the swing.
+    friction: dynamic Coulomb coefficient of cloth sliding on the body. Cotton on skin
+        measures 0.25-0.79 across body regions (Temel et al., *Tribology Letters* 2022); the
+        low end, since a garment mostly slides over other clothing or hair: 0.3.
+    """
+
+    name: str
+    drag_normal: float
+    drag_tangential: float
+    bend_damping: float
+    membrane_damping: float
+    friction: float
+
+
+#: v1 / v2's settings: no air, almost no damping, slippery contact (for reproducing old data)
+UNDAMPED = Fabric("undamped", drag_normal=0.0, drag_tangential=0.0, bend_damping=0.0, membrane_damping=1.0e-5,
+                  friction=0.05)  # fmt: skip
+
+#: a light woven cotton (lawn, poplin, voile: 100-150 g/m^2, the data's 0.15 kg/m^2)
+COTTON = Fabric("cotton", drag_normal=1.0, drag_tangential=0.02, bend_damping=1.0e-4, membrane_damping=1.0e-2,
+                friction=0.3)  # fmt: skip
+
+FABRICS: dict[str, Fabric] = {f.name: f for f in (UNDAMPED, COTTON)}
+
+#: the fabric of each garment kind under the physical damping model
+GARMENT_FABRIC: dict[str, str] = {
+    "skirt": "cotton",
+    "maxi_skirt": "cotton",
+    "dress": "cotton",
+    "long_shirt": "cotton",
+    "sleeved_shirt": "cotton",
+    "wide_trousers": "cotton",
+}
+
+#: "physical": each garment's fabric (data v3); "none": v1 / v2's undamped cloth
+DAMPING_MODELS: tuple[str, ...] = ("physical", "none")
+
+
+def fabric_for(kind: str, damping: str) -> Fabric:
+    """The fabric a garment of ``kind`` is simulated with under damping model ``damping``."""
+    if damping not in DAMPING_MODELS:
+        raise ValueError(f"unknown cloth damping model {damping!r}; expected one of {DAMPING_MODELS}")
+    if damping == "none":
+        return UNDAMPED
+    return FABRICS[GARMENT_FABRIC.get(kind, "cotton")]
