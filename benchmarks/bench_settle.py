@@ -20,12 +20,13 @@ data v3, ``synth.fabric``). Reported per garment, model and motion:
 - ``seconds_per_frame``: the solver's wall-clock time per frame (1 thread per run).
 
     python benchmarks/bench_settle.py [--garments skirt ...] [--kinds spin walk kick run]
-        [--damping none physical] [--hold 4] [--workers 2] [--out benchmarks/results/settle.json]
+        [--damping none physical] [--set KEY=VALUE ...] [--workers 2] [--out benchmarks/results/settle.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import os
@@ -95,6 +96,8 @@ def run_one(job: dict) -> dict:
     rot, trans, arrive, start = history_then_rest(body, job["kind"], job["seed"], job["frames"], 12, hold, fps)
     posed = body.pose(rot, trans)
     settings = cloth_settings(config, subject.garment)
+    if job.get("set"):  # ClothSimSettings overrides (--set KEY=VALUE)
+        settings = dataclasses.replace(settings, **job["set"])
     t0 = time.perf_counter()
     seq = simulate_garment(body, garment, posed, settings)
     wall = time.perf_counter() - t0
@@ -166,11 +169,23 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=40, help="frames of motion before the blend (25 fps)")
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="override ClothSimSettings fields, e.g. iterations=15 tri_kd=1.0")
     ap.add_argument("--curves", action="store_true", help="keep each run's hem-speed curve in the JSON")
     ap.add_argument("--out", default="benchmarks/results/settle.json")
     args = ap.parse_args()
 
-    jobs = [{"garment": g, "damping": d, "kind": k, "seed": args.seed, "frames": args.frames}
+    from pocoloco.synth.cloth_sim import ClothSimSettings
+
+    fields = {f.name: f.type for f in dataclasses.fields(ClothSimSettings)}
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key not in fields or not value:
+            ap.error(f"--set {item}: expected KEY=VALUE with KEY a ClothSimSettings field")
+        default = getattr(ClothSimSettings(), key)
+        overrides[key] = value == "True" if isinstance(default, bool) else type(default)(value)
+    jobs = [{"garment": g, "damping": d, "kind": k, "seed": args.seed, "frames": args.frames, "set": overrides}
             for g in args.garments for d in args.damping for k in args.kinds]  # fmt: skip
     try:
         from tqdm import tqdm

@@ -121,7 +121,7 @@ def test_evaluate_rows_match_the_metrics(run, tiny_dataset):
     assert m["nearest_frame"]["pose_rms_cm"] > 0  # test poses are not in the training set
     text = markdown_tables(result)
     assert "| PocoLoco (this checkpoint) |" in text and "nearest training frame" in text
-    assert "ES cm" in text and "best-of-K Chamfer" in text and "S2M garment cm" in text and "F garment@2cm %" in text
+    assert "Chamfer ES (not proper) cm" in text and "best-of-K Chamfer" in text and "S2M garment cm" in text and "F garment@2cm %" in text
 
 
 def test_evaluate_scores_the_sample_set_and_the_garment(run, tiny_dataset):
@@ -177,7 +177,7 @@ def test_cli_writes_everything(run, tiny_dataset, tmp_path):
     assert doc["settings"]["num_points"] == 64 and len(doc["frames"]) == 1 and "model" in doc["means"]
     assert "Chamfer cm" in r.stdout
     # the new columns: printed, in eval.md, and in the per-frame rows (to compare two runs frame by frame)
-    for header in ("best-of-K Chamfer", "ES cm", "| K |", "S2M garment cm", "M2S rest cm", "F@1cm %", "F@2cm %",
+    for header in ("best-of-K Chamfer", "Chamfer ES (not proper) cm", "| K |", "S2M garment cm", "M2S rest cm", "F@1cm %", "F@2cm %",
                    "P@2cm %", "R@2cm %", "F garment@2cm %", "garment frames"):  # fmt: skip
         assert header in r.stdout and header in (out / "eval.md").read_text(), header
     frame = doc["frames"][0]["model"]
@@ -225,7 +225,7 @@ def test_bench_quality_prints_the_new_columns(run, tiny_dataset, tmp_path):
                 "--points", "64", "--seeds", "0", "1", "--sampler", "ddim", "--steps", "2", "--out", str(out))  # fmt: skip
     assert r.returncode == 0, r.stderr
     md = (out / "quality.md").read_text()
-    for header in ("best-of-K Chamfer", "ES cm", "| K |", "S2M garment cm", "S2M rest cm", "F@2cm %",
+    for header in ("best-of-K Chamfer", "Chamfer ES (not proper) cm", "| K |", "S2M garment cm", "S2M rest cm", "F@2cm %",
                    "F garment@1cm %", "garment frames"):  # fmt: skip
         assert header in r.stdout and header in md, header
     assert md.count("S2M garment cm") == 3  # all frames, skirt, tight

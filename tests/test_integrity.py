@@ -222,7 +222,7 @@ def _loose_folder(folder, ids=(3, 4, 7, 8), n=50, bad=None):
     folder.mkdir(parents=True)
     for i in ids:
         nrm = rng.normal(size=(n, 3))
-        write_ply(folder / f"scan_{i:04d}.ply", rng.normal(size=(n, 3)), nrm / np.linalg.norm(nrm, axis=1, keepdims=True))
+        write_ply(folder / f"scan_{i:04d}.ply", rng.normal(size=(n, 3)) * 0.3, nrm / np.linalg.norm(nrm, axis=1, keepdims=True))
     if bad is not None:
         path = folder / f"scan_{bad:04d}.ply"
         path.write_bytes(path.read_bytes()[:-40])

@@ -20,7 +20,7 @@ from pocoloco.data.published import (
 
 
 def _cloud(rng, n=40):
-    pts = rng.normal(size=(n, 3)).astype(np.float32)
+    pts = (rng.normal(size=(n, 3)) * 0.3).astype(np.float32)  # a body-sized cloud, metres
     nrm = rng.normal(size=(n, 3)).astype(np.float32)
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     return pts, nrm

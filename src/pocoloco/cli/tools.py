@@ -57,7 +57,8 @@ def _read_for_render(path, max_points: int, need_normals: bool, as_mesh: bool, s
     n = len(ply.points)
     if n == 0:
         raise ValueError(f"{path}: has no points")
-    check_cloud(os.fspath(path), ply.points)
+    if ply.faces is None or len(ply.faces) == 0:  # a mesh's vertices may be few (a tetrahedron renders)
+        check_cloud(os.fspath(path), ply.points)
     item = {"points": ply.points, "labels": ply.labels, "normals": ply.normals, "faces": ply.faces}
     if as_mesh:
         if item["faces"] is None or len(item["faces"]) == 0:

@@ -80,8 +80,8 @@ TABLE_COLUMNS = (
     ("s2m_cm", "S2M cm", "{:.2f}"),
     ("m2s_cm", "M2S cm", "{:.2f}"),
     ("best_of_k_chamfer_cm", "best-of-K Chamfer", "{:.2f}"),
-    ("energy_score_cm", "ES cm", "{:.2f}"),
-    ("energy_score_adj_cm", "ES adj. cm", "{:.2f}"),
+    ("energy_score_cm", "Chamfer ES (not proper) cm", "{:.2f}"),
+    ("energy_score_adj_cm", "Chamfer ES adj. (not proper) cm", "{:.2f}"),
     ("num_samples", "K", "{:.0f}"),
     ("pop_chamfer_e-4m2", "CD 1e-4 m^2", "{:.2f}"),
     ("normal_l1_e-1", "normal 1e-1", "{:.2f}"),
@@ -425,7 +425,9 @@ def markdown_tables(result: EvalResult) -> str:
 #: what the columns fair to a generative model mean (eval.md and quality.md)
 FAIR_NOTE = ("best-of-K Chamfer = the smallest Chamfer among the K samples of a frame (K = samples per frame: one per "
              "seed for a generative model, 1 for a deterministic model and the baselines). ES = energy score (Gneiting & "
-             "Raftery 2007) with d = Chamfer: mean Chamfer of the K samples to the scan minus half their mean pairwise "
+             "Raftery 2007) with d = Chamfer, which is NOT a proper score (Chamfer is not conditionally negative definite: "
+             "two 1-D forecasts beat the truth itself, pocoloco.evaluation.distribution.chamfer_energy_counterexamples; "
+             "the proper one is the energy score of a fixed embedding, pocoloco.evaluation.distribution): mean Chamfer of the K samples to the scan minus half their mean pairwise "
              "Chamfer, = Chamfer for K = 1. Mean Chamfer over samples charges a calibrated sampler an extra spread term that "
              "a regressor's conditional mean does not pay; ES subtracts it; lower is better. Between finite point sets the "
              "pairwise term also holds the point-resampling noise (the GT-resample Chamfer), which flatters a sampler: "

@@ -1,0 +1,106 @@
+"""The distribution judge's score (issue 40): the embedding energy score is proper, the Chamfer
+energy score is not (its counterexamples, reproduced), and the statistics against references."""
+
+import numpy as np
+import pytest
+
+from pocoloco.evaluation.distribution import (
+    canonical_frame,
+    chamfer_energy_counterexamples,
+    embed_cloud,
+    energy_distance,
+    energy_score,
+    expected_energy_score,
+    probe_points,
+)
+
+
+def test_chamfer_energy_score_prefers_a_wrong_forecast_to_the_truth():
+    squared, unsquared = chamfer_energy_counterexamples()
+    assert squared["perfect"] == 0.0 and squared["wrong"] == pytest.approx(-0.125)
+    assert unsquared["perfect"] == 0.0 and unsquared["wrong"] == pytest.approx(1.0 / 75.0 * -1.0, abs=1e-9)
+    # the same forecasts under the energy score of an embedding (unsigned distance at probes on a
+    # line): the truth wins, as a proper score must
+    probes = np.linspace(-1.0, 4.0, 41)
+    emb = lambda s: np.abs(probes[:, None] - np.asarray(s)[None]).min(1)  # noqa: E731
+    d = lambda a, b: float(np.linalg.norm(emb(a) - emb(b)))  # noqa: E731
+    for case in (squared, unsquared):
+        assert expected_energy_score([(1.0, case["truth"])], case["truth"], d) == 0.0
+        assert expected_energy_score(case["forecast"], case["truth"], d) > 0.01
+
+
+def _swung_cylinder(swing: np.ndarray, rng, n: int = 1024) -> np.ndarray:
+    """A 0.6 m cylinder hanging below the origin whose lower half is swung horizontally by
+    ``swing`` (2,) metres at the hem (linearly from mid-height): a toy skirt in one state."""
+    z = -rng.random(n) * 0.6
+    phi = rng.random(n) * 2 * np.pi
+    pts = np.stack([0.15 * np.cos(phi), 0.15 * np.sin(phi), z], 1)
+    w = np.clip((-z - 0.3) / 0.3, 0.0, 1.0)[:, None]
+    pts[:, :2] += w * swing[None]
+    return pts
+
+
+def test_the_embedding_energy_score_ranks_the_true_distribution_first():
+    rng = np.random.default_rng(0)
+    probes = probe_points(256, seed=0, box=((-0.45, 0.45), (-0.45, 0.45), (-0.7, 0.05)))
+
+    def draw(scale: float, count: int) -> np.ndarray:  # swings: direction uniform, amplitude U(0, 0.2) m
+        a = rng.random(count) * 0.2 * scale
+        t = rng.random(count) * 2 * np.pi
+        return np.stack([a * np.cos(t), a * np.sin(t)], 1)
+
+    def embed(swings):
+        return np.stack([embed_cloud(_swung_cylinder(s, rng), None, probes) for s in swings])
+
+    truths = embed(draw(1.0, 40))
+    forecasts = {
+        "truth": lambda: embed(draw(1.0, 12)),
+        "mean (point mass)": lambda: embed(np.zeros((1, 2))),
+        "over-dispersed": lambda: embed(draw(2.0, 12)),
+        "under-dispersed": lambda: embed(draw(0.4, 12)),
+    }
+    scores = {name: float(np.mean([energy_score(make(), y) for y in truths])) for name, make in forecasts.items()}
+    best = min(scores, key=scores.get)
+    assert best == "truth", scores
+    for name, s in scores.items():
+        if name != "truth":
+            assert s > scores["truth"] * 1.05, scores
+
+
+def test_energy_statistics_on_known_sets():
+    refs = np.array([[0.0, 0.0], [2.0, 0.0]])
+    point = np.array([[1.0, 0.0]])
+    st = energy_distance(point, refs)
+    assert st["to_refs"] == 1.0 and st["spread_samples"] == 0.0 and st["spread_refs"] == 2.0
+    assert st["energy_distance"] == 0.0 and st["energy_score"] == 1.0
+    same = energy_distance(refs, refs)  # spreads over distinct pairs; to_refs includes the zero self-pairs
+    assert same["to_refs"] == 1.0 and same["spread_samples"] == 2.0
+    # independent draws of one distribution: the unbiased energy distance is ~0; of two, clearly not
+    rng = np.random.default_rng(3)
+    a, b, c = rng.normal(size=(400, 5)), rng.normal(size=(400, 5)), rng.normal(size=(400, 5)) + 0.5
+    assert abs(energy_distance(a, b)["energy_distance"]) < 0.02
+    assert energy_distance(a, c)["energy_distance"] > 0.1
+    assert energy_score(point, refs[0]) == 1.0  # a point mass has no spread term
+    with pytest.raises(ValueError, match="features"):
+        energy_score(np.zeros((2, 3)), np.zeros(4))
+
+
+def test_embedding_lives_in_the_heading_frame():
+    rng = np.random.default_rng(1)
+    joints = rng.normal(size=(24, 3)) * 0.1
+    joints[1] = [0.1, 0.0, 0.0]  # left hip (+X)
+    joints[2] = [-0.1, 0.0, 0.0]
+    joints[0] = [0.0, 0.0, 0.0]
+    cloud = rng.normal(size=(500, 3)) * [0.2, 0.1, 0.5]
+    probes = probe_points(64)
+    base = embed_cloud(cloud, joints, probes)
+    # the same body and cloud turned about the vertical and moved: the same embedding
+    a = 0.7
+    rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    shift = np.array([1.0, -2.0, 0.3])
+    moved = embed_cloud(cloud @ rot.T + shift, joints @ rot.T + shift, probes)
+    np.testing.assert_allclose(moved, base, atol=1e-9)
+    root, r = canonical_frame(joints)
+    np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
+    with pytest.raises(ValueError, match="shape"):
+        embed_cloud(np.zeros((0, 3)), None, probes)
