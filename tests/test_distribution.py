@@ -104,3 +104,31 @@ def test_embedding_lives_in_the_heading_frame():
     np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
     with pytest.raises(ValueError, match="shape"):
         embed_cloud(np.zeros((0, 3)), None, probes)
+
+
+def test_pose_statistics_tell_a_sampler_from_a_regressor():
+    from pocoloco.evaluation.distribution import pose_statistics, truth_rows
+
+    rng = np.random.default_rng(5)
+    probes = probe_points(128, seed=0, box=((-0.45, 0.45), (-0.45, 0.45), (-0.7, 0.05)))
+
+    def states(count, scale=1.0):
+        a = 0.1 + rng.random(count) * 0.1 * scale
+        t = rng.random(count) * 2 * np.pi
+        return [_swung_cylinder(np.array([x * np.cos(y), x * np.sin(y)]), rng, n=512) for x, y in zip(a, t)]
+
+    refs = states(8)
+    sampler = pose_statistics(states(8), refs, None, probes)
+    regressor = pose_statistics([_swung_cylinder(np.zeros(2), rng, n=512)], refs, None, probes)
+    assert sampler["energy_score"] < regressor["energy_score"]
+    assert regressor["spread_samples"] == 0.0 and np.isnan(regressor["nna_samples"])
+    assert regressor["cov"] == pytest.approx(1 / 8) and sampler["cov"] > 2 / 8
+    assert regressor["nna_refs"] >= 0.5  # most true states' nearest other cloud is a true state
+    assert 0.0 <= sampler["nna_refs"] <= 1.0 and 0.0 <= sampler["nna_samples"] <= 1.0
+    assert sampler["spread_refs"] == regressor["spread_refs"] > 0
+    assert sampler["mmd"] < regressor["mmd"]  # every true state has a sample near it
+    oracle = truth_rows(refs, None, probes)
+    assert oracle["truth_loo"]["energy_score"] < regressor["energy_score"]
+    assert 0 <= oracle["refs_medoid"]["medoid"] < 8 and oracle["refs_medoid"]["spread_samples"] == 0.0
+    with pytest.raises(ValueError, match=">= 2 true states"):
+        pose_statistics(refs[:1], refs[:1], None, probes)

@@ -28,6 +28,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .metrics import chamfer_cm
+
 #: the probe box around the pelvis in the heading frame (metres): x left, y back, z up
 PROBE_BOX = ((-0.55, 0.55), (-0.55, 0.55), (-1.05, 0.85))
 
@@ -113,6 +115,74 @@ def energy_distance(samples: np.ndarray, refs: np.ndarray) -> dict[str, float]:
         "spread_refs": spread_r,
         "energy_distance": 2.0 * to_refs - spread_s - spread_r,
         "energy_score": to_refs - 0.5 * spread_s,
+    }
+
+
+# ---------------------------------------------------------------------- one pose, many states
+def _chamfer_matrix(a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> np.ndarray:
+    """(len(a), len(b)) Chamfer distances [cm] (``metrics.chamfer_cm``: S2M + M2S)."""
+    return np.array([[chamfer_cm(x, y) for y in b] for x in a], np.float64).reshape(len(a), len(b))
+
+
+def nearest_neighbour_accuracy(d_ss: np.ndarray, d_rr: np.ndarray, d_sr: np.ndarray) -> tuple[float, float]:
+    """Leave-one-out 1-NN accuracy of telling samples from references (Lopez-Paz & Oquab 2017; as
+    1-NNA in point-cloud generation, Yang et al. 2019), its two halves apart: ``nna_refs`` = share
+    of references whose nearest other cloud is a reference, ``nna_samples`` likewise for samples
+    (NaN with one sample: it has no other sample). 0.5 each is indistinguishable; a model whose
+    samples all sit apart from the truth scores 1.0 on both. d_ss (M, M), d_rr (K, K), d_sr (M, K)."""
+    m, k = len(d_ss), len(d_rr)
+    inf = np.inf
+    nna_samples = float("nan")
+    if m >= 2:
+        own = d_ss + np.diag(np.full(m, inf))
+        nna_samples = float(np.mean(own.min(1) < d_sr.min(1)))
+    own_r = d_rr + np.diag(np.full(k, inf))
+    nna_refs = float(np.mean(own_r.min(1) < d_sr.min(0))) if k >= 2 else float("nan")
+    return nna_refs, nna_samples
+
+
+def pose_statistics(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], joints: np.ndarray | None,
+                    probes: np.ndarray, chamfer: bool = True) -> dict[str, float]:  # fmt: skip
+    """Every statistic of the distribution judge for one pose: M forecast clouds against K true
+    states (clouds (N, 3) in metres; every cloud at the same point count). Embedding statistics
+    (:func:`energy_distance`, metres) and, with ``chamfer``, the Chamfer ones (cm):
+    ``chamfer_to_refs`` (mean over sample-reference pairs), ``cov`` (share of references that are
+    some sample's nearest reference), ``mmd`` (mean over references of the nearest sample's
+    Chamfer), ``nna_refs`` / ``nna_samples`` (:func:`nearest_neighbour_accuracy`)."""
+    if len(samples) < 1 or len(refs) < 2:
+        raise ValueError(f"need >= 1 sample and >= 2 true states, got {len(samples)} and {len(refs)}")
+    es = np.stack([embed_cloud(x, joints, probes) for x in samples])
+    er = np.stack([embed_cloud(y, joints, probes) for y in refs])
+    out = energy_distance(es, er)
+    out["num_samples"], out["num_refs"] = float(len(samples)), float(len(refs))
+    if chamfer:
+        d_sr = _chamfer_matrix(samples, refs)
+        d_ss = _chamfer_matrix(samples, samples)
+        d_rr = _chamfer_matrix(refs, refs)
+        out["chamfer_to_refs"] = float(d_sr.mean())
+        out["cov"] = float(len(set(d_sr.argmin(1).tolist())) / len(refs))
+        out["mmd"] = float(d_sr.min(0).mean())
+        out["nna_refs"], out["nna_samples"] = nearest_neighbour_accuracy(d_ss, d_rr, d_sr)
+    return out
+
+
+def truth_rows(refs: Sequence[np.ndarray], joints: np.ndarray | None, probes: np.ndarray) -> dict[str, dict]:
+    """The two oracle rows of a pose's true states (K >= 3): ``truth_loo``, a perfect sampler (each
+    true state in turn is the outcome and the other K - 1 are the forecast's samples; statistics
+    averaged over the K), and ``refs_medoid``, the best single guess an oracle could make (the true
+    state with the smallest summed embedding distance to the others, as a point mass scored against
+    the other K - 1)."""
+    k = len(refs)
+    if k < 3:
+        raise ValueError(f"the oracle rows need >= 3 true states, got {k}")
+    er = np.stack([embed_cloud(y, joints, probes) for y in refs])
+    loo = [energy_distance(np.delete(er, i, 0), er[i : i + 1]) for i in range(k)]
+    d = np.linalg.norm(er[:, None] - er[None], axis=-1)
+    medoid = int(d.sum(1).argmin())
+    rest = np.delete(er, medoid, 0)
+    return {
+        "truth_loo": {key: float(np.mean([r[key] for r in loo])) for key in loo[0]},
+        "refs_medoid": {**energy_distance(er[medoid : medoid + 1], rest), "medoid": float(medoid)},
     }
 
 
