@@ -9,7 +9,15 @@ iterations the energy *grows* (the block Gauss-Seidel sweeps start from the iner
 prediction and stop long before the sheet's tension has crossed it), which is why no
 physical damping brings the data's skirts to rest (benchmarks/bench_settle.py).
 
+A cleaner repro, ``--tube``: a 0.5 m tube of the same fabric (radius 0.15 m, 48 x 24 vertices,
+the top ring pinned) hangs in free space from rest, no kick, no body, no air: it should hang
+still. Reported for variants of the solve (graph colouring that includes the bending
+neighbours, colour order reversed every substep (symmetric Gauss-Seidel), no bending, more
+iterations): the bottom ring's mean speed, its mean tangential speed (a spin about the axis),
+the centroid's swing and the radial flapping after ``--frames`` frames.
+
     python benchmarks/experiments/vbd_energy.py [--iterations 5 20 100] [--frames 100] [--out ...]
+    python benchmarks/experiments/vbd_energy.py --tube [--frames 250] [--out ...]
 """
 
 from __future__ import annotations
@@ -68,13 +76,94 @@ def hanging_sheet(iterations: int, substeps: int, frames: int, n: int = 24, size
             "energy_mJ": energy, "bottom_speed_cm_s": speed}  # fmt: skip
 
 
+TUBE_VARIANTS = {
+    "as the pipeline (5 iterations)": {},
+    "colouring includes bending": {"bend_colour": True},
+    "colour order reversed every substep": {"symmetric": True},
+    "both": {"bend_colour": True, "symmetric": True},
+    "no bending (edge_ke 0)": {"edge_ke": 0.0},
+    "20 iterations": {"iterations": 20},
+    "20 iterations, bending colouring": {"iterations": 20, "bend_colour": True},
+}
+
+
+def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: float = 1e-3, bend_colour: bool = False,
+                 symmetric: bool = False, around: int = 48, rows: int = 24) -> dict:  # fmt: skip
+    """A tube pinned at its top ring hanging from rest: bottom-ring speed over time and, at the end,
+    its spin (mean tangential speed), radial flapping and the centroid's offset / speed (cm, cm/s)."""
+    from pocoloco.body.anny_body import quiet_warp
+
+    quiet_warp()
+    import warp as wp
+
+    import newton
+
+    b = newton.ModelBuilder()
+    verts = []
+    for i in range(rows):
+        z = -0.5 * i / (rows - 1)
+        for j in range(around):
+            t = 2 * np.pi * j / around
+            verts.append(wp.vec3(0.15 * np.cos(t), 0.15 * np.sin(t), z))
+    faces = []
+    for i in range(rows - 1):
+        for j in range(around):
+            a, c = i * around + j, (i + 1) * around + j
+            bb, d = i * around + (j + 1) % around, (i + 1) * around + (j + 1) % around
+            faces += [a, bb, c, bb, d, c]
+    b.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
+                     vertices=verts, indices=faces, density=0.15, tri_ke=1e4, tri_ka=1e4, tri_kd=1e-5,
+                     edge_ke=edge_ke, edge_kd=0.0, particle_radius=0.004)  # fmt: skip
+    for j in range(around):
+        b.particle_mass[j] = 0.0
+    b.color(include_bending=bend_colour)
+    model = b.finalize(device="cpu")
+    solver = newton.solvers.SolverVBD(model, iterations=iterations)
+    s0, s1, control = model.state(), model.state(), model.control()
+    dt = 1.0 / 25.0 / substeps
+    speed = []
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        for _ in range(substeps):
+            solver.step(s0, s1, control, None, dt)
+            s0, s1 = s1, s0
+            if symmetric:  # the next substep sweeps the colours in the reverse order
+                n = len(model.particle_color_groups)
+                model.particle_color_groups.reverse()
+                model.particle_colors.assign((n - 1 - model.particle_colors.numpy()).astype(np.int32))
+        speed.append(float(np.linalg.norm(s0.particle_qd.numpy()[-around:], axis=1).mean() * 100))
+    q, v = s0.particle_q.numpy()[-around:], s0.particle_qd.numpy()[-around:]
+    radial = q[:, :2] / np.linalg.norm(q[:, :2], axis=1, keepdims=True)
+    tangent = np.stack([-radial[:, 1], radial[:, 0]], 1)
+    return {"seconds": time.perf_counter() - t0, "bottom_speed_cm_s": speed,
+            "spin_cm_s": float(abs((v[:, :2] * tangent).sum(1).mean()) * 100),
+            "radial_flap_cm_s": float(np.abs((v[:, :2] * radial).sum(1)).mean() * 100),
+            "centroid_offset_cm": float(np.linalg.norm(q[:, :2].mean(0)) * 100),
+            "centroid_speed_cm_s": float(np.linalg.norm(v.mean(0)) * 100)}  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--iterations", type=int, nargs="+", default=[5, 20, 100])
     ap.add_argument("--substeps", type=int, default=7)
     ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--tube", action="store_true", help="the hanging tube and its solver variants instead")
     ap.add_argument("--out", default="benchmarks/results/vbd_energy.json")
     args = ap.parse_args()
+    if args.tube:
+        rows = {name: hanging_tube(args.frames, **kw) for name, kw in TUBE_VARIANTS.items()}
+        print(f"{'variant':38s} {'bottom cm/s: 1 s':>16s} {'end':>6s} {'spin':>6s} {'flap':>6s} {'swing cm':>8s} {'s':>6s}")
+        for name, r in rows.items():
+            sp = r["bottom_speed_cm_s"]
+            print(f"{name:38s} {sp[min(24, len(sp) - 1)]:16.1f} {sp[-1]:6.1f} {r['spin_cm_s']:6.1f} "
+                  f"{r['radial_flap_cm_s']:6.1f} {r['centroid_offset_cm']:8.1f} {r['seconds']:6.1f}")  # fmt: skip
+            r["bottom_speed_cm_s"] = [round(x, 2) for x in sp[::25]]
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"command": f"python benchmarks/experiments/vbd_energy.py --tube --frames {args.frames}",
+                                   "every": 25, "variants": rows}, indent=1))  # fmt: skip
+        print(f"wrote {out}")
+        return
     runs = [hanging_sheet(it, args.substeps, args.frames) for it in args.iterations]
     print(f"{'iterations':>10s} {'E(0) mJ':>8s} {'E(end) mJ':>9s} {'E max':>8s} {'gain mJ':>8s} {'speed end':>9s} {'s':>7s}")
     for r in runs:
