@@ -88,6 +88,10 @@ class ClothSimSettings:
     air_drag_normal, air_drag_tangential: drag coefficients (dimensionless) of the cloth's
         motion through still air along its normal and along its plane (``synth.aero``);
         0 = no air (data v1 / v2). ``synth.fabric`` gives physical values per fabric.
+    color_bending: colour the VBD graph with the bending neighbours too (newton's
+        ``ModelBuilder.color(include_bending=True)``); without it (data v1 / v2) vertices that share
+        a bending element are updated in the same parallel pass, which feeds energy into hanging
+        cloth (benchmarks/experiments/vbd_energy.py --tube).
     self_contact: newton VBD cloth self-contact (vertex-triangle and edge-edge).
     self_contact_margin: distance [m] at which two cloth layers start to repel.
     self_contact_gap: extra detection reach [m]. VBD's divide-and-truncate bound
@@ -131,6 +135,7 @@ class ClothSimSettings:
     contact_mu: float = 0.05
     air_drag_normal: float = 0.0
     air_drag_tangential: float = 0.0
+    color_bending: bool = False
     self_contact: bool = False
     self_contact_margin: float = 0.004
     self_contact_gap: float = 0.012
@@ -429,7 +434,7 @@ def simulate_garment(
         body_mesh = newton.Mesh(posed.vertices[0] - root0, body.faces.reshape(-1), compute_inertia=False)
         bid = builder.add_body(xform=wp.transform(wp.vec3(*root0), wp.quat_identity()), mass=0.0, is_kinematic=True)
         builder.add_shape_mesh(bid, mesh=body_mesh, cfg=cfg)
-    builder.color()
+    builder.color(include_bending=s.color_bending)
     model = builder.finalize(device=device)
     drag = None
     if s.air_drag_normal > 0.0 or s.air_drag_tangential > 0.0:
