@@ -87,7 +87,7 @@ def run_one(job: dict) -> dict:
     from pocoloco.synth.pipeline import cloth_settings
 
     subject = next(s for s in MEDIUM_SUBJECTS if s.name == SUBJECT_OF_KIND[job["garment"]])
-    config = SynthConfig(cloth_damping=job["damping"])
+    config = SynthConfig(cloth_damping=job["damping"], garment_tessellation=job.get("tessellation", "isotropic"))
     body = AnnyBody(subject.phenotype)
     garment = make_garment(subject.garment, body, resolution=config.garment_resolution,
                            tessellation=config.garment_tessellation, **subject.garment_params)  # fmt: skip
@@ -169,6 +169,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=40, help="frames of motion before the blend (25 fps)")
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    ap.add_argument("--tessellation", default="isotropic", help="garment tessellation (garments.TESSELLATIONS)")
     ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
                     help="override ClothSimSettings fields, e.g. iterations=15 tri_kd=1.0")
     ap.add_argument("--curves", action="store_true", help="keep each run's hem-speed curve in the JSON")
@@ -185,7 +186,8 @@ def main() -> None:
             ap.error(f"--set {item}: expected KEY=VALUE with KEY a ClothSimSettings field")
         default = getattr(ClothSimSettings(), key)
         overrides[key] = value == "True" if isinstance(default, bool) else type(default)(value)
-    jobs = [{"garment": g, "damping": d, "kind": k, "seed": args.seed, "frames": args.frames, "set": overrides}
+    jobs = [{"garment": g, "damping": d, "kind": k, "seed": args.seed, "frames": args.frames, "set": overrides,
+             "tessellation": args.tessellation}
             for g in args.garments for d in args.damping for k in args.kinds]  # fmt: skip
     try:
         from tqdm import tqdm

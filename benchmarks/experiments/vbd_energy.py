@@ -84,11 +84,14 @@ TUBE_VARIANTS = {
     "no bending (edge_ke 0)": {"edge_ke": 0.0},
     "20 iterations": {"iterations": 20},
     "20 iterations, bending colouring": {"iterations": 20, "bend_colour": True},
+    "diagonals alternating (achiral)": {"achiral": True},
+    "achiral, bending colouring": {"achiral": True, "bend_colour": True},
 }
 
 
 def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: float = 1e-3, bend_colour: bool = False,
-                 symmetric: bool = False, around: int = 48, rows: int = 24) -> dict:  # fmt: skip
+                 symmetric: bool = False, achiral: bool = False, around: int = 48,
+                 rows: int = 24) -> dict:  # fmt: skip
     """A tube pinned at its top ring hanging from rest: bottom-ring speed over time and, at the end,
     its spin (mean tangential speed), radial flapping and the centroid's offset / speed (cm, cm/s)."""
     from pocoloco.body.anny_body import quiet_warp
@@ -110,7 +113,10 @@ def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: f
         for j in range(around):
             a, c = i * around + j, (i + 1) * around + j
             bb, d = i * around + (j + 1) % around, (i + 1) * around + (j + 1) % around
-            faces += [a, bb, c, bb, d, c]
+            if achiral and (i + j) % 2:  # checkerboard of diagonals: no handedness
+                faces += [a, bb, d, a, d, c]
+            else:
+                faces += [a, bb, c, bb, d, c]
     b.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
                      vertices=verts, indices=faces, density=0.15, tri_ke=1e4, tri_ka=1e4, tri_kd=1e-5,
                      edge_ke=edge_ke, edge_kd=0.0, particle_radius=0.004)  # fmt: skip
@@ -148,10 +154,12 @@ def main() -> None:
     ap.add_argument("--substeps", type=int, default=7)
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--tube", action="store_true", help="the hanging tube and its solver variants instead")
+    ap.add_argument("--variants", nargs="+", help="--tube: only these variants (names of TUBE_VARIANTS)")
     ap.add_argument("--out", default="benchmarks/results/vbd_energy.json")
     args = ap.parse_args()
     if args.tube:
-        rows = {name: hanging_tube(args.frames, **kw) for name, kw in TUBE_VARIANTS.items()}
+        chosen = args.variants or list(TUBE_VARIANTS)
+        rows = {name: hanging_tube(args.frames, **TUBE_VARIANTS[name]) for name in chosen}
         print(f"{'variant':38s} {'bottom cm/s: 1 s':>16s} {'end':>6s} {'spin':>6s} {'flap':>6s} {'swing cm':>8s} {'s':>6s}")
         for name, r in rows.items():
             sp = r["bottom_speed_cm_s"]

@@ -352,12 +352,22 @@ def _ring_count(circumference: float, e: float, multiple: int = 4, minimum: int 
 
 
 class _MeshBuilder:
-    """Accumulates vertices and triangles of a garment."""
+    """Accumulates vertices and triangles of a garment.
+
+    ``achiral`` (class default, set by ``make_garment(tessellation="isotropic_achiral")``): every
+    other loft zips its rings in the opposite direction and open grids alternate their diagonals,
+    so the mesh has no handedness. A chiral mesh (every zipper turning the same way) couples
+    stretch to twist, and newton's VBD feeds energy into that twist: a tube hanging still reaches
+    195 cm/s at its hem in 10 s, the same tube with alternating diagonals 1.8
+    (benchmarks/experiments/vbd_energy.py --tube)."""
+
+    achiral = False
 
     def __init__(self):
         self.verts: list[np.ndarray] = []
         self.faces: list[np.ndarray] = []
         self.count = 0
+        self.lofts = 0
 
     def add(self, pts: np.ndarray) -> np.ndarray:
         """Append points (..., 3); returns their indices with the same leading shape."""
@@ -373,6 +383,10 @@ class _MeshBuilder:
         ua, ub = np.unwrap(pa), np.unwrap(pb)
         if not (np.all(np.diff(ua) > 0) and np.all(np.diff(ub) > 0)):
             raise AssertionError("loft: ring parameters are not monotonic")
+        self.lofts += 1
+        if self.achiral and self.lofts % 2 == 0:  # zip this pair of rings the other way round
+            a, b = np.asarray(a)[::-1], np.asarray(b)[::-1]
+            ua, ub = -ua[::-1], -ub[::-1]
         # start both rings at the same angle (the first vertex of ring a)
         a0 = ua[0]
         ta = (ua - a0) % (2 * np.pi)
@@ -397,8 +411,14 @@ class _MeshBuilder:
         """Triangles of an open grid of vertex indices (R, W) (rows and columns both open)."""
         a, b = idx[:-1, :-1], idx[:-1, 1:]
         d, e = idx[1:, :-1], idx[1:, 1:]
-        t1 = np.stack([a, d, b], -1).reshape(-1, 3)
-        t2 = np.stack([b, d, e], -1).reshape(-1, 3)
+        if self.achiral:  # a checkerboard of diagonals
+            r, c = np.meshgrid(np.arange(a.shape[0]), np.arange(a.shape[1]), indexing="ij")
+            flip = ((r + c) % 2).astype(bool)[..., None]
+            t1 = np.where(flip, np.stack([a, d, e], -1), np.stack([a, d, b], -1)).reshape(-1, 3)
+            t2 = np.where(flip, np.stack([a, e, b], -1), np.stack([b, d, e], -1)).reshape(-1, 3)
+        else:
+            t1 = np.stack([a, d, b], -1).reshape(-1, 3)
+            t2 = np.stack([b, d, e], -1).reshape(-1, 3)
         self.faces.append(np.concatenate([t1, t2]).astype(np.int64))
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
@@ -1216,7 +1236,7 @@ _ISOTROPIC: dict[str, Callable] = {
 }
 
 #: ``make_garment(tessellation=...)`` values
-TESSELLATIONS: tuple[str, ...] = ("grid", "isotropic")
+TESSELLATIONS: tuple[str, ...] = ("grid", "isotropic", "isotropic_achiral")
 
 
 def garment_parameters(kind: str) -> dict[str, float]:
@@ -1266,9 +1286,13 @@ def make_garment(kind: str, body: AnnyBody, resolution: float = 1.0, *, tessella
         if not isinstance(v, (int, float)) or isinstance(v, bool) or not np.isfinite(v):
             raise ValueError(f"bad parameters for garment {kind!r}: {k} must be a finite number, got {v!r}")
     full = {**known, **params}
-    if kind in TUBE_KINDS and tessellation == "isotropic":
-        garment = _ISOTROPIC[kind](body, resolution, **full)
-    else:
-        garment = _BUILDERS[kind](body, resolution, **params)
+    _MeshBuilder.achiral = tessellation == "isotropic_achiral"
+    try:
+        if kind in TUBE_KINDS and tessellation != "grid":
+            garment = _ISOTROPIC[kind](body, resolution, **full)
+        else:
+            garment = _BUILDERS[kind](body, resolution, **params)
+    finally:
+        _MeshBuilder.achiral = False
     garment.params = full
     return garment
