@@ -287,16 +287,37 @@ def test_every_kind_simulates_stably_without_sinking_into_the_body(body):
         assert seq.vertices[-1, free, 2].mean() < seq.vertices[0, free, 2].mean() + 0.005, kind
 
 
-def test_the_achiral_tessellation_has_the_same_rings_and_no_crossings():
-    """``isotropic_achiral`` zips every other pair of rings the other way round: the same vertices
-    (rings), other triangles, still a clean mesh; the default isotropic mesh is left as it was."""
+def _valence(faces: np.ndarray, n: int) -> np.ndarray:
+    e = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1), axis=0)
+    return np.bincount(e.ravel(), minlength=n)
+
+
+@pytest.mark.parametrize("kind", ["skirt", "sleeved_shirt", "wide_trousers"])
+def test_the_achiral_tessellation_is_a_clean_checkerboard(kind):
+    """``isotropic_achiral``: rings keep their neighbour's count and are joined by quads split along a
+    checkerboard of diagonals (interior vertices of valence 4 and 8, as the grid tubes; the zipper's
+    are ~6), still a clean, manifold mesh of about the same edge length; the default mesh is unchanged."""
     from pocoloco.synth.garments import self_intersections
 
     body = AnnyBody()
-    iso = make_garment("skirt", body, tessellation="isotropic")
-    ach = make_garment("skirt", body, tessellation="isotropic_achiral")
-    again = make_garment("skirt", body, tessellation="isotropic")
+    iso = make_garment(kind, body, tessellation="isotropic")
+    ach = make_garment(kind, body, tessellation="isotropic_achiral")
+    again = make_garment(kind, body, tessellation="isotropic")
     np.testing.assert_array_equal(iso.faces, again.faces)  # the flag does not leak
-    assert len(ach.faces) == len(iso.faces)
-    assert not np.array_equal(np.sort(np.sort(ach.faces, 1), 0), np.sort(np.sort(iso.faces, 1), 0))
     assert self_intersections(ach.rest_vertices, ach.faces) == 0
+    edges = np.sort(np.concatenate([ach.faces[:, [0, 1]], ach.faces[:, [1, 2]], ach.faces[:, [2, 0]]]), 1)
+    assert np.unique(edges, axis=0, return_counts=True)[1].max() == 2  # manifold
+    assert 0.85 < len(ach.rest_vertices) / len(iso.rest_vertices) <= 1.0
+    val_a, val_i = _valence(ach.faces, len(ach.rest_vertices)), _valence(iso.faces, len(iso.rest_vertices))
+    assert np.isin(val_a, (4, 8)).mean() > 0.6
+    assert np.isin(val_i, (4, 8)).mean() < 0.25
+
+
+def test_ring_count_keeps_the_previous_count_within_a_fifth():
+    from pocoloco.synth.garments import _ring_count
+
+    assert _ring_count(1.0, 0.02) == 48
+    assert _ring_count(1.0, 0.02, keep=44) == 44  # 8 % off: kept
+    assert _ring_count(1.0, 0.02, keep=36) == 48  # 25 % off: the ideal count
+    assert _ring_count(1.0, 0.02, keep=46) == 48  # not a multiple of 4
+    assert _ring_count(0.1, 0.02, keep=12) == 16  # under the minimum

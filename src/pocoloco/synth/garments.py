@@ -346,20 +346,31 @@ def _edge_length(resolution: float) -> float:
     return 0.022 / resolution
 
 
-def _ring_count(circumference: float, e: float, multiple: int = 4, minimum: int = 16) -> int:
-    """Vertices on a closed ring: about one per ``e`` metres, a multiple of ``multiple``."""
-    return max(minimum, multiple * round(float(circumference / (multiple * e))))
+def _ring_count(circumference: float, e: float, multiple: int = 4, minimum: int = 16, keep: int | None = None) -> int:
+    """Vertices on a closed ring: about one per ``e`` metres, a multiple of ``multiple``.
+    ``keep``: the previous ring's count, kept while it is within ``_KEEP_COUNT`` of the ideal (the
+    achiral tessellation: rings of equal counts are joined by quads with alternating diagonals)."""
+    n = max(minimum, multiple * round(float(circumference / (multiple * e))))
+    if keep is not None and keep >= minimum and keep % multiple == 0 and abs(keep / n - 1.0) <= _KEEP_COUNT:
+        return keep
+    return n
+
+
+#: relative change of a ring's vertex count tolerated to keep the previous ring's (achiral tessellation)
+_KEEP_COUNT = 0.2
 
 
 class _MeshBuilder:
     """Accumulates vertices and triangles of a garment.
 
-    ``achiral`` (class default, set by ``make_garment(tessellation="isotropic_achiral")``): every
-    other loft zips its rings in the opposite direction and open grids alternate their diagonals,
-    so the mesh has no handedness. A chiral mesh (every zipper turning the same way) couples
-    stretch to twist, and newton's VBD feeds energy into that twist: a tube hanging still reaches
-    195 cm/s at its hem in 10 s, the same tube with alternating diagonals 1.8
-    (benchmarks/experiments/vbd_energy.py --tube)."""
+    ``achiral`` (class default, set by ``make_garment(tessellation="isotropic_achiral")``): rings
+    keep the previous ring's vertex count while it is within 20 % of their ideal one
+    (``_ring_count(keep=...)``), two rings of equal counts are joined by quads whose diagonals
+    alternate in a checkerboard (as the grid tubes), the other lofts zip their rings in
+    alternating directions, and open grids alternate their diagonals: the mesh has no handedness.
+    A chiral mesh (every zipper turning the same way) couples stretch to twist, and newton's VBD
+    feeds energy into that twist: a tube hanging still reaches 195 cm/s at its hem in 10 s, the
+    same tube with alternating diagonals 1.8 (benchmarks/experiments/vbd_energy.py --tube)."""
 
     achiral = False
 
@@ -368,6 +379,11 @@ class _MeshBuilder:
         self.faces: list[np.ndarray] = []
         self.count = 0
         self.lofts = 0
+        self.last_ring: int | None = None  # vertex count of the last ring lofted to
+
+    def keep_count(self) -> int | None:
+        """The ring count ``_ring_count`` should keep (achiral tessellation), else None."""
+        return self.last_ring if self.achiral else None
 
     def add(self, pts: np.ndarray) -> np.ndarray:
         """Append points (..., 3); returns their indices with the same leading shape."""
@@ -384,6 +400,10 @@ class _MeshBuilder:
         if not (np.all(np.diff(ua) > 0) and np.all(np.diff(ub) > 0)):
             raise AssertionError("loft: ring parameters are not monotonic")
         self.lofts += 1
+        self.last_ring = len(b)
+        if self.achiral and len(a) == len(b) and len(a) % 2 == 0:
+            self._quads(np.asarray(a), ua, np.asarray(b), ub)
+            return
         if self.achiral and self.lofts % 2 == 0:  # zip this pair of rings the other way round
             a, b = np.asarray(a)[::-1], np.asarray(b)[::-1]
             ua, ub = -ua[::-1], -ub[::-1]
@@ -406,6 +426,18 @@ class _MeshBuilder:
                 tris.append((ae[i], be[j], be[j + 1]))
                 j += 1
         self.faces.append(np.array(tris, dtype=np.int64))
+
+    def _quads(self, a: np.ndarray, ua: np.ndarray, b: np.ndarray, ub: np.ndarray) -> None:
+        """Quads between two rings of equal (even) counts, b rolled to start at the vertex nearest
+        in angle to a[0]; each split along the diagonal of a checkerboard (alternating along the
+        ring and from one loft to the next)."""
+        off = np.angle(np.exp(1j * (ub - ua[0])))
+        b = np.roll(b, -int(np.argmin(np.abs(off))))
+        a1, b1 = np.roll(a, -1), np.roll(b, -1)
+        flip = ((np.arange(len(a)) + self.lofts) % 2).astype(bool)[:, None]
+        t1 = np.where(flip, np.stack([a, b, b1], -1), np.stack([a, b, a1], -1))
+        t2 = np.where(flip, np.stack([a, b1, a1], -1), np.stack([a1, b, b1], -1))
+        self.faces.append(np.concatenate([t1, t2]).astype(np.int64))
 
     def grid(self, idx: np.ndarray) -> None:
         """Triangles of an open grid of vertex indices (R, W) (rows and columns both open)."""
@@ -667,8 +699,10 @@ def _add_ring(mb: _MeshBuilder, center: np.ndarray, radius: Callable, height: Ca
 
     th_f = np.linspace(0.0, 2 * np.pi, 192, endpoint=False)
     p = ring(th_f)
-    n = _ring_count(float(np.linalg.norm(p - np.roll(p, 1, axis=0), axis=1).sum()), e, multiple)
+    n = _ring_count(float(np.linalg.norm(p - np.roll(p, 1, axis=0), axis=1).sum()), e, multiple,
+                    keep=mb.keep_count())
     th = _symmetric_angles(n, ring)
+    mb.last_ring = n
     return mb.add(ring(th)), th
 
 
@@ -815,7 +849,8 @@ def _add_sleeve(
         r_f = _hull_distance(pts2, np.zeros(2), th_f) + ease + flare * (s - s0)
         r_f = _smooth_circular(np.maximum(r_f, 0.03), 5)
         if n is None:
-            n = _ring_count(float(np.sum(r_f) * 2 * np.pi / len(th_f)), e, multiple=2, minimum=10)
+            n = _ring_count(float(np.sum(r_f) * 2 * np.pi / len(th_f)), e, multiple=2, minimum=10,
+                            keep=mb.keep_count())
         phi = -np.pi + 2 * np.pi * np.arange(n) / n
         r = np.interp(phi, th_f, r_f, period=2 * np.pi)
         return c + r[:, None] * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w), phi
@@ -1189,7 +1224,7 @@ def _add_trouser_leg(
         t = t * t * (3 - 2 * t)
         wide = np.interp(th_f, phi_top[o_top], r_top, period=2 * np.pi)
         r_f = _smooth_circular(np.maximum(np.maximum(r_f, (1 - t) * wide + t * r_f), 0.05), 5)
-        n_ring = _ring_count(float(np.sum(r_f) * 2 * np.pi / 72), e, multiple=2, minimum=12)
+        n_ring = _ring_count(float(np.sum(r_f) * 2 * np.pi / 72), e, multiple=2, minimum=12, keep=mb.keep_count())
         phi = -np.pi + 2 * np.pi * np.arange(n_ring) / n_ring
         r = np.interp(phi, th_f, r_f, period=2 * np.pi)
         x, y = c[0] + r * np.cos(phi), c[1] + r * np.sin(phi)
