@@ -14,7 +14,6 @@ from typing import Any
 
 import torch
 
-from pocoloco.data.poses import demo_pose_outfit, subject_of_spec
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods import Method, load_method
@@ -176,23 +175,8 @@ def choose_device(arg: str | None) -> torch.device:
 
 
 def pick_outfit(method: Method, outfit: str | None, spec: str | None) -> int | None:
-    """``--outfit``'s id: the one named, else the subject of a ``DATASET:...`` spec, else for
-    ``demo:NAME`` the outfit NAME if the model has it, else the one the pose was captured on; None
-    for models without outfits (which refuse an ``--outfit``); a one-line error when none can be chosen."""
-    names = method.outfit_names()
-    if not names:
-        method.outfit_id(outfit)  # refuses a given outfit
-        return None
-    name = outfit
-    if name is None and spec is not None:
-        spec = os.fspath(spec)
-        name = subject_of_spec(spec)
-        if spec.startswith("demo:"):  # the outfit of that name if the model has one, else the pose's own
-            typed = spec[len("demo:"):]
-            name = typed if typed in names else demo_pose_outfit(typed)
-    if name is None or (outfit is None and name not in names):
-        raise ValueError(f"--outfit is required (this {method.kind} checkpoint has outfits {', '.join(names)})")
-    return method.outfit_id(name)
+    """``--outfit``'s id (:meth:`pocoloco.methods.Method.choose_outfit`)."""
+    return method.choose_outfit(outfit, spec)
 
 
 def load_method_from_args(args: argparse.Namespace, expect: str | tuple[str, ...] | None = None) -> Method:

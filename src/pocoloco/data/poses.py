@@ -54,6 +54,7 @@ __all__ = [
     "motion_path_of",
     "outfit_of_spec",
     "pose_from_anny_file",
+    "pose_from_anny_params",
     "pose_from_frame",
     "pose_spec_kind",
     "subject_of_spec",
@@ -260,7 +261,8 @@ class Pose:
     mean_shape (V, 3) the posed mean-shape body centred on its own root (POP's pose input) or
     None; subject: the dataset subject the body belongs to (None for joints / an anny pose file);
     source: where it came from; velocity (J, 3) joint velocities in m/s (a dataset frame's, for
-    models conditioned on them) or None (at rest).
+    models conditioned on them) or None (at rest); joint_rotvecs (24, 3) / root_translation (3,):
+    the anny pose parameters it was posed from (an anny pose file, a motion frame), or None.
     """
 
     joints: np.ndarray
@@ -270,10 +272,44 @@ class Pose:
     subject: str | None = None
     source: str = ""
     velocity: np.ndarray | None = None
+    joint_rotvecs: np.ndarray | None = None
+    root_translation: np.ndarray | None = None
 
     @property
     def has_body(self) -> bool:
         return self.body_vertices is not None and self.vtransf is not None
+
+    @classmethod
+    def from_joints(cls, joints: Any, any_pose: bool = False) -> Pose:
+        """A pose from joints (24, 3) in metres (any array-like); a one-line error for a wrong shape,
+        NaN / inf, or (unless ``any_pose``) a skeleton that is not a human body in metres."""
+        arr = check_joints("joints", np.asarray(joints, dtype=np.float32), NUM_JOINTS)
+        return cls(arr if any_pose else check_skeleton("joints", arr), source="joints")
+
+    @classmethod
+    def load(cls, spec: str | os.PathLike, frame_id: int | None = None, any_pose: bool = False) -> Pose:
+        """A pose from anything ``--joints`` takes (:func:`load_joints`): ``demo:NAME``, a dataset
+        frame ``DATASET:subject/split/sequence/index``, a ``.npy`` / ``.npz`` of joints, a joints text
+        file (``frame_id``: its line), an anny pose ``.npz``; or a sequence's ``motion.npz``
+        (``frame_id``: its frame, posed on the mean body). The joints only: a method that needs the
+        posed body (POP, CloSET) poses it from ``source`` with its outfit's shape
+        (:meth:`pocoloco.methods.Method.sample`)."""
+        spec = os.fspath(spec)
+        if Path(spec).name == "motion.npz" and Path(spec).is_file():
+            motion = read_motion(spec)
+            t = 0 if frame_id is None else int(frame_id)
+            if not 0 <= t < len(motion.joint_rotvecs):
+                raise ValueError(f"{spec}: frame {t} out of range (the motion has {len(motion.joint_rotvecs)} frames)")
+            pose = pose_from_anny_params(motion.joint_rotvecs[t], motion.root_translation[t], {}, False, f"{spec}@{t}")
+        elif is_anny_pose_file(spec) and frame_id is None:
+            pose = pose_from_anny_file(spec, {}, False)
+        else:
+            joints = load_joints(spec, frame_id, NUM_JOINTS, any_pose=any_pose)
+            return cls(joints, subject=outfit_of_spec(spec), source=spec)
+        joints = pose.joints if any_pose else check_skeleton(spec, pose.joints)
+        return cls(joints, source=pose.source, joint_rotvecs=pose.joint_rotvecs, root_translation=pose.root_translation)
+        joints = load_joints(spec, frame_id, NUM_JOINTS, any_pose=any_pose)
+        return cls(joints, subject=outfit_of_spec(spec), source=spec)
 
 
 def subject_of_spec(spec: str) -> str | None:
@@ -355,11 +391,21 @@ def pose_from_anny_file(path: str | os.PathLike, phenotype: dict[str, float], ne
         raise ValueError(f"{src}: joint_rotvecs must be a finite ({NUM_JOINTS}, 3) array, got {rot.shape}")
     if trans is not None:
         trans = trans.reshape(-1)[:3] if trans.size >= 3 else None
+    return pose_from_anny_params(rot, trans, phenotype, need_mean_shape, src)
+
+
+def pose_from_anny_params(joint_rotvecs: np.ndarray, root_translation: np.ndarray | None,
+                          phenotype: dict[str, float], need_mean_shape: bool, source: str) -> Pose:  # fmt: skip
+    """The body of ``phenotype`` posed with anny pose parameters ``joint_rotvecs`` (24, 3) and
+    ``root_translation`` (3,) or None (the parameters are kept on the pose)."""
+    rot = np.asarray(joint_rotvecs, np.float32)
+    trans = None if root_translation is None else np.asarray(root_translation, np.float32)
     posed = AnnyBody(phenotype).pose(rot[None], None if trans is None else trans[None])
     mean = None
     if need_mean_shape:
         mean = pose_mean_shape_vertices(rot[None])[0]
-    return Pose(posed.joints[0], posed.vertices[0], posed.vtransf[0], mean, None, src)
+    return Pose(posed.joints[0], posed.vertices[0], posed.vtransf[0], mean, None, source, joint_rotvecs=rot,
+                root_translation=trans)  # fmt: skip
 
 
 def is_anny_pose_file(spec: str) -> bool:

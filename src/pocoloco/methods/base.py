@@ -24,6 +24,7 @@ Adding a method = one folder under ``methods/`` with a :class:`Method` subclass,
 from __future__ import annotations
 
 import dataclasses
+import os
 import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -37,7 +38,16 @@ from torch import nn
 
 from pocoloco.data.dataset import Normalisation
 from pocoloco.data.frame import read_frame
-from pocoloco.data.poses import MeanShapeCache, Pose, outfit_of_spec
+from pocoloco.data.poses import (
+    MeanShapeCache,
+    Pose,
+    demo_pose_outfit,
+    outfit_of_spec,
+    pose_from_anny_params,
+    pose_spec_kind,
+    subject_of_spec,
+)
+from pocoloco.diffusion import SAMPLER_STEPS
 from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.engine.checkpoint import Checkpoint, save_checkpoint
 from pocoloco.engine.trainer import TrainingTask
@@ -225,6 +235,27 @@ class Method(ABC):
         name = outfit_of_spec(spec)
         return self.outfit_names().index(name) if name in self.outfit_names() else None
 
+    def choose_outfit(self, outfit: str | int | None, spec: str | os.PathLike | None) -> int | None:
+        """The outfit id to sample: ``outfit`` (a name or id) if given, else the subject of a
+        ``DATASET:...`` spec, else for ``demo:NAME`` the outfit NAME if the model has it, else the
+        one the pose was captured on; None for models without outfits (which refuse an outfit); a
+        one-line error when none can be chosen."""
+        names = self.outfit_names()
+        if not names:
+            self.outfit_id(outfit)  # refuses a given outfit
+            return None
+        name = outfit
+        if name is None and spec is not None:
+            spec = os.fspath(spec)
+            name = subject_of_spec(spec)
+            if spec.startswith("demo:"):  # the outfit of that name if the model has one, else the pose's own
+                typed = spec[len("demo:"):]
+                name = typed if typed in names else demo_pose_outfit(typed)
+        if name is None or (outfit is None and name not in names):
+            raise ValueError(f"--outfit is required (library: outfit=NAME; this {self.kind} checkpoint has outfits "
+                             f"{', '.join(names)})")  # fmt: skip
+        return self.outfit_id(name)
+
     # -------------------------------------------------------------------------------- poses
     @abstractmethod
     def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
@@ -237,6 +268,16 @@ class Method(ABC):
         """The pose of a dataset frame file (``frame``: the already read ``Frame``, if any)."""
         joints = (frame if frame is not None else read_frame(path, ["joints"])).joints
         return Pose(np.asarray(joints, np.float32), subject=subject, source=str(path))
+
+    def pose_from_anny(self, pose: Pose, outfit: int | None) -> Pose:
+        """``pose``'s anny pose parameters (``joint_rotvecs``) posed on ``outfit``'s body shape (the
+        subject's phenotype; the mean body without an outfit), for a method that needs the body."""
+        if pose.joint_rotvecs is None:
+            raise ValueError(f"{pose.source or 'pose'}: no anny pose parameters to pose a body with")
+        outfits = getattr(self, "outfits", None) or []
+        pheno = outfits[outfit].get("phenotype", {}) if outfit is not None and outfit < len(outfits) else {}
+        return pose_from_anny_params(pose.joint_rotvecs, pose.root_translation, pheno,
+                                     bool(getattr(self, "needs_mean_shape", False)), pose.source)  # fmt: skip
 
     def save(self, root: str | Path, extra: dict[str, Any] | None = None) -> Path:
         """Write the model as a new checkpoint (weights only, no training state) into the
@@ -252,6 +293,70 @@ class Method(ABC):
                 options: SamplerOptions = SamplerOptions()) -> SampledClouds:  # fmt: skip
         """One cloud of ``num_points`` points per seed for ``pose`` (and ``outfit``), in the frame
         of the pose (metres). Cloud k depends only on ``seeds[k]``."""
+
+    def sample(self, pose: Pose | str | os.PathLike | np.ndarray, num_points: int = 2048,
+               seeds: int | Sequence[int] = (0,), outfit: str | int | None = None, *, sampler: str = "dpm++sde",
+               steps: int | None = None, even: bool = False, bf16: bool = False, batch_size: int = 8,
+               frame_id: int | None = None) -> SampledClouds:  # fmt: skip
+        """Point clouds of a clothed body in ``pose``, one per seed: the library's one call (what
+        ``pocoloco sample`` runs).
+
+        pose: a :class:`~pocoloco.data.poses.Pose` (``pocoloco.Pose.load(...)``), anything
+            ``--joints`` takes (``demo:NAME``, ``DATASET:subject/split/sequence/index``, a joints
+            file; ``frame_id``: its line), or joints (24, 3) in metres. Methods that need the posed
+            body (POP, CloSET, the hybrid) pose it from the spec or anny pose parameters with the
+            outfit's body shape; bare joints are a one-line error for them.
+        num_points: N points a cloud. seeds: an int or a sequence (K clouds; a deterministic
+            method takes one). outfit: name or id (models with outfits; default: the pose's own).
+        sampler, steps: the diffusion sampler (:data:`pocoloco.diffusion.SAMPLER_STEPS`; steps
+            None: its default); even: evenly spread points (:func:`predict_clouds`); bf16,
+            batch_size: speed and memory only.
+        Returns:
+            :class:`SampledClouds`: points (K, N, 3) float32 metres in the pose's frame, normals
+            (K, N, 3) or None.
+        """
+        seeds = [int(seeds)] if isinstance(seeds, (int, np.integer)) else [int(k) for k in seeds]
+        if not seeds:
+            raise ValueError("seeds: give at least one seed")
+        if int(num_points) < 1:
+            raise ValueError(f"num_points must be >= 1, got {num_points}")
+        if self.deterministic and len(seeds) != 1:
+            raise ValueError(f"{self.title} is deterministic (one cloud per pose and outfit): give one seed, "
+                             f"got {len(seeds)}")  # fmt: skip
+        if not self.deterministic and sampler not in SAMPLER_STEPS:
+            raise ValueError(f"unknown sampler {sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
+        pose, outfit_id = self._resolve_pose(pose, outfit, frame_id)
+        options = SamplerOptions(sampler=sampler, steps=steps, bf16=bf16, batch_size=int(batch_size), even=even)
+        self.check_options(options)
+        options = fit_to_memory(self, int(num_points), len(seeds), options)
+        return predict_clouds(self, pose, int(num_points), seeds, outfit_id, options)
+
+    def _resolve_pose(self, pose: Any, outfit: str | int | None, frame_id: int | None) -> tuple[Pose, int | None]:
+        """(the Pose this method samples, the outfit id) for :meth:`sample`'s ``pose``."""
+        if isinstance(pose, (str, os.PathLike)):
+            spec = os.fspath(pose)
+            if self.needs_body:  # the body is posed with the outfit's phenotype
+                pose_spec_kind(spec)  # bare joints: the one-line error first
+                chosen = self.choose_outfit(outfit, spec)
+                return self.load_pose(spec, chosen, frame_id), chosen
+            loaded = self.load_pose(spec, None, frame_id)  # a bad joints file is named before a missing outfit
+            return loaded, self.choose_outfit(outfit, spec)
+        if frame_id is not None:
+            raise ValueError("frame_id applies to a pose spec (a joints text file), not to a Pose or an array")
+        if not isinstance(pose, Pose):
+            pose = Pose.from_joints(pose)
+        spec = pose.source if pose.source and (pose.source.startswith("demo:") or ":" in pose.source) else None
+        if self.needs_body and not pose.has_body:
+            if pose.joint_rotvecs is not None:
+                chosen = self.choose_outfit(outfit, None)
+                return self.pose_from_anny(pose, chosen), chosen
+            if spec is not None or (pose.source and Path(pose.source).is_file()):
+                return self._resolve_pose(pose.source, outfit, None)
+            raise ValueError(f"{self.title} needs the posed body, not bare joints: give a dataset frame, a demo:NAME "
+                             "pose or an anny pose file (pocoloco.Pose.load)")  # fmt: skip
+        if outfit is None and pose.subject is not None and pose.subject in self.outfit_names():
+            return pose, self.outfit_id(pose.subject)
+        return pose, self.choose_outfit(outfit, spec)
 
     def point_prior(self, outfit: int | None) -> PointPrior:
         """The hook the apps run on (:class:`PointPrior`), for outfit id ``outfit``; methods that are

@@ -210,6 +210,9 @@ class HybridMethod(Method):
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
         return self.attached.pose_from_frame(path, subject, frame=frame, cache=cache)
 
+    def pose_from_anny(self, pose: Pose, outfit: int | None) -> Pose:
+        return self.attached.pose_from_anny(pose, outfit)
+
     # ------------------------------------------------------------------------- unseen outfits
     fits_outfits = True
     fit_needs_normals = True  # POP's point-to-plane loss
