@@ -17,19 +17,16 @@ The public API (imported on first use, so ``import pocoloco`` stays light)::
 
 from __future__ import annotations
 
+import importlib
 import os
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 __version__ = "0.1.0"
 
 __all__ = ["Method", "Pose", "SampledClouds", "__version__", "load", "write_ply"]
 
-if TYPE_CHECKING:  # pragma: no cover
-    from pocoloco.data.poses import Pose
-    from pocoloco.data.published import write_ply
-    from pocoloco.methods import Method, SampledClouds
-
-#: public name -> the module it lives in (imported when first asked for)
+#: public name -> the module it lives in (imported when first asked for, by name: the package's root
+#: is no layer, and must not make every layer import the top ones)
 _LAZY = {
     "Pose": "pocoloco.data.poses",
     "Method": "pocoloco.methods",
@@ -38,22 +35,19 @@ _LAZY = {
 }
 
 
-def load(name_or_path: str | os.PathLike = "default", device: str = "cpu", use_ema: bool = True) -> Method:
+def load(name_or_path: str | os.PathLike = "default", device: str = "cpu", use_ema: bool = True) -> "Method":  # noqa: F821
     """A trained model, ready to sample: ``"default"`` (the shipped PocoLoco), ``"default:pop"``,
     ``"default:closet"``, ``"default:hybrid"``, or the path of a checkpoint, checkpoints or run
     folder (any method). ``device``: ``"cpu"``, ``"cuda"``, ...; ``use_ema``: the averaged weights
     (as trained models are evaluated) or the raw ones. A one-line ``ValueError`` for an unknown
     name, a missing or damaged checkpoint."""
-    from pocoloco.engine.shipped import resolve_ckpt_arg
-    from pocoloco.methods import load_method
-
-    return load_method(resolve_ckpt_arg(os.fspath(name_or_path)), device=device, use_ema=use_ema)
+    shipped = importlib.import_module("pocoloco.engine.shipped")
+    methods = importlib.import_module("pocoloco.methods")
+    return methods.load_method(shipped.resolve_ckpt_arg(os.fspath(name_or_path)), device=device, use_ema=use_ema)
 
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
-        import importlib
-
         value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value
         return value

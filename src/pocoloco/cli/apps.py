@@ -69,7 +69,7 @@ def add_complete_arguments(parser: argparse.ArgumentParser) -> None:
                              f"hole (default {DEFAULT_RADIUS_M})")  # fmt: skip
     parser.add_argument("--max-normal-cos", type=float, default=DEFAULT_MAX_COS,
                         help=f"a sample point beyond the radius is a hole point only if its offset from the nearest "
-                             f"scan point makes |cos| below this with that point's normal (off-surface points lie "
+                             f"scan point makes an absolute cosine below this with that point's normal (off-surface points lie "
                              f"along it); 1 = distance only (default {DEFAULT_MAX_COS}; the scan's normals, or "
                              f"estimated from its points)")  # fmt: skip
     parser.add_argument("--candidates", type=int, default=DEFAULT_CANDIDATES,

@@ -1,6 +1,6 @@
 """The pocoloco on-disk dataset format (``"pocoloco-dataset"``, version 1).
 
-One folder per dataset; the full specification is ``docs/dataset_format.md``.
+One folder per dataset; the full specification is ``docs/reference/formats.md``.
 In short::
 
     DATASET/

@@ -1,5 +1,5 @@
 """Frames and the per-subject / per-sequence files of a pocoloco dataset (the format is
-:mod:`pocoloco.data.format`; the specification ``docs/dataset_format.md``).
+:mod:`pocoloco.data.format`; the specification ``docs/reference/formats.md``).
 
 A frame (:class:`Frame`) holds one captured point cloud with its skeleton and, for synthetic data,
 the posed body. Shapes use N points, V body vertices, Vg garment vertices, J = 24 joints. Required

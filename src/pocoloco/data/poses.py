@@ -217,9 +217,9 @@ def load_joints(spec: str | os.PathLike, frame_id: int | None = None, num_joints
     - ``demo:NAME``, a pose shipped with the package (``demo:skirt``, ``demo:dress_b``, ...).
 
     Raises:
-        ValueError (one line, naming the file): unreadable file, not a dataset, no such frame,
-        wrong joint count or shape, NaN / inf; and, unless ``any_pose``, a skeleton that is not a
-        human body in metres (:func:`check_skeleton`).
+        ValueError: one line, naming the file: unreadable file, not a dataset, no such frame,
+            wrong joint count or shape, NaN / inf; and, unless ``any_pose``, a skeleton that is not
+            a human body in metres (:func:`check_skeleton`).
     """
     joints = _read_joints(spec, frame_id, num_joints)
     return joints if any_pose else check_skeleton(os.fspath(spec), joints)

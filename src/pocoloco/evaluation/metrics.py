@@ -7,7 +7,8 @@ Nearest neighbours use scipy's cKDTree (``ops.knn_numpy``).
 
 Two conventions, never mixed; every key of ``evaluate_frame`` names its unit.
 
-PocoLoco (Seth et al., Table 2: "Chamfer, S2M, M2S in cm", 10K points):
+PocoLoco (Seth et al., Table 2: "Chamfer, S2M, M2S in cm", 10K points)::
+
     S2M (scan-to-model)  = mean over GT points of the distance to the nearest predicted point,
     M2S (model-to-scan)  = mean over predicted points of the distance to the nearest GT point,
     Chamfer              = S2M + M2S,
@@ -15,7 +16,8 @@ PocoLoco (Seth et al., Table 2: "Chamfer, S2M, M2S in cm", 10K points):
   Table 2 satisfies Cham = M2S + S2M (2.48 = 1.22 + 1.26, 4.22 = 2.12 + 2.1, 6.4 = 2.27 +
   4.13, 3.63 = 1.92 + 1.71, ...).
 
-POP (Ma et al. 2021, Eq. 4, 5 and Tables: "Chamfer-L2 (x1e-4 m^2)", "Normal diff. (x1e-1)"):
+POP (Ma et al. 2021, Eq. 4, 5 and Tables: "Chamfer-L2 (x1e-4 m^2)", "Normal diff. (x1e-1)")::
+
     S2M = mean over GT points of the squared distance to the nearest predicted point,
     M2S = mean over predicted points of the squared point-to-plane distance
           ((x - y) . n_y)^2 to the nearest GT point y with GT normal n_y (what the POP
@@ -157,7 +159,7 @@ def pop_s2m(pred, gt) -> float:
 def pop_m2s(pred, gt, gt_normals=None) -> float:
     """POP M2S: mean over predicted points of ((x - y) . n_y)^2, y the nearest GT point, in 1e-4 m^2.
 
-    gt_normals: (M, 3) GT normals (normalised here). None -> point-to-point |x - y|^2 (POP Eq. 4).
+    gt_normals: (M, 3) GT normals (normalised here). None -> point-to-point ``|x - y|^2`` (POP Eq. 4).
     """
     pred, gt = _cloud(pred, "pred"), _cloud(gt, "gt")
     d, idx = nearest(pred, gt)
@@ -177,7 +179,7 @@ def _point_to_plane_sq(pred: np.ndarray, gt: np.ndarray, gt_n: np.ndarray, idx: 
 
 
 def normal_l1(pred, pred_normals, gt, gt_normals) -> float:
-    """POP normal error (Eq. 5): mean over predicted points of |n_pred - n_gt(nearest GT point)|_1, x 10.
+    """POP normal error (Eq. 5): mean over predicted points of ``|n_pred - n_gt(nearest GT point)|_1``, x 10.
 
     Both normal sets are normalised to unit length first; the L1 norm sums the 3
     components, so the raw value is in [0, 2 sqrt(3)] and the result in [0, 20 sqrt(3)].

@@ -301,16 +301,22 @@ class Method(ABC):
         """Point clouds of a clothed body in ``pose``, one per seed: the library's one call (what
         ``pocoloco sample`` runs).
 
-        pose: a :class:`~pocoloco.data.poses.Pose` (``pocoloco.Pose.load(...)``), anything
-            ``--joints`` takes (``demo:NAME``, ``DATASET:subject/split/sequence/index``, a joints
-            file; ``frame_id``: its line), or joints (24, 3) in metres. Methods that need the posed
-            body (POP, CloSET, the hybrid) pose it from the spec or anny pose parameters with the
-            outfit's body shape; bare joints are a one-line error for them.
-        num_points: N points a cloud. seeds: an int or a sequence (K clouds; a deterministic
-            method takes one). outfit: name or id (models with outfits; default: the pose's own).
-        sampler, steps: the diffusion sampler (:data:`pocoloco.diffusion.SAMPLER_STEPS`; steps
-            None: its default); even: evenly spread points (:func:`predict_clouds`); bf16,
-            batch_size: speed and memory only.
+        Args:
+            pose: a :class:`~pocoloco.data.poses.Pose` (``pocoloco.Pose.load(...)``), anything
+                ``--joints`` takes (``demo:NAME``, ``DATASET:subject/split/sequence/index``, a
+                joints file), or joints (24, 3) in metres. Methods that need the posed body (POP,
+                CloSET, the hybrid) pose it from the spec or anny pose parameters with the outfit's
+                body shape; bare joints are a one-line error for them.
+            num_points: N, the points of a cloud.
+            seeds: an int or a sequence of K ints (K clouds); a deterministic method takes one.
+            outfit: name or id (models with outfits; default: the pose's own subject).
+            sampler: the diffusion sampler (:data:`pocoloco.diffusion.SAMPLER_STEPS`).
+            steps: its network calls (None: the sampler's default).
+            even: spread each cloud's points evenly over its surface (:func:`predict_clouds`).
+            bf16: the network under bf16 autocast (speed only).
+            batch_size: clouds denoised together (speed and memory only).
+            frame_id: the line of a joints text file.
+
         Returns:
             :class:`SampledClouds`: points (K, N, 3) float32 metres in the pose's frame, normals
             (K, N, 3) or None.

@@ -1,7 +1,7 @@
 """The synthetic capture pipeline: body + motion + cloth simulation + virtual capture.
 
 ``synthesize(config, out)`` writes a dataset in the format of
-``docs/dataset_format.md``. The unit of work is one *sequence* (a subject
+``docs/reference/formats.md``. The unit of work is one *sequence* (a subject
 performing one procedural motion):
 
 1. generate the motion (``synth.motion``), prepend a blend from the rest pose;
