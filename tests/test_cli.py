@@ -67,11 +67,34 @@ def test_commands_doing_torch_work_take_threads(command):
     assert any("--threads" in a.option_strings for a in parser._actions)
 
 
+def _documentation() -> str:
+    """README and every page of the documentation site (docs/**/*.md)."""
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    return "\n".join(p.read_text() for p in pages if "_build" not in p.parts)
+
+
+def _code_blocks(text: str, languages: tuple[str, ...]) -> list[str]:
+    """The fenced code blocks of Markdown ``text`` whose info string is one of ``languages``
+    ("" = none), fence by fence (an opening fence is never taken for a closing one)."""
+    blocks, current, lang = [], None, None
+    for line in text.splitlines():
+        fence = re.match(r"^\s*```(\S*)", line)
+        if current is None and fence:
+            current, lang = [], fence.group(1)
+        elif current is not None and line.strip() == "```":
+            if lang in languages:
+                blocks.append("\n".join(current) + "\n")
+            current = None
+        elif current is not None:
+            current.append(line)
+    return blocks
+
+
 def _readme_commands() -> list[str]:
-    """The ``pocoloco ...`` command lines of README's code blocks: continuations joined, ``&&`` chains
-    split, optional parts ``[--flag X]`` included, alternatives ``a|b|c`` taken at their first."""
-    text = (ROOT / "README.md").read_text()
-    blocks = re.findall(r"```(?:bash|sh)?\n(.*?)```", text, flags=re.S)
+    """The ``pocoloco ...`` command lines of the code blocks of README and the site's pages:
+    continuations joined, ``&&`` chains split, optional parts ``[--flag X]`` included, alternatives
+    ``a|b|c`` taken at their first."""
+    blocks = _code_blocks(_documentation(), ("bash", "sh", ""))
     commands = []
     for block in blocks:
         for line in block.replace("\\\n", " ").splitlines():
@@ -135,18 +158,18 @@ def test_warp_starts_quietly_on_a_cpu_machine():
 
 
 def test_readme_python_examples_run(tmp_path, monkeypatch):
-    """README's Python snippets run as written (on the shipped model)."""
+    """The Python snippets of README and the site's pages run as written (on the shipped model)."""
     import contextlib
     import io
 
-    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S)
+    blocks = _code_blocks(_documentation(), ("python",))
     assert blocks
     monkeypatch.chdir(tmp_path)
+    out = io.StringIO()
     for code in blocks:
-        out = io.StringIO()
         with contextlib.redirect_stdout(out):
-            exec(compile(code, "README.md", "exec"), {})
-    assert "(2, 2048, 3)" in out.getvalue()
+            exec(compile(code, "documentation", "exec"), {})
+    assert "(2, 2048, 3)" in out.getvalue() and "(3, 2048, 3)" in out.getvalue()
 
 
 def test_bf16_is_on_by_default_only_where_it_runs_natively(tmp_path, monkeypatch):
