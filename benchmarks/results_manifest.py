@@ -2,9 +2,10 @@
 report folder under ``benchmarks/results/``), the script and the command that made it.
 
 The command is read from the file itself where it records one (``argv`` / ``command`` keys), else
-from ``BENCHMARKS.md``: the section that quotes the file and the nearest command line above the
-quote in that section (``python benchmarks/...``, ``pocoloco ...``, ``bash scripts/...``). A result
-no section quotes is listed as unreferenced, so stale files show up.
+from the lab notebook (``docs/lab/*.md``, the pages in the order of ``docs/lab/index.md``'s toctree):
+the section that quotes the file and the nearest command line above the quote in that section
+(``python benchmarks/...``, ``pocoloco ...``, ``bash scripts/...``). A result no section quotes is
+listed as unreferenced, so stale files show up.
 
     python benchmarks/results_manifest.py            # rewrite MANIFEST.md
     python benchmarks/results_manifest.py --check    # exit 1 if MANIFEST.md is out of date
@@ -20,16 +21,42 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
+LAB = ROOT / "docs" / "lab"
+NOT_QUOTED = "**not quoted in the lab notebook**"
 COMMAND = re.compile(r"((?:python3? |torchrun [^`]*?)benchmarks/[\w/]+\.py[^`\n]*|pocoloco (?:bench|eval|train|data)[^`\n]*|bash scripts/[\w.]+[^`\n]*)")
 
 
-def _sections(text: str) -> list[tuple[str, list[str]]]:
-    """(heading, lines) of every ``##`` / ``###`` section of BENCHMARKS.md, in order."""
+def _pages() -> list[Path]:
+    """The lab notebook's pages: ``index.md``, then its toctree's entries in order, then any other page."""
+    index = LAB / "index.md"
+    if not index.is_file():
+        return sorted(LAB.glob("*.md"))
+    pages = [index]
+    block = re.search(r"```\{toctree\}\n(.*?)```", index.read_text(), re.S)
+    for entry in block.group(1).splitlines() if block else []:
+        entry = entry.strip()
+        if entry and not entry.startswith(":"):
+            page = LAB / (entry if entry.endswith(".md") else entry + ".md")
+            if page.is_file() and page not in pages:
+                pages.append(page)
+    return pages + [p for p in sorted(LAB.glob("*.md")) if p not in pages]
+
+
+def _sections(text: str, page: str) -> list[tuple[str, list[str]]]:
+    """(``page`` § heading, lines) of every ``#`` / ``##`` / ``###`` section of one page, in order
+    (lines inside fenced code blocks are never headings)."""
     out: list[tuple[str, list[str]]] = []
+    fence = None
     for line in text.splitlines():
-        if line.startswith("## ") or line.startswith("### "):
-            out.append((line.lstrip("#").strip(), []))
-        elif out:
+        m = re.match(r"(`{3,}|~{3,})", line)
+        if fence is None and m:
+            fence = m.group(1)
+        elif fence is not None and line.strip() == fence:
+            fence = None
+        elif fence is None and re.match(r"#{1,3} ", line):
+            out.append((f"`{page}` § {line.lstrip('#').strip()}", []))
+            continue
+        if out:
             out[-1][1].append(line)
     return out
 
@@ -60,7 +87,7 @@ def _script_of(command: str) -> str:
 
 
 def manifest() -> str:
-    sections = _sections((ROOT / "BENCHMARKS.md").read_text())
+    sections = [s for p in _pages() for s in _sections(p.read_text(), p.relative_to(ROOT).as_posix())]
     entries = sorted([p for p in RESULTS.iterdir() if p.suffix == ".json" or p.is_dir()], key=lambda p: p.name)
     rows = []
     for path in entries:
@@ -86,7 +113,7 @@ def manifest() -> str:
                            key=lambda sq: -len(sq[0]))  # fmt: skip
             match = next((q for stem, q in stems if name.startswith(stem)), None)
             script = match.relative_to(ROOT).as_posix() + " (by name)" if match else "?"
-        status = where if where else "**not quoted in BENCHMARKS.md**"
+        status = where if where else NOT_QUOTED
         kind = "folder" if path.is_dir() else "json"
         rows.append(f"| `{name}`{'/' if kind == 'folder' else ''} | `{script}` | "
                     f"{'`' + command.replace('|', '/') + '`' if command else '(see the section)'} | {status} |")  # fmt: skip
@@ -95,10 +122,11 @@ def manifest() -> str:
         "",
         "Written by `python benchmarks/results_manifest.py` (do not edit by hand): each generated result",
         "in this folder, the script and command that made it (recorded in the file, or the nearest command",
-        "line above the file's first quote in `BENCHMARKS.md`), and the section of `BENCHMARKS.md` that",
-        "discusses it. Results no section quotes are marked: they are candidates for removal.",
+        "line above the file's first quote in the lab notebook, `docs/lab/`), and the page and section of",
+        "the lab notebook that discuss it. Results no section quotes are marked: they are candidates for",
+        "removal.",
         "",
-        "| result | script | command | BENCHMARKS.md section |",
+        "| result | script | command | lab notebook page § section |",
         "|---|---|---|---|",
         *rows,
         "",
@@ -117,8 +145,9 @@ def main() -> int:
             return 1
         return 0
     target.write_text(text)
-    unquoted = text.count("not quoted in BENCHMARKS.md")
-    print(f"wrote {target} ({len(text.splitlines()) - 9} results, {unquoted} not quoted in BENCHMARKS.md)")
+    rows = [line for line in text.splitlines() if line.startswith("| `")]
+    unquoted = sum(NOT_QUOTED in line for line in rows)
+    print(f"wrote {target} ({len(rows)} results, {unquoted} not quoted in the lab notebook)")
     return 0
 
 

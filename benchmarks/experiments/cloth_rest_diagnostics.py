@@ -1,0 +1,93 @@
+"""Where does a hanging skirt's motion come from? The ``skirt_a`` garment on a body that never
+moves, simulated with the pipeline's cloth settings plus overrides, and three numbers per time:
+
+- ``speed_cm_s``: the hem's mean speed (lowest fifth of the rest vertices), frame to frame;
+- ``net_1s_cm``: how far the hem moved in one second (net): a swing of mean speed v and period T
+  moves ~v T / pi net in T / 2; jitter moves little net;
+- ``lag1_cos``: cosine between consecutive frames' hem velocities (1: smooth, < 0: jitter).
+
+A physical garment with nothing driving it can only lose energy: a hem that speeds up on a still
+body (``--damping none``, contact off) is energy the solver puts in.
+
+    python benchmarks/experiments/cloth_rest_diagnostics.py --tessellation isotropic_achiral \
+        --damping none --set contact_ke=0 contact_kd=0 [--seconds 8] --out OUT.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tessellation", default="isotropic_achiral")
+    ap.add_argument("--damping", default="physical")
+    ap.add_argument("--garment", default="skirt", help="garment kind (its medium '_a' subject)")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="ClothSimSettings overrides")
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+
+    import torch
+
+    torch.set_num_threads(1)
+    from bench_settle import SUBJECT_OF_KIND, history_then_rest
+
+    from pocoloco.body import AnnyBody
+    from pocoloco.synth.cloth_sim import ClothSimSettings, simulate_garment
+    from pocoloco.synth.config import MEDIUM_SUBJECTS, SynthConfig
+    from pocoloco.synth.garments import make_garment
+    from pocoloco.synth.pipeline import cloth_settings
+
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        default = getattr(ClothSimSettings(), key)
+        overrides[key] = value == "True" if isinstance(default, bool) else type(default)(value)
+    subject = next(s for s in MEDIUM_SUBJECTS if s.name == SUBJECT_OF_KIND[args.garment])
+    config = SynthConfig(cloth_damping=args.damping, garment_tessellation=args.tessellation)
+    body = AnnyBody(subject.phenotype)
+    garment = make_garment(subject.garment, body, resolution=config.garment_resolution,
+                           tessellation=args.tessellation, **subject.garment_params)  # fmt: skip
+    fps = config.fps
+    rot, trans, _, _ = history_then_rest(body, "still", 0, 40, 12, int(args.seconds * fps) - 64, fps)
+    posed = body.pose(rot, trans)
+    settings = dataclasses.replace(cloth_settings(config, subject.garment), **overrides)
+    t0 = time.perf_counter()
+    seq = simulate_garment(body, garment, posed, settings)
+    wall = time.perf_counter() - t0
+    rest = garment.rest_vertices
+    hem = np.flatnonzero(rest[:, 2] <= np.quantile(rest[:, 2], 0.2))
+    x = seq.vertices[:, hem].astype(np.float64)
+    dv = np.diff(x, axis=0)  # (T-1, H, 3) per frame
+    speed = np.linalg.norm(dv, axis=-1).mean(1) * fps * 100
+    step = int(round(fps))
+    net = np.linalg.norm(x[step:] - x[:-step], axis=-1).mean(1) * 100
+    cos = (dv[1:] * dv[:-1]).sum(-1) / (np.linalg.norm(dv[1:], axis=-1) * np.linalg.norm(dv[:-1], axis=-1) + 1e-12)
+    rows = []
+    for t in range(step, len(speed), step // 2):
+        rows.append({"t_s": t / fps, "speed_cm_s": float(speed[t]), "net_1s_cm": float(net[min(t, len(net) - 1)]),
+                     "lag1_cos": float(cos[min(t, len(cos) - 1)].mean())})  # fmt: skip
+    result = {"garment": args.garment, "subject": subject.name, "tessellation": args.tessellation,
+              "damping": args.damping, "set": overrides, "seconds_per_frame": seq.seconds_per_frame,
+              "wall_s": wall, "invalid_frames": int((~seq.valid).sum()), "rows": rows}  # fmt: skip
+    print(f"{args.garment} {args.tessellation} {args.damping} {overrides}: {seq.seconds_per_frame:.3f} s/frame")
+    for r in rows:
+        print(f"  t {r['t_s']:4.1f} s  speed {r['speed_cm_s']:6.2f} cm/s  net over 1 s {r['net_1s_cm']:5.2f} cm"
+              f"  lag-1 cos {r['lag1_cos']:5.2f}")  # fmt: skip
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
