@@ -97,4 +97,21 @@ def test_old_cards_read_as_undamped():
     assert config_of_card(card).cloth_damping == "physical"
     del card["cloth_damping"]  # a card written before the field existed
     assert config_of_card(card).cloth_damping == "none"
-    assert SynthConfig().cloth_damping == "none"  # v2's cloth stays the default until data v3
+    assert SynthConfig().cloth_damping == "physical"  # data v3
+
+
+def test_cloth_versions_name_the_data_each_reproduces():
+    import dataclasses
+
+    from pocoloco.synth.config import CLOTH_VERSIONS, SYNTH_PRESETS, SynthConfig, cloth_version, config_of_card
+
+    assert cloth_version(SynthConfig()) == "v3"
+    assert all(cloth_version(c) == "v3" for c in SYNTH_PRESETS.values())
+    for name, overrides in CLOTH_VERSIONS.items():
+        assert cloth_version(dataclasses.replace(SynthConfig(), **overrides)) == name
+    v2 = dataclasses.replace(SynthConfig(), **CLOTH_VERSIONS["v2"])
+    assert (v2.garment_tessellation, v2.cloth_damping) == ("isotropic", "none")
+    card = v2.to_dict()
+    del card["cloth_damping"]  # a v2 card, written before the field existed
+    assert cloth_version(config_of_card(card)) == "v2"
+    assert cloth_version(dataclasses.replace(SynthConfig(), cloth_substeps=9)) == "custom"

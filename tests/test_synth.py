@@ -184,7 +184,7 @@ def test_v1_settings_and_garment_parameters_round_trip(tmp_path):
     garment and the dataset card (with the kind's defaults filled in)."""
     from pocoloco.synth.config import SYNTH_V1, SubjectSpec, SynthConfig
     from pocoloco.synth.garments import garment_parameters
-    from pocoloco.synth.pipeline import _subject_assets
+    from pocoloco.synth.pipeline import subject_assets
 
     v1 = dataclasses.replace(synth_preset("tiny"), **SYNTH_V1)
     assert v1.garment_tessellation == "grid" and not v1.cloth_self_contact and not v1.capture_cull_hidden_faces
@@ -192,7 +192,7 @@ def test_v1_settings_and_garment_parameters_round_trip(tmp_path):
     maxi = SubjectSpec("m", "maxi_skirt", {"gender": 1.0}, {"hem": 0.6})
     config = dataclasses.replace(synth_preset("tiny"), subjects=(maxi, synth_preset("tiny").subjects[1]))
     assert SynthConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
-    _, garment = _subject_assets(maxi, config)
+    _, garment = subject_assets(maxi, config)
     assert garment.kind == "maxi_skirt" and garment.params["hem"] == 0.6
     prepare_output(config, tmp_path / "d")
     card = read_card(tmp_path / "d")

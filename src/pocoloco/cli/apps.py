@@ -152,7 +152,7 @@ def cmd_complete(args: argparse.Namespace) -> None:
             panels = [(show, None, None, "partial scan")]
             panels += [(comp.points[k], np.where(comp.known[k], 0, 2), None, f"completed {k} (orange: generated)")
                        for k in range(min(args.num, 4))]  # fmt: skip
-            render_grid(panels, folder / "completion.png", views=("front", "side"), ncols=len(panels))
+            render_grid(panels, folder / "completion.png", views=("front", "side"), ncols=len(panels), joints=joints)
             names.add("completion.png")
         write_json_atomic(folder / "completion.json", jsonable(settings))
         names.add("completion.json")
@@ -233,7 +233,8 @@ def cmd_edit(args: argparse.Namespace) -> None:
             for k in range(min(args.num, 4)):
                 lab = np.where(res.regenerated[k], 2, 0) if args.mode == "region" else None
                 panels.append((res.points[k], lab, None, f"edit {k}" + (" (orange: new)" if lab is not None else "")))
-            render_grid(panels, folder / "edit.png", views=("front", "side"), ncols=len(panels))
+            render_grid(panels, folder / "edit.png", views=("front", "side"), ncols=len(panels),
+                        joints=[src_joints] + [target] * (len(panels) - 1))  # fmt: skip
             names.add("edit.png")
         write_json_atomic(folder / "edit.json", jsonable(settings))
         return names
@@ -341,7 +342,7 @@ def cmd_animate(args: argparse.Namespace) -> None:
                       normals=None if anim.normals is None else anim.normals[k])  # fmt: skip
             names.add(f"frame_{k:04d}.ply")
         if not args.no_render:
-            render_gif(anim.points, folder / "animation.gif", fps=args.fps)
+            render_gif(anim.points, folder / "animation.gif", fps=args.fps, joints=joints)
             names.add("animation.gif")
         write_json_atomic(folder / "animation.json", jsonable(info))
         return names

@@ -36,6 +36,7 @@ from pocoloco.evaluation.quality import (
     garment_table_markdown,
     table_markdown,
 )
+from pocoloco.evaluation.judge import bench_distribution
 from pocoloco.methods import train, train_preset
 from pocoloco.methods.registry import config_from_checkpoint
 from pocoloco.utils.atomic import output_folder
@@ -186,13 +187,50 @@ def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (quality.json, quality.md, quality.png)")
 
 
+def cmd_bench_distribution(args: argparse.Namespace) -> None:
+    from rich.markup import escape
+
+    ckpts = {name: getattr(args, f"ckpt_{name}") for name in ("pocoloco", "pop", "closet", "hybrid")
+             if getattr(args, f"ckpt_{name}")}  # fmt: skip
+    if not ckpts:
+        raise ValueError("no model to judge: give --ckpt-pocoloco / --ckpt-pop / --ckpt-closet / --ckpt-hybrid "
+                         "(a folder or default, default:pop, ...)")  # fmt: skip
+    con = console()
+    with progress_bar("poses", transient=True) as update:
+        report = bench_distribution(args.refs, ckpts, args.out, samples=args.samples, points=args.points,
+                                    probes=args.probes, seed=args.seed, device=args.device, sampler=args.sampler,
+                                    steps=args.steps, progress=update)  # fmt: skip
+    con.print(escape((Path(args.out) / "distribution.md").read_text()))
+    con.print(f"wrote {escape(str(Path(args.out) / 'distribution.json'))} ({report['settings']['poses']} poses)")
+
+
+def add_bench_distribution_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--refs", required=True, help="a reference set made by `pocoloco data histories`")
+    for name, title in (("pocoloco", "PocoLoco"), ("pop", "POP"), ("closet", "CloSET"), ("hybrid", "the hybrid")):
+        parser.add_argument(f"--ckpt-{name}", help=f"{title}: a checkpoint / run folder, or default names "
+                            f"(default, default:pop, default:closet, default:hybrid)")  # fmt: skip
+    parser.add_argument("--samples", type=int, default=16, help="clouds per pose of a generative model (default 16; "
+                        "a deterministic model draws one)")  # fmt: skip
+    parser.add_argument("--points", type=int, default=2048, help="points per cloud, true states cut to it too (default 2048)")
+    parser.add_argument("--probes", type=int, default=512, help="probe points of the embedding (default 512)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the samples, probes and subsets (default 0)")
+    parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco's sampler (default dpm++sde)")
+    parser.add_argument("--steps", type=int, help="its network calls (default: the sampler's)")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
+    parser.add_argument("--out", required=True, help="output folder (distribution.json, distribution.md)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("eval", help="score a checkpoint and the baselines on a dataset split (JSON + markdown + plots)")
     add_eval_arguments(s)
     s.set_defaults(func=cmd_eval)
     bench = sub.add_parser("bench", help="benchmarks over trained models").add_subparsers(
-        dest="bench_command", required=True, metavar="{quality}")  # fmt: skip
+        dest="bench_command", required=True, metavar="{quality,distribution}")  # fmt: skip
     s = bench.add_parser("quality", help="PocoLoco, POP, CloSET (+/- decomposition) and baselines on the same test "
                                          "frames: quality.json / .md / .png")  # fmt: skip
     add_bench_quality_arguments(s)
     s.set_defaults(func=cmd_bench_quality)
+    s = bench.add_parser("distribution", help="the distribution judge: every model against many true states per "
+                                              "pose (`data histories`), a proper score: distribution.json / .md")  # fmt: skip
+    add_bench_distribution_arguments(s)
+    s.set_defaults(func=cmd_bench_distribution)

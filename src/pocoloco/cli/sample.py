@@ -79,7 +79,7 @@ def cmd_sample(args: argparse.Namespace) -> None:
         settings.update(outfit=method.outfit_names()[outfit], outfit_id=outfit, body_source=pose.source)
     settings.update(normals=clouds.normals is not None, device=str(method.device), threads=torch.get_num_threads(),
                     seconds_total=seconds, seconds_per_sample=seconds / num)  # fmt: skip
-    write_samples(out, clouds, settings, render=not args.no_render)
+    write_samples(out, clouds, settings, render=not args.no_render, pose=pose)
     what = f"{num} samples" if not method.deterministic else f"1 {method.title} cloud"
     how = (f"{args.sampler} {settings['steps']} steps" if "steps" in settings
            else f"outfit {method.outfit_names()[outfit]}" if outfit is not None else method.title)  # fmt: skip

@@ -11,6 +11,7 @@ import numpy as np
 
 from pocoloco.apps.meshing import estimate_normals, mesh_from_points
 from pocoloco.body.surface import write_uv_map
+from pocoloco.data.poses import load_joints
 from pocoloco.data.published import CLOUD_CHECK_HELP, check_cloud, read_ply
 from pocoloco.engine.checkpoint import WEIGHTS_DTYPES, export_for_sampling, resolve_checkpoint
 from pocoloco.methods import load_method
@@ -49,6 +50,10 @@ def add_render_arguments(parser) -> None:
     parser.add_argument("--fps", type=float, default=10.0, help="GIF frames per second (default 10)")
     parser.add_argument("--max-points", type=int, default=20000,
                         help="subsample larger clouds to this many points (default 20000)")  # fmt: skip
+    parser.add_argument("--joints",
+                        help="the clouds' pose, as for `pocoloco sample --joints` (demo:skirt, a joints file, a dataset "
+                             "frame): the shading's estimated normals face away from its bones and the loose garment "
+                             "of clouds without labels is tinted (default: none; normals oriented by a guess, no tint)")  # fmt: skip
 
 
 def _read_for_render(path, max_points: int, need_normals: bool, as_mesh: bool, seed: int = 0, depth: int = 8) -> dict:
@@ -94,6 +99,7 @@ def cmd_render(args) -> None:
         raise ValueError(f"unknown view(s) {', '.join(bad)}; choose from {', '.join(VIEWS)}")
     if args.frames < 1 or not args.fps > 0 or args.max_points < 1:
         raise ValueError("--frames and --max-points must be >= 1 and --fps > 0")
+    joints = None if args.joints is None else load_joints(args.joints)
     if src.is_dir():
         files = find_clouds(src)
     elif src.exists():
@@ -117,12 +123,13 @@ def cmd_render(args) -> None:
                       views=args.views, mode=args.color, panel_size=3.0)  # fmt: skip
     else:
         render_grid([(c["points"], c["labels"], c["normals"], f.name) for c, f in zip(items, panels, strict=True)],
-                    args.out, views=args.views, ncols=1 if len(items) > 1 else None, mode=args.color)  # fmt: skip
+                    args.out, views=args.views, ncols=1 if len(items) > 1 else None, mode=args.color,
+                    joints=joints)  # fmt: skip
     written = [args.out]
     if args.turntable:
         c = items[0]
         turntable_gif(args.turntable, c["points"], c["labels"], c["normals"], c["faces"], num_frames=args.frames,
-                      mode=args.color, fps=args.fps)  # fmt: skip
+                      mode=args.color, fps=args.fps, joints=joints)  # fmt: skip
         written.append(args.turntable)
     if anim is not None:
         render_gif(anim, args.animate, fps=args.fps)

@@ -7,6 +7,7 @@ small`` is ``SYNTH_PRESETS["small"]`` with command-line overrides applied.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from ..utils.config import Config
 
@@ -52,9 +53,11 @@ class SynthConfig(Config):
     move the body from the rest pose into the motion and ``warmup_frames``
     of motion that let the cloth pick up momentum; neither is stored.
 
-    Generation settings (data v2; ``SYNTH_V1`` restores the first pipeline's):
-    garment_tessellation: ``"isotropic"`` (rings of ~2.2 cm / resolution edges)
-        or ``"grid"`` (the first skirt / long_shirt grids, 72 x 36).
+    Generation settings (data v3; ``CLOTH_VERSIONS["v2"]`` / ``["v1"]`` restore the earlier pipelines'):
+    garment_tessellation: ``"isotropic_achiral"`` (v3: rings of ~2.2 cm / resolution edges joined as a
+        checkerboard of quads with alternating diagonals, no preferred twist), ``"isotropic"`` (v2: the
+        same rings zipped with diagonals that all lean one way, which makes a hanging tube twist and
+        swing) or ``"grid"`` (v1: the first skirt / long_shirt grids, 72 x 36).
     cloth_self_contact: newton VBD cloth self-contact (~90 % fewer crossing
         triangles, but 2.4-3.2x the simulation time and, at its 1.6 cm reach, fast
         spins still tear the cloth: off by default; benchmarks/experiments/bench_cloth_settings.py).
@@ -65,12 +68,12 @@ class SynthConfig(Config):
         better than 10 x 5 did in the world frame, benchmarks/experiments/bench_cloth_settings.py).
     capture_cull_hidden_faces: draw capture candidates only on faces that may be
         visible (``capture.possibly_visible_faces``).
-    cloth_damping: what takes energy out of the cloth (``synth.fabric``): ``"none"`` (data v1 / v2, the
-        default: no air, almost no damping) or ``"physical"`` (air drag, the fabric's bending and membrane
-        damping and cloth-skin friction, per garment kind's fabric; opt-in). Neither brings a skirt to
-        rest: newton VBD at the pipeline's 5 iterations feeds energy into the hanging cloth faster than
-        air and fabric take it out (benchmarks/bench_settle.py, benchmarks/experiments/vbd_energy.py),
-        so data v3 waits for a solver setting that converges.
+    cloth_damping: what takes energy out of the cloth (``synth.fabric``): ``"physical"`` (v3: air
+        drag, the fabric's bending and membrane damping and cloth-skin friction, per garment kind's
+        fabric) or ``"none"`` (v1 / v2: no air, almost no damping). With the achiral mesh a skirt on a
+        still body settles to ~10 cm/s of small, smooth motion (v2: 30-40 cm/s of swing); newton VBD
+        keeps feeding a little energy into hanging cloth, so it does not reach full rest
+        (docs/lab/synthetic-data.md, "Does the cloth come to rest?").
     self_intersection_every: count cloth self-intersections (crossing triangle
         pairs) on every this-many-th stored frame for the dataset card; 0 = never.
 
@@ -98,12 +101,12 @@ class SynthConfig(Config):
     capture_cameras: int = 24
     scanner_noise: float = 0.0
     seed: int = 0
-    garment_tessellation: str = "isotropic"
+    garment_tessellation: str = "isotropic_achiral"
     cloth_self_contact: bool = False
     cloth_frame: str = "root"
     cloth_substeps: int = 7
     cloth_iterations: int = 5
-    cloth_damping: str = "none"
+    cloth_damping: str = "physical"
     capture_cull_hidden_faces: bool = True
     self_intersection_every: int = 10
     motion_kinds: tuple[str, ...] = CLASSIC_MOTION_KINDS
@@ -123,6 +126,24 @@ SYNTH_V1: dict = {
     "self_intersection_every": 0,
     "cloth_damping": "none",
 }
+
+
+#: overrides that reproduce data v2 (the isotropic mesh, undamped cloth)
+SYNTH_V2: dict = {"garment_tessellation": "isotropic", "cloth_damping": "none"}
+
+#: the cloth of each data version, as overrides of the current defaults (v3)
+CLOTH_VERSIONS: dict[str, dict] = {"v3": {}, "v2": SYNTH_V2, "v1": SYNTH_V1}
+
+
+def cloth_version(config: SynthConfig) -> str:
+    """``"v3"`` / ``"v2"`` / ``"v1"``: the data version whose cloth settings ``config`` has, or
+    ``"custom"`` when they match none (a run with individual settings changed)."""
+    base = SynthConfig()
+    for name in ("v3", "v2", "v1"):
+        ref = dataclasses.replace(base, **CLOTH_VERSIONS[name])
+        if all(getattr(config, k) == getattr(ref, k) for k in _CLOTH_FIELDS):
+            return name
+    return "custom"
 
 
 def _phenotype(gender: float, height: float, weight: float, age: float = 0.45) -> dict[str, float]:
@@ -172,6 +193,10 @@ def config_of_card(generation_config: dict) -> SynthConfig:
         return SynthConfig.from_dict({**FIELDS_ADDED_LATER, **generation_config})
     except (TypeError, KeyError, ValueError, AttributeError) as e:
         raise ValueError(f"not a synthetic dataset's generation_config ({e})") from None
+
+
+#: the settings that decide how the cloth moves (compared by :func:`cloth_version`)
+_CLOTH_FIELDS: tuple[str, ...] = tuple(SYNTH_V1)
 
 
 SYNTH_PRESETS: dict[str, SynthConfig] = {

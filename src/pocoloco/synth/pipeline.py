@@ -275,7 +275,7 @@ def _subject_key(subject: SubjectSpec, config: SynthConfig) -> tuple:
         subject.garment_params, sort_keys=True), config.garment_resolution, config.garment_tessellation)  # fmt: skip
 
 
-def _subject_assets(subject: SubjectSpec, config: SynthConfig):
+def subject_assets(subject: SubjectSpec, config: SynthConfig):
     """(AnnyBody, Garment | None) for a subject, built once per process."""
     key = _subject_key(subject, config)
     if key not in _BODIES:
@@ -311,7 +311,7 @@ def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
     if path.exists():
         return
     with torch_threads(1):  # as run_sequence: the same template bytes from any process
-        body, garment = _subject_assets(subject, config)
+        body, garment = subject_assets(subject, config)
     path.parent.mkdir(parents=True, exist_ok=True)
     format_write_subject(
         path,
@@ -349,7 +349,7 @@ def _run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Ca
             progress(config.frames_per_sequence)
         return record
     seq_dir.mkdir(parents=True, exist_ok=True)
-    body, garment = _subject_assets(job.subject, config)
+    body, garment = subject_assets(job.subject, config)
     write_subject(config, out, job.subject)  # (if not there yet)
     seed = job_seed(config, job)
     timings = {"motion": 0.0, "simulation": 0.0, "capture": 0.0, "write": 0.0}
@@ -498,10 +498,10 @@ def _simulate_cached(body, garment, posed, seq_dir: Path, start: int, settings=N
 
 
 # ---------------------------------------------------------------------------------------------
-_PROGRESS_QUEUE = None  # set in each worker process by _init_worker
+_PROGRESS_QUEUE = None  # set in each worker process by init_worker
 
 
-def _init_worker(parent_pid: int, queue) -> None:
+def init_worker(parent_pid: int, queue) -> None:
     """Worker initializer: keep the progress queue, end this worker as soon as the main
     process is gone (killed with SIGKILL, say) instead of simulating on as an orphan that
     would race a resumed run for its files, and skip the interpreter's teardown when the
@@ -583,7 +583,7 @@ def synthesize_shard(
         ctx = mp.get_context("spawn")
         queue = ctx.Queue()  # frames done, from the workers (no Manager process to outlive us)
         with ProcessPoolExecutor(
-            max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(), queue)
+            max_workers=workers, mp_context=ctx, initializer=init_worker, initargs=(os.getpid(), queue)
         ) as pool:
             futures = [pool.submit(_worker, config.to_dict(), str(out), i) for i in indices]
             pending = set(futures)

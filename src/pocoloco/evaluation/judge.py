@@ -1,0 +1,218 @@
+"""The distribution judge (``pocoloco bench distribution``): every model against many true states.
+
+A reference set (``pocoloco data histories``, :mod:`pocoloco.synth.histories`) holds, for each
+pose and window of shared motion, K cloth states at exactly that pose plus the frame's own scan.
+Each model draws M clouds per pose (a deterministic model one: a point mass, never copies); every
+cloud — the model's and the true states' — is cut to the same point count, and scored with
+:func:`pocoloco.evaluation.distribution.pose_statistics`: the **energy score** of the probe-distance
+embedding (a proper score: lower is better, and the true distribution is best), the energy
+distance, the spreads and the Chamfer-based coverage statistics. Oracle rows: ``truth_loo`` (one
+true state scored against the others: a perfect sampler), ``refs_medoid`` (the best single guess
+an oracle could make) and ``posed_body`` (the body without clothes, as a point mass).
+
+Aggregated over poses per window with 95 % bootstrap intervals; the poses are resampled together
+for every row (paired), and each row's energy score is also given as a difference to
+``truth_loo``'s with its own interval.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pocoloco.data.format import read_card, read_frame
+from pocoloco.data.poses import Pose
+from pocoloco.engine.shipped import describe_checkpoint, resolve_ckpt_arg
+from pocoloco.evaluation.distribution import pose_statistics, probe_points, truth_rows
+from pocoloco.methods import load_method
+from pocoloco.synth.histories import reference_sets
+from pocoloco.utils.atomic import jsonable, output_folder, write_json_atomic, write_text_atomic
+
+__all__ = ["JUDGE_COLUMNS", "ORACLE_ROWS", "bench_distribution", "bootstrap_means", "distribution_markdown"]
+
+#: oracle / baseline rows, always present
+ORACLE_ROWS = {"truth_loo": "truth, leave one out (a perfect sampler)",
+               "refs_medoid": "the medoid true state (the best single guess)",
+               "posed_body": "posed body, no clothes"}  # fmt: skip
+#: columns of distribution.md: key, header, format (embedding statistics in cm)
+JUDGE_COLUMNS = (
+    ("energy_score", "ES (cm) ↓", "{:.2f}"),
+    ("es_minus_truth", "ES - truth (cm)", "{:+.2f}"),
+    ("energy_distance", "energy dist. (cm)", "{:.2f}"),
+    ("to_refs", "to truth (cm)", "{:.2f}"),
+    ("spread_samples", "spread (cm)", "{:.2f}"),
+    ("spread_refs", "truth spread (cm)", "{:.2f}"),
+    ("chamfer_to_refs", "Chamfer to truth (cm)", "{:.2f}"),
+    ("cov", "COV", "{:.2f}"),
+    ("mmd", "MMD (cm)", "{:.2f}"),
+    ("nna_refs", "1-NNA truth", "{:.2f}"),
+    ("nna_samples", "1-NNA samples", "{:.2f}"),
+)
+_EMBEDDING_KEYS = ("energy_score", "energy_distance", "to_refs", "spread_samples", "spread_refs")
+
+
+def _subsample(points: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """``n`` points of a cloud (all of them, in a seeded order, when it has fewer: never repeats)."""
+    rng = np.random.default_rng(seed)
+    idx = rng.permutation(len(points))[:n]
+    return np.asarray(points, np.float64)[idx]
+
+
+def bootstrap_means(values: np.ndarray, indices: np.ndarray) -> tuple[float, float, float]:
+    """Mean of ``values`` (P,) over poses (NaN ignored) and its 95 % interval over the bootstrap
+    resamples ``indices`` (B, P) (the same resamples for every row: paired)."""
+    v = np.asarray(values, np.float64)
+    with np.errstate(invalid="ignore"):
+        boots = np.nanmean(v[indices], axis=1) if np.isfinite(v).any() else np.full(len(indices), np.nan)
+    mean = float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
+    if not np.isfinite(boots).any():
+        return mean, float("nan"), float("nan")
+    lo, hi = np.nanpercentile(boots, [2.5, 97.5])
+    return mean, float(lo), float(hi)
+
+
+def bench_distribution(
+    refs: str | Path,
+    ckpts: Mapping[str, str | Path],
+    out: str | Path,
+    *,
+    samples: int = 16,
+    points: int = 2048,
+    probes: int = 512,
+    seed: int = 0,
+    bootstrap: int = 1000,
+    device: str = "cpu",
+    sampler: str = "dpm++sde",
+    steps: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Score every model of ``ckpts`` (row name -> checkpoint, ``default:...`` names allowed) on the
+    reference set ``refs``; write ``distribution.json`` and ``distribution.md`` into ``out``.
+
+    progress: ``callable(done_poses, total_poses)``.
+    JSON: ``rows[NAME][WINDOW]`` (WINDOW = shared seconds as text, "0", "2") -> statistic ->
+    ``{"mean", "lo", "hi"}``; ``per_pose``: every pose's statistics; ``settings``. Returns it."""
+    if samples < 2:
+        raise ValueError(f"--samples must be >= 2 (a generative model's spread needs two), got {samples}")
+    if points < 16 or probes < 8:
+        raise ValueError(f"--points must be >= 16 and --probes >= 8, got {points} and {probes}")
+    pairs = reference_sets(refs)
+    hist = read_card(refs)["histories"]
+    out = output_folder(out)
+    probe = probe_points(probes, seed=seed)
+    methods = {}
+    for name, ckpt in ckpts.items():
+        path = resolve_ckpt_arg(str(ckpt))
+        methods[name] = (load_method(path, device=device), path)
+    poses: dict[tuple, list[dict]] = {}
+    for p in pairs:
+        poses.setdefault((p["subject"], p["source"]["sequence"], p["source"]["frame"]), []).append(p)
+    per_pose: list[dict[str, Any]] = []
+    seconds: dict[str, float] = {name: 0.0 for name in methods}
+    for pose_index, (key, windows) in enumerate(poses.items()):
+        subject = key[0]
+        own_path = windows[0]["own"]
+        own = read_frame(own_path)
+        joints = own.joints
+        seq_dir = own_path.parent.parent
+        spec = f"{Path(refs)}:{subject}/{windows[0]['split']}/{seq_dir.name}/{int(own_path.stem)}"
+        pose = Pose.load(spec)
+        drawn: dict[str, list[np.ndarray]] = {}
+        if progress:
+            progress(pose_index, len(poses))
+        for name, (method, _) in methods.items():
+            t0 = time.perf_counter()
+            seeds = [0] if method.deterministic else [seed * 100_003 + pose_index * 1_000 + i for i in range(samples)]
+            kwargs = {} if method.deterministic else {"sampler": sampler, "steps": steps}
+            clouds = method.sample(pose, points, seeds, **kwargs)  # the outfit: the pose's own subject
+            seconds[name] += time.perf_counter() - t0
+            drawn[name] = [np.asarray(c, np.float64) for c in clouds.points]
+        body = [_subsample(own.body_vertices, points, seed)]
+        for w in windows:
+            members = [*w["refs"], w["own"]]
+            truth = [_subsample(read_frame(f, ["points"]).points, points, seed + 7 * i) for i, f in enumerate(members)]
+            row: dict[str, Any] = {"subject": subject, "sequence": key[1], "frame": key[2],
+                                   "window": f"{w['shared_seconds']:g}", "rows": {}}  # fmt: skip
+            for name, clouds in {**drawn, "posed_body": body}.items():
+                row["rows"][name] = pose_statistics(clouds, truth, joints, probe)
+            oracle = truth_rows(truth, joints, probe)
+            for stats in oracle.values():  # the true states' spread, as in every other row (not the K - 1's)
+                stats["spread_refs"] = row["rows"]["posed_body"]["spread_refs"]
+            row["rows"].update(oracle)
+            per_pose.append(row)
+    if progress:
+        progress(len(poses), len(poses))
+    report = _aggregate(per_pose, list(methods), bootstrap, seed, probes)
+    report["settings"] = {
+        "refs": str(refs), "split": hist["split"], "poses": len(poses), "histories": hist["histories"],
+        "true_states_per_pose": hist["histories"] + 1, "windows": [f"{s:g}" for s in hist["shared_seconds"]],
+        "samples": samples, "points": points, "probes": probes, "seed": seed, "bootstrap": bootstrap,
+        "sampler": sampler, "steps": steps,
+        "checkpoints": {n: describe_checkpoint(p) for n, (_, p) in methods.items()},
+        "seconds_sampling": seconds,
+    }  # fmt: skip
+    report["per_pose"] = per_pose
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "distribution.json", jsonable(report), indent=None)
+    write_text_atomic(out / "distribution.md", distribution_markdown(report))
+    return report
+
+
+def _aggregate(per_pose: list[dict], models: list[str], bootstrap: int, seed: int, probes: int) -> dict[str, Any]:
+    """Means over poses with paired bootstrap intervals. Embedding statistics are reported in cm
+    per probe (the Euclidean distance of two embeddings / sqrt(P): a fixed scale, so still proper)."""
+    emb_scale = 100.0 / np.sqrt(probes)
+    windows = sorted({r["window"] for r in per_pose}, key=float)
+    names = [*models, *ORACLE_ROWS]
+    rows: dict[str, dict[str, dict]] = {n: {} for n in names}
+    for w in windows:
+        mine = [r for r in per_pose if r["window"] == w]
+        idx = np.random.default_rng([seed, 11]).integers(0, len(mine), (bootstrap, len(mine)))
+        truth_es = np.array([r["rows"]["truth_loo"]["energy_score"] for r in mine])
+        for n in names:
+            stats = {}
+            keys = sorted({k for r in mine for k in r["rows"][n]})
+            for k in keys:
+                v = np.array([r["rows"][n].get(k, np.nan) for r in mine], np.float64)
+                scale = emb_scale if k in _EMBEDDING_KEYS else 1.0
+                m, lo, hi = bootstrap_means(v * scale, idx)
+                stats[k] = {"mean": m, "lo": lo, "hi": hi}
+            es = np.array([r["rows"][n]["energy_score"] for r in mine]) - truth_es
+            m, lo, hi = bootstrap_means(es * emb_scale, idx)
+            stats["es_minus_truth"] = {"mean": m, "lo": lo, "hi": hi}
+            rows[n][w] = stats
+    return {"rows": rows, "windows": windows}
+
+
+def distribution_markdown(report: dict[str, Any]) -> str:
+    """One table per window: every row's statistics (mean [95 % interval] for the energy score)."""
+    s = report["settings"]
+    lines = [f"# Distribution judge: {s['poses']} {s['split']} poses x {s['true_states_per_pose']} true states",
+             "", f"`{s['refs']}`; {s['samples']} samples per generative model (a deterministic model: one cloud), "
+             f"{s['points']} points per cloud, {s['probes']} probes. ES: energy score of the probe-distance "
+             "embedding (a proper score, lower is better; the truth itself, `truth_loo`, is the floor); "
+             "embedding distances in cm RMS over the probes, Chamfer statistics in cm. "
+             "Intervals: 95 % paired bootstrap over poses.", ""]  # fmt: skip
+    for w in report["windows"]:
+        lines += [f"## Shared motion before the frame: {w} s", "",
+                  "| row | " + " | ".join(h for _, h, _ in JUDGE_COLUMNS) + " |",
+                  "|---|" + "---|" * len(JUDGE_COLUMNS)]  # fmt: skip
+        order = sorted(report["rows"], key=lambda n: report["rows"][n][w]["energy_score"]["mean"])
+        for n in order:
+            st = report["rows"][n][w]
+            cells = []
+            for k, _, fmt in JUDGE_COLUMNS:
+                v = st.get(k)
+                if v is None or not np.isfinite(v["mean"]):
+                    cells.append("-")
+                elif k in ("energy_score", "es_minus_truth"):
+                    cells.append(f"{fmt.format(v['mean'])} [{v['lo']:.2f}, {v['hi']:.2f}]")
+                else:
+                    cells.append(fmt.format(v["mean"]))
+            lines.append(f"| {ORACLE_ROWS.get(n, n)} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)

@@ -1,0 +1,144 @@
+"""Reference sets of true states (``pocoloco data histories``): the history motions end exactly on
+the frame's body, the frames spread over the subjects, and the set is a dataset that verifies,
+resumes and refuses bad input. The cloth subject's simulation is exercised by the CLI run quoted
+in docs/guides/evaluation.md; here the tight subject keeps the test fast (no simulation)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+
+
+def _motion(n: int, seed: int, yaw_rate: float = 0.0):
+    rng = np.random.default_rng(seed)
+    rot = np.cumsum(rng.normal(0, 0.01, (n, 24, 3)), 0).astype(np.float32)
+    rot[:, 0] = 0.0
+    rot[:, 0, 2] = yaw_rate * np.arange(n)
+    trans = np.cumsum(np.tile([[0.02, 0.01, 0.0]], (n, 1)), 0).astype(np.float32)
+    return rot, trans
+
+
+@pytest.mark.parametrize("shared", [0, 7])
+def test_join_ends_exactly_on_the_own_motion_and_is_smooth(shared):
+    from pocoloco.synth.histories import join_motions
+
+    p_rot, p_trans = _motion(30, 1, yaw_rate=0.05)
+    o_rot, o_trans = _motion(40, 2, yaw_rate=-0.03)
+    end = 35
+    rot, trans = join_motions(p_rot, p_trans, o_rot, o_trans, end - shared, end, blend=10)
+    assert rot.shape == (30 + 10 + shared + 1, 24, 3) and trans.shape == (len(rot), 3)
+    np.testing.assert_array_equal(rot[-1], o_rot[end])
+    np.testing.assert_array_equal(trans[-1], o_trans[end])
+    np.testing.assert_array_equal(rot[-(shared + 1):], o_rot[end - shared : end + 1])
+    # no jump: frame-to-frame steps through the blend stay near the motions' own
+    own_step = np.abs(np.diff(o_trans, axis=0)).max()
+    assert np.abs(np.diff(trans, axis=0)).max() < 3 * own_step + 1e-3
+    from scipy.spatial.transform import Rotation
+
+    root = Rotation.from_rotvec(rot[:, 0])
+    steps = (root[1:] * root[:-1].inv()).magnitude()
+    assert steps.max() < 0.2  # radians per frame: the heading is turned, not snapped
+
+
+def test_join_rejects_a_window_outside_the_motion():
+    from pocoloco.synth.histories import join_motions
+
+    p_rot, p_trans = _motion(10, 1)
+    o_rot, o_trans = _motion(20, 2)
+    with pytest.raises(ValueError, match="join"):
+        join_motions(p_rot, p_trans, o_rot, o_trans, 15, 25, blend=4)
+
+
+def test_poses_spread_over_the_subjects(tiny_dataset):
+    from pocoloco.synth.histories import HistoriesSpec, select_poses
+
+    spec = HistoriesSpec(poses=4, histories=2, shared_seconds=(0.0,), seed=3)
+    poses = select_poses(tiny_dataset, spec)
+    assert len(poses) == 4 and len(set(poses)) == 4
+    assert sorted({p.subject for p in poses}) == ["skirt", "tight"]
+    assert poses == select_poses(tiny_dataset, spec)  # seeded
+    with pytest.raises(ValueError, match="no test frame has 10 s"):
+        select_poses(tiny_dataset, HistoriesSpec(poses=2, shared_seconds=(10.0,)))
+    with pytest.raises(ValueError, match="no subject nobody"):
+        select_poses(tiny_dataset, HistoriesSpec(poses=2, subjects=("nobody",)))
+
+
+def test_histories_cli_makes_a_verified_resumable_reference_set(tiny_dataset, tmp_path):
+    from pocoloco.data.format import read_frame
+    from pocoloco.synth.histories import reference_sets
+
+    out = tmp_path / "refs"
+    args = ["data", "histories", str(tiny_dataset), "--out", str(out), "--poses", "2", "--histories", "3",
+            "--shared-seconds", "0", "0.2", "--subjects", "tight"]  # fmt: skip
+    r = run_cli(*args)
+    assert r.returncode == 0, r.stderr
+    assert "reference set: 2 test poses" in r.stdout
+    card = json.loads((out / "card.json").read_text())
+    assert card["status"] == "complete" and card["histories"]["histories"] == 3
+    sets = reference_sets(out)
+    assert len(sets) == 4 and {s["shared_seconds"] for s in sets} == {0.0, 0.2}
+    for s in sets:
+        own = read_frame(s["own"])
+        meta = json.loads((s["own"].parent.parent / "sequence.json").read_text())
+        assert [r["k"] for r in meta["references"]] == [0, 1, 2, 3] and meta["references"][-1]["own_scan"]
+        for path in s["refs"]:
+            ref = read_frame(path)
+            np.testing.assert_allclose(ref.body_vertices, own.body_vertices, atol=1e-4)  # exactly the frame's body
+            assert ref.points.shape == own.points.shape and ref.normals.shape == own.normals.shape
+    r = run_cli("data", "verify", str(out))
+    assert r.returncode == 0 and "OK" in r.stdout
+    # a lost reference is made again by the same command; the rest is kept
+    victim = sets[0]["refs"][1]
+    seq_dir = victim.parent.parent
+    before = sets[0]["refs"][0].read_bytes()
+    (seq_dir / "sequence.json").unlink()
+    victim.unlink()
+    for k in (0, 2):
+        (seq_dir / "frames" / f"{k:06d}.json").write_text(json.dumps({"k": k, "prefix_kind": "x"}))
+    r = run_cli(*args)
+    assert r.returncode == 0, r.stderr
+    assert victim.exists() and sets[0]["refs"][0].read_bytes() == before
+    # another request into the same folder, and bad input: one line each
+    for bad, msg in ((["--histories", "4"], "holds another reference set"), (["--histories", "1"], "--histories"),
+                     (["--shared-seconds", "-1"], "--shared-seconds")):  # fmt: skip
+        r = run_cli(*args, *bad)
+        assert r.returncode != 0 and msg in r.stderr and "Traceback" not in r.stderr
+    not_synth = tmp_path / "copy"
+    shutil.copytree(out, not_synth)
+    r = run_cli("data", "histories", str(not_synth), "--out", str(tmp_path / "again"))
+    assert r.returncode != 0 and "is itself a reference set" in r.stderr
+
+
+def test_bench_distribution_ranks_the_truth_first_and_reports_every_row(tiny_dataset, tiny_run, tmp_path):
+    from pocoloco.synth.histories import HistoriesSpec, make_histories
+
+    refs = tmp_path / "refs"
+    make_histories(tiny_dataset, refs, HistoriesSpec(poses=2, histories=4, shared_seconds=(0.0,), subjects=("tight",)))
+    out = tmp_path / "judge"
+    r = run_cli("bench", "distribution", "--refs", str(refs), "--ckpt-pocoloco", str(tiny_run), "--samples", "3",
+                "--points", "256", "--probes", "64", "--out", str(out))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    report = json.loads((out / "distribution.json").read_text())
+    rows = report["rows"]
+    assert set(rows) == {"pocoloco", "truth_loo", "refs_medoid", "posed_body"}
+    w = report["windows"][0]
+    assert w == "0"
+    es = {n: rows[n][w]["energy_score"]["mean"] for n in rows}
+    # a 2-step model is far from the truth; the truth itself is the floor
+    assert es["truth_loo"] < es["pocoloco"] and es["truth_loo"] <= es["refs_medoid"] + 1e-9
+    assert rows["truth_loo"][w]["es_minus_truth"]["mean"] == pytest.approx(0.0, abs=1e-9)
+    st = rows["pocoloco"][w]
+    assert st["energy_score"]["lo"] <= st["energy_score"]["mean"] <= st["energy_score"]["hi"]
+    for key in ("spread_refs", "spread_samples", "to_refs", "energy_distance", "chamfer_to_refs", "cov", "mmd",
+                "nna_refs", "nna_samples"):  # fmt: skip
+        assert key in st
+    assert rows["posed_body"][w]["nna_samples"]["mean"] is None  # one cloud: no sample neighbour (NaN -> null)
+    assert len(report["per_pose"]) == 2 and "ES" in (out / "distribution.md").read_text()
+    r = run_cli("bench", "distribution", "--refs", str(tiny_dataset), "--ckpt-pocoloco", str(tiny_run),
+                "--out", str(tmp_path / "no"))  # fmt: skip
+    assert r.returncode != 0 and "not a reference set" in r.stderr and not (tmp_path / "no").exists()
