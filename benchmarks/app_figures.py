@@ -15,6 +15,7 @@ Fixed seeds, the benchmarks' sampler (ddpm, 50 strided steps). Writes to ``--out
 * ``app_turntable.gif``: turntable of a generated cloud (``--cloud``, skipped if not given).
 
     python benchmarks/app_figures.py --data data/medium --threads 1 --cloud out/issue5/sample_skirt/sample_000.ply \\
+        --cloud-joints demo:skirt \\
         --mesh out/issue5/sample_mesh.ply --refined out/issue5/sample_refined.ply \\
         --body out/issue5/sample_refined_body.ply
 """
@@ -33,6 +34,7 @@ from pocoloco.apps.common import subset
 from pocoloco.apps.completion import complete, region_mask
 from pocoloco.apps.editing import edit
 from pocoloco.data import format as fmt
+from pocoloco.data.poses import load_joints
 from pocoloco.engine.checkpoint import resolve_checkpoint
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods import load_method
@@ -58,6 +60,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steps", type=int, default=50)
     p.add_argument("--only", nargs="+", default=["completion", "editing", "animation", "mesh", "turntable"])
     p.add_argument("--cloud", help="generated cloud PLY for the turntable")
+    p.add_argument("--cloud-joints", help="the --cloud's pose (as `pocoloco sample --joints`): its shading and garment tint")
     p.add_argument("--mesh", help="plain Poisson mesh PLY of --cloud")
     p.add_argument("--refined", help="refined mesh PLY (pocoloco mesh --refine-body)")
     p.add_argument("--body", help="fitted body PLY")
@@ -90,7 +93,8 @@ def main(argv: list[str] | None = None) -> None:
             panels.append((c.points[0], np.where(c.known[0], 0, 2), None, f"{title} (orange: generated)"))
         gsel = subset(len(fr.points), N, [0])
         panels.append((fr.points[gsel], fr.labels[gsel], None, "GT scan"))
-        render_grid(panels, out / "app_completion.png", views=("front", "side"), ncols=2, panel_size=2.6)
+        render_grid(panels, out / "app_completion.png", views=("front", "side"), ncols=2, panel_size=2.6,
+                    joints=fr.joints)  # fmt: skip
         print(f"completion figure ({time.perf_counter() - t0:.0f} s)", flush=True)
     if "editing" in args.only:
         t0 = time.perf_counter()
@@ -103,7 +107,8 @@ def main(argv: list[str] | None = None) -> None:
             panels.append((e.points[0], lab, None, title + (" (orange: new)" if lab is not None else "")))
         gsel = subset(len(tgt.points), N, [0])
         panels.append((tgt.points[gsel], None, None, "GT target frame"))
-        render_grid(panels, out / "app_editing.png", views=("front", "side"), ncols=2, panel_size=2.6)
+        render_grid(panels, out / "app_editing.png", views=("front", "side"), ncols=2, panel_size=2.6,
+                    joints=[src.joints] + [tgt.joints] * (len(panels) - 1))  # fmt: skip
         print(f"editing figure ({time.perf_counter() - t0:.0f} s)", flush=True)
     if "animation" in args.only:
         t0 = time.perf_counter()
@@ -118,7 +123,8 @@ def main(argv: list[str] | None = None) -> None:
         rows["GT"] = np.stack([f.points[subset(len(f.points), args.anim_points, [0, k])] for k, f in
                                enumerate(frames)])  # fmt: skip
         panels = [(rows[r][k], None, None, f"{r} {sel[k]}") for r in rows for k in range(len(sel))]
-        render_grid(panels, out / "app_animation_strip.png", views=("front",), ncols=len(sel), panel_size=1.6, dpi=90)
+        render_grid(panels, out / "app_animation_strip.png", views=("front",), ncols=len(sel), panel_size=1.6, dpi=90,
+                    joints=[joints[k] for _ in rows for k in range(len(sel))])  # fmt: skip
         # one GIF, the methods side by side (offset along x), one colour each
         width = 1.1 * float(np.ptp(rows["GT"][..., 0])) + 0.3
         palette = [LABEL_COLORS[0], LABEL_COLORS[1], LABEL_COLORS[2], np.array([0.4, 0.4, 0.4])]
@@ -138,7 +144,9 @@ def main(argv: list[str] | None = None) -> None:
         from pocoloco.data.published import read_ply
 
         ply = read_ply(args.cloud)
-        turntable_gif(out / "app_turntable.gif", ply.points, ply.labels, ply.normals, num_frames=24, size=3.0)
+        joints = None if args.cloud_joints is None else load_joints(args.cloud_joints)
+        turntable_gif(out / "app_turntable.gif", ply.points, ply.labels, ply.normals, num_frames=24, size=3.0,
+                      joints=joints)  # fmt: skip
         print("turntable", flush=True)
 
 

@@ -55,21 +55,14 @@ def make_motion_rotvecs(body: AnnyBody, frames: int, seed: int = 0) -> tuple[np.
 
 
 def render(path: str, body_v: np.ndarray, cloth_v: np.ndarray, title: str) -> None:
-    """Front and side scatter of body (grey) and cloth (colour by height)."""
-    import matplotlib
+    """Front and side views of the body's vertices (skin) and the cloth's (garment blue), drawn by
+    the package's cloud renderer (shaded by estimated normals)."""
+    from pocoloco.viz.render import render_grid
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(8, 6))
-    for ax, (i, j), name in zip(axes, [(0, 2), (1, 2)], ["front (x-z)", "side (y-z)"]):
-        ax.scatter(body_v[::3, i], body_v[::3, j], s=0.3, c="0.6")
-        ax.scatter(cloth_v[:, i], cloth_v[:, j], s=0.6, c=cloth_v[:, 2], cmap="viridis")
-        ax.set_aspect("equal")
-        ax.set_title(name)
-    fig.suptitle(title)
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    body_v = body_v[::3]
+    points = np.concatenate([body_v, cloth_v])
+    labels = np.concatenate([np.zeros(len(body_v), np.int64), np.ones(len(cloth_v), np.int64)])
+    render_grid([(points, labels, None, title)], path, views=("front", "side"), panel_size=4.0, dpi=80)
 
 
 def main() -> None:

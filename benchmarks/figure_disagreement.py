@@ -62,7 +62,7 @@ def main() -> None:
               ("POP", load_method(resolve_ckpt_arg(args.ckpt_pop)), (0,))]  # fmt: skip
     if args.ckpt_closet:
         models.append(("CloSET", load_method(resolve_ckpt_arg(args.ckpt_closet)), (0,)))
-    panels = []
+    panels, poses = [], []  # poses: each panel's joints (the shading's normals face away from its bones)
     for key in pick_frames(quality, args.frames):
         subject, _, seq, index = key.split("/")
         path = dataset_frame_path(f"{args.data}:{subject}/{split}/{seq}/{int(index)}")
@@ -80,8 +80,9 @@ def main() -> None:
                 name = f"{title} #{k + 1}" if len(seeds) > 1 else title
                 row.append((pts, label, None, f"{name} {chamfer_cm(pts, gt):.1f}cm {100 * np.mean(label == LABEL_GARMENT):.0f}%"))
         panels += row
+        poses += [frame.joints] * len(row)
     ncols = 1 + sum(len(s) for _, _, s in models)
-    print(render_grid(panels, args.out, views=("front", "side"), ncols=ncols, panel_size=2.2))
+    print(render_grid(panels, args.out, views=("front", "side"), ncols=ncols, panel_size=2.2, joints=poses))
 
 
 if __name__ == "__main__":

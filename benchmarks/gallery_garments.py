@@ -45,7 +45,7 @@ def main() -> None:
     from pocoloco.synth.pipeline import cloth_settings
     from pocoloco.synth.garments import make_garment
     from pocoloco.synth.motion import generate_motion, rest_to_motion
-    from pocoloco.render import render_grid
+    from pocoloco.viz.render import render_grid
 
     lead = 12
     count = max(args.frames) + 1

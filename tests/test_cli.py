@@ -68,9 +68,10 @@ def test_commands_doing_torch_work_take_threads(command):
 
 
 def _documentation() -> str:
-    """README and every page of the documentation site (docs/**/*.md)."""
+    """README and every page of the documentation site (docs/**/*.md) but the lab notebook (docs/lab:
+    a record of experiments, whose command lines are kept as they were run)."""
     pages = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
-    return "\n".join(p.read_text() for p in pages if "_build" not in p.parts)
+    return "\n".join(p.read_text() for p in pages if "_build" not in p.parts and "lab" not in p.parts)
 
 
 def _code_blocks(text: str, languages: tuple[str, ...]) -> list[str]:

@@ -180,7 +180,8 @@ def _skeleton_capsules(points: np.ndarray, joints: np.ndarray) -> tuple[np.ndarr
     (:data:`BONE_RADII_M`, scaled to the skeleton), the bone whose capsule it exceeds least (the
     index of its child joint minus 1) and that bone's nearest point: (N,), (N,) int, (N, 3)."""
     j = np.asarray(joints, np.float64)
-    scale = (np.linalg.norm(j[15] - j[0]) + np.linalg.norm(j[4] - j[1]) + np.linalg.norm(j[7] - j[4])) / BONE_RADII_SCALE_M
+    length = np.linalg.norm(j[15] - j[0]) + np.linalg.norm(j[4] - j[1]) + np.linalg.norm(j[7] - j[4])  # pelvis-head, leg
+    scale = length / BONE_RADII_SCALE_M
     a, ab = j[_BONES[:, 0]], j[_BONES[:, 1]] - j[_BONES[:, 0]]  # (B, 3)
     ab[14] *= 1.6  # neck -> head, on to the crown
     t = np.clip(np.einsum("nbk,bk->nb", points[:, None] - a, ab) / np.maximum((ab * ab).sum(1), 1e-12), 0.0, 1.0)
@@ -246,7 +247,9 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
 
 
-def garment_weights(points: np.ndarray, joints: np.ndarray | None = None, body: np.ndarray | None = None) -> np.ndarray | None:
+def garment_weights(
+    points: np.ndarray, joints: np.ndarray | None = None, body: np.ndarray | None = None
+) -> np.ndarray | None:
     """How much each point of an unlabeled cloud is loose garment, in [0, 1] (1: garment).
 
     Where the cloth hangs free: with the posed ``body`` (V, 3) vertices, by the distance to the
@@ -336,7 +339,7 @@ def render_points(
             ``body``: the loose garment tinted, :func:`colors_for`).
         labels: (N,) point labels, used when ``colors`` is None.
         normals: (N, 3) unit normals or None; with ``shade`` they darken points
-            facing away from the light (Lambert, :data:`KEY_LIGHT`, 0.3 ambient).
+            facing away from the light (Lambert, :data:`KEY_LIGHT`, 0.42 ambient).
         view: one of ``VIEWS`` (front, side, back, top).
         point_size: marker area in points^2; None = chosen from N.
         extent: (u_min, u_max, v_min, v_max) screen window; None = fit the cloud.
@@ -376,7 +379,7 @@ def render_points(
         if shade:
             right, up, toward = (np.asarray(a, dtype=np.float64) for a in VIEWS[view])
             lit = normals @ _unit(toward + KEY_LIGHT[0] * right + KEY_LIGHT[1] * up)
-            light = 0.3 + 0.7 * np.clip(np.abs(lit) if two_sided else lit, 0.0, 1.0) ** 1.5
+            light = 0.42 + 0.58 * np.clip(np.abs(lit) if two_sided else lit, 0.0, 1.0) ** 1.2
             colors = np.clip(colors * light[:, None], 0.0, 1.0)
         if cull:
             keep = facing > -0.15
