@@ -195,11 +195,17 @@ def cmd_bench_distribution(args: argparse.Namespace) -> None:
     if not ckpts:
         raise ValueError("no model to judge: give --ckpt-pocoloco / --ckpt-pop / --ckpt-closet / --ckpt-hybrid "
                          "(a folder or default, default:pop, ...)")  # fmt: skip
+    outfits = {}
+    for item in args.outfit or ():
+        subject, sep, outfit = item.partition("=")
+        if not sep or not subject or not outfit:
+            raise ValueError(f"--outfit takes SUBJECT=OUTFIT (e.g. skirt=skirt_a), got {item!r}")
+        outfits[subject] = outfit
     con = console()
     with progress_bar("poses", transient=True) as update:
         report = bench_distribution(args.refs, ckpts, args.out, samples=args.samples, points=args.points,
                                     probes=args.probes, seed=args.seed, device=args.device, sampler=args.sampler,
-                                    steps=args.steps, progress=update)  # fmt: skip
+                                    steps=args.steps, outfits=outfits, progress=update)  # fmt: skip
     con.print(escape((Path(args.out) / "distribution.md").read_text()))
     con.print(f"wrote {escape(str(Path(args.out) / 'distribution.json'))} ({report['settings']['poses']} poses)")
 
@@ -216,6 +222,9 @@ def add_bench_distribution_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the samples, probes and subsets (default 0)")
     parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco's sampler (default dpm++sde)")
     parser.add_argument("--steps", type=int, help="its network calls (default: the sampler's)")
+    parser.add_argument("--outfit", nargs="+", metavar="SUBJECT=OUTFIT", help="models with outfits: draw SUBJECT's "
+                        "poses in OUTFIT (default: the subject's own name; e.g. skirt=skirt_a for `small` with the "
+                        "medium models)")  # fmt: skip
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
     parser.add_argument("--out", required=True, help="output folder (distribution.json, distribution.md)")
 

@@ -88,12 +88,15 @@ def bench_distribution(
     device: str = "cpu",
     sampler: str = "dpm++sde",
     steps: int | None = None,
+    outfits: Mapping[str, str] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Score every model of ``ckpts`` (row name -> checkpoint, ``default:...`` names allowed) on the
     reference set ``refs``; write ``distribution.json`` and ``distribution.md`` into ``out``.
 
-    progress: ``callable(done_poses, total_poses)``.
+    outfits: subject -> the outfit models with outfits draw it in (default: the subject's own name,
+    which a model trained on another dataset may not have). progress: ``callable(done_poses,
+    total_poses)``.
     JSON: ``rows[NAME][WINDOW]`` (WINDOW = shared seconds as text, "0", "2") -> statistic ->
     ``{"mean", "lo", "hi"}``; ``per_pose``: every pose's statistics; ``settings``. Returns it."""
     if samples < 2:
@@ -128,7 +131,8 @@ def bench_distribution(
             t0 = time.perf_counter()
             seeds = [0] if method.deterministic else [seed * 100_003 + pose_index * 1_000 + i for i in range(samples)]
             kwargs = {} if method.deterministic else {"sampler": sampler, "steps": steps}
-            clouds = method.sample(pose, points, seeds, **kwargs)  # the outfit: the pose's own subject
+            outfit = (outfits or {}).get(subject)  # None: the pose's own subject
+            clouds = method.sample(pose, points, seeds, outfit=outfit, **kwargs)
             seconds[name] += time.perf_counter() - t0
             drawn[name] = [np.asarray(c, np.float64) for c in clouds.points]
         body = [_subsample(own.body_vertices, points, seed)]
@@ -151,7 +155,7 @@ def bench_distribution(
         "refs": str(refs), "split": hist["split"], "poses": len(poses), "histories": hist["histories"],
         "true_states_per_pose": hist["histories"] + 1, "windows": [f"{s:g}" for s in hist["shared_seconds"]],
         "samples": samples, "points": points, "probes": probes, "seed": seed, "bootstrap": bootstrap,
-        "sampler": sampler, "steps": steps,
+        "sampler": sampler, "steps": steps, "outfits": dict(outfits or {}),
         "checkpoints": {n: describe_checkpoint(p) for n, (_, p) in methods.items()},
         "seconds_sampling": seconds,
     }  # fmt: skip

@@ -324,19 +324,20 @@ def _run_reference_inner(source: Path, out: Path, spec: HistoriesSpec, job: _Job
 
 def _finish_sequence(source: Path, out: Path, spec: HistoriesSpec, pose: RefPose, shared: float,
                      records: list[dict]) -> None:  # fmt: skip
-    """Frame K (the frame's own scan, copied), motion.npz (the frame's body K + 1 times) and, last,
+    """Frame K (the frame's own scan, renumbered K), motion.npz (the frame's body K + 1 times) and, last,
     sequence.json listing every reference's prefix motion; the per-reference records removed."""
     src, layout = DatasetLayout(source), DatasetLayout(out)
     name = window_name(pose, shared)
     k_own = spec.histories
-    shutil.copyfile(src.frame_path(pose.subject, spec.split, pose.sequence, pose.frame),
-                    layout.frame_path(pose.subject, spec.split, name, k_own))  # fmt: skip
+    config = config_of_card(read_card(source)["generation_config"])
+    own = read_frame(src.frame_path(pose.subject, spec.split, pose.sequence, pose.frame))
+    write_frame(layout.frame_path(pose.subject, spec.split, name, k_own), dataclasses.replace(own, frame_index=k_own),
+                storage=config.frame_storage)  # fmt: skip
     stored = read_motion(src.motion_path(pose.subject, spec.split, pose.sequence))
     n = spec.histories + 1
     write_motion(layout.motion_path(pose.subject, spec.split, name),
                  StoredMotion(np.repeat(stored.joint_rotvecs[pose.frame][None], n, 0),
                               np.repeat(stored.root_translation[pose.frame][None], n, 0)))  # fmt: skip
-    config = config_of_card(read_card(source)["generation_config"])
     write_sequence_meta(layout.sequence_meta_path(pose.subject, spec.split, name), {
         "subject": pose.subject, "split": spec.split, "name": name, "fps": config.fps, "num_frames": n,
         "num_stored": n, "rejected_frames": [], "segments": [["histories", 0, n]],
