@@ -22,14 +22,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    out = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(out, f[:, k], n)
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--hold", type=float, default=2.0, help="seconds held after the stop")
@@ -45,6 +37,7 @@ def main() -> None:
     from bench_settle import history_then_rest
 
     from pocoloco.body import AnnyBody
+    from pocoloco.methods.hybrid.regions import vertex_normals
     from pocoloco.synth.cloth_sim import simulate_garment
     from pocoloco.synth.config import CLOTH_VERSIONS, MEDIUM_SUBJECTS, SynthConfig
     from pocoloco.synth.garments import make_garment
@@ -89,8 +82,8 @@ def main() -> None:
         fig.patch.set_facecolor("white")
         for i, version in enumerate(runs):
             verts, faces, speed = runs[version]
-            bv, bn = posed.vertices[t], _vertex_normals(posed.vertices[t], body.faces)
-            gv, gn = verts[t], _vertex_normals(verts[t], faces)
+            bv, bn = posed.vertices[t], vertex_normals(posed.vertices[t], body.faces)
+            gv, gn = verts[t], vertex_normals(verts[t], faces)
             pts = np.concatenate([bv[body_idx], gv])
             nrm = np.concatenate([bn[body_idx], gn])
             col = np.concatenate([np.repeat(LABEL_COLORS[:1], len(body_idx), 0), np.repeat(LABEL_COLORS[1:2], len(gv), 0)])

@@ -121,8 +121,7 @@ def bench_distribution(
         own_path = windows[0]["own"]
         own = read_frame(own_path)
         joints = own.joints
-        seq_dir = own_path.parent.parent
-        spec = f"{Path(refs)}:{subject}/{windows[0]['split']}/{seq_dir.name}/{int(own_path.stem)}"
+        spec = f"{Path(refs)}:{subject}/{windows[0]['split']}/{windows[0]['sequence']}/{hist['histories']}"
         pose = Pose.load(spec)
         drawn: dict[str, list[np.ndarray]] = {}
         if progress:

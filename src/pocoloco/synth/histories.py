@@ -329,7 +329,7 @@ def _finish_sequence(source: Path, out: Path, spec: HistoriesSpec, pose: RefPose
     src, layout = DatasetLayout(source), DatasetLayout(out)
     name = window_name(pose, shared)
     k_own = spec.histories
-    config = config_of_card(read_card(source)["generation_config"])
+    _, config = _source(source)
     own = read_frame(src.frame_path(pose.subject, spec.split, pose.sequence, pose.frame))
     write_frame(layout.frame_path(pose.subject, spec.split, name, k_own), dataclasses.replace(own, frame_index=k_own),
                 storage=config.frame_storage)  # fmt: skip
