@@ -6,7 +6,7 @@ blends into the rest pose and holds it; the same body motion is simulated with t
 ``--stride``-th frame is drawn front-on, body in skin and garment in blue, with the hem's speed
 relative to the body in each panel's title.
 
-    python benchmarks/experiments/settle_gif.py [--hold 2.0] [--stride 3] --out docs/images/settle_spin_v2_v3.gif
+    python benchmarks/experiments/settle_gif.py [--hold 2.0] [--stride 4] --out docs/images/settle_spin_v2_v3.gif
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--hold", type=float, default=2.0, help="seconds held after the stop")
-    ap.add_argument("--stride", type=int, default=3, help="draw every k-th frame")
+    ap.add_argument("--stride", type=int, default=4, help="draw every k-th frame")
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
@@ -95,7 +95,7 @@ def main() -> None:
             fig.text(0.5, 0.02, phase, ha="center", va="bottom", fontsize=8)
         fig.canvas.draw()
         rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]
-        images.append(Image.fromarray(rgb).convert("P", palette=Image.ADAPTIVE, colors=64))
+        images.append(Image.fromarray(rgb).convert("P", palette=Image.ADAPTIVE, colors=32))
     buf = io.BytesIO()
     images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 * args.stride / fps),
                    loop=0, optimize=True)  # fmt: skip
