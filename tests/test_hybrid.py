@@ -17,7 +17,8 @@ from pocoloco.data.published import read_ply, write_ply
 from pocoloco.methods import load_method, train
 from pocoloco.methods.base import SampledClouds, SamplerOptions
 from pocoloco.methods.hybrid import FreeRegionMaps, HybridMethod, learn_free_maps, point_regions, render_free_maps
-from pocoloco.methods.hybrid.regions import inside_depth, scan_vertex_votes, vertex_normals
+from pocoloco.body.surface import vertex_normals
+from pocoloco.methods.hybrid.regions import inside_depth, scan_vertex_votes
 from pocoloco.methods.skinned import skinned_preset
 
 

@@ -37,7 +37,7 @@ def main() -> None:
     from bench_settle import history_then_rest
 
     from pocoloco.body import AnnyBody
-    from pocoloco.methods.hybrid.regions import vertex_normals
+    from pocoloco.body.surface import vertex_normals
     from pocoloco.synth.cloth_sim import simulate_garment
     from pocoloco.synth.config import CLOTH_VERSIONS, MEDIUM_SUBJECTS, SynthConfig
     from pocoloco.synth.garments import make_garment

@@ -50,6 +50,7 @@ import numpy as np
 from pocoloco.apps.common import check_scan
 from pocoloco.body.anny_body import fit_body_to_cloud
 from pocoloco.body.skeleton import JOINT_PARENTS
+from pocoloco.body.surface import vertex_normals
 from pocoloco.data.published import check_cloud, read_ply, write_ply
 from pocoloco.viz.render import render_mesh, render_meshes
 
@@ -365,16 +366,6 @@ def mesh_report(mesh: PoissonMesh, seconds: float = 0.0) -> MeshReport:
     return MeshReport(len(mesh.vertices), len(mesh.faces), is_watertight(mesh.vertices, mesh.faces), seconds)
 
 
-def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals. (V, 3), (F, 3) -> (V, 3) float32 unit (zero for isolated vertices)."""
-    v = vertices.astype(np.float64)
-    fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])  # (F, 3), |.| = 2 area
-    vn = np.zeros_like(v)
-    for j in range(3):
-        np.add.at(vn, faces[:, j], fn)
-    return (vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-20)).astype(np.float32)
-
-
 def mesh_ply(
     src: str | os.PathLike, out: str | os.PathLike, depth: int = 8, density_quantile: float = 0.0,
     render: str | os.PathLike | None = None, **kwargs,
@@ -400,7 +391,7 @@ def mesh_ply(
     if render is not None:
 
         render_mesh(mesh.vertices, mesh.faces, render)
-    write_ply(out, mesh.vertices, normals=_vertex_normals(mesh.vertices, mesh.faces), faces=mesh.faces)
+    write_ply(out, mesh.vertices, normals=vertex_normals(mesh.vertices, mesh.faces), faces=mesh.faces)
     return report
 
 
@@ -506,6 +497,6 @@ def refine_body_ply(src: str | os.PathLike, out: str | os.PathLike, joints: np.n
 
         render_meshes([(mesh.vertices, mesh.faces, "refined mesh"), (fit.vertices, fit.faces, "fitted body")], render)
     body_faces = np.asarray(fit.faces, np.int64)
-    write_ply(body_out, fit.vertices, normals=_vertex_normals(fit.vertices, body_faces), faces=body_faces)
-    write_ply(out, mesh.vertices, normals=_vertex_normals(mesh.vertices, mesh.faces), faces=mesh.faces)
+    write_ply(body_out, fit.vertices, normals=vertex_normals(fit.vertices, body_faces), faces=body_faces)
+    write_ply(out, mesh.vertices, normals=vertex_normals(mesh.vertices, mesh.faces), faces=mesh.faces)
     return RefineReport(report, fit, int(len(pts) - (~from_body).sum()), int(from_body.sum()))

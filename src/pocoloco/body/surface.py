@@ -30,6 +30,7 @@ from pocoloco.ops import sample_surface
 from pocoloco.utils.atomic import atomic_open, save_npz_atomic
 
 __all__ = [
+    "vertex_normals",
     "BodySurface",
     "PositionMap",
     "UVMapReport",
@@ -137,6 +138,18 @@ class PositionMap:
 # UV rasterisation
 # ---------------------------------------------------------------------------
 
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) float32 unit vertex normals of a mesh (V, 3) / (F, 3): the area-weighted sum of its
+    faces' normals (outward for counter-clockwise faces; zero for a vertex no face uses)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    face_normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2 x area
+    n = np.zeros_like(v)
+    for corner in range(3):
+        np.add.at(n, f[:, corner], face_normals)
+    return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)).astype(np.float32)
 
 def pixel_uv(pixels: np.ndarray, resolution: int) -> np.ndarray:
     """(P, 2) integer (i, j) -> (P, 2) float32 (u, v) = ((j + .5) / R, 1 - (i + .5) / R)."""

@@ -30,13 +30,14 @@ import torch
 from scipy.spatial import cKDTree
 from torch import nn
 
+from pocoloco.body.surface import vertex_normals
 from pocoloco.data.poses import MeanShapeCache, Pose
 from pocoloco.engine.checkpoint import Checkpoint, load_checkpoint, one_line
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import AnimationPrior, Method, SampledClouds, SamplerOptions
 from pocoloco.methods.hybrid.regions import (MIN_FREE_SHARE, FreeRegionMaps, inside_depth, point_regions,
-                                             scan_vertex_votes, stored_vertex_share, vertex_normals)
+                                             scan_vertex_votes, stored_vertex_share)
 from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
 from pocoloco.methods.pop.method import POPMethod, pop_query_for

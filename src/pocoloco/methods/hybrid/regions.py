@@ -32,7 +32,7 @@ from pocoloco.utils.npfile import numpy_file_problem
 from pocoloco.viz.render import render_grid
 
 __all__ = ["MIN_FREE_SHARE", "FreeRegionMaps", "inside_depth", "learn_free_maps", "point_regions",
-           "recount_point_shares", "render_free_maps", "scan_vertex_votes", "stored_vertex_share", "vertex_normals"]
+           "recount_point_shares", "render_free_maps", "scan_vertex_votes", "stored_vertex_share"]
 
 #: an outfit with a smaller free point share has no free region (wholly attached)
 MIN_FREE_SHARE = 0.02
@@ -144,18 +144,6 @@ def point_regions(points: np.ndarray, body_vertices: np.ndarray, free: np.ndarra
     dist, nearest = cKDTree(np.asarray(body_vertices, np.float64)).query(np.asarray(points, np.float64))
     region = np.asarray(free, bool)[nearest]
     return region if far is None else region | (dist > far)
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit vertex normals of a mesh (V, 3) / (F, 3): the area-weighted sum of its faces'
-    normals (outward for the body's counter-clockwise faces)."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    face_normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2 x area
-    n = np.zeros_like(v)
-    for corner in range(3):
-        np.add.at(n, f[:, corner], face_normals)
-    return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
 
 
 def inside_depth(points: np.ndarray, body_vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
