@@ -373,6 +373,24 @@ def test_cli_init_from_fine_tunes_from_a_checkpoints_weights(tiny_dataset, tmp_p
     assert not Path(bad).exists() or not any(p.name != ".lock" for p in Path(bad).rglob("*") if p.is_file())
 
 
+def test_init_from_leaves_the_source_machines_settings_behind(tiny_dataset, tmp_path, monkeypatch):
+    """--init-from takes the source's recipe but not its machine's settings: bf16 autocast follows
+    this device (emulated bf16 made a CPU fine-tune of the GPU-trained default ~10x slower) and the
+    loader runs in the main process, unless the options say otherwise."""
+    import pocoloco.cli.common as cli_common
+
+    monkeypatch.setattr(cli_common, "bf16_is_fast", lambda device: False)  # a CPU without native bf16
+    src = str(tmp_path / "src")
+    base = ["--data", str(tiny_dataset), "--no-progress", "--device", "cpu", "--threads", "1", "--sample-every", "0"]
+    assert cli_main(["train", *base, "--out", src, "--preset", "tiny", "--steps", "1", "--bf16", "--workers", "1"]) == 0
+    assert ckpt_io.load_checkpoint(src).config["bf16"] is True
+    for extra, bf16, workers in (([], False, 0), (["--bf16", "--workers", "1"], True, 1)):
+        out = str(tmp_path / f"ft{len(extra)}")
+        assert cli_main(["train", *base, "--out", out, "--init-from", src, "--steps", "1", *extra]) == 0
+        config = ckpt_io.load_checkpoint(out).config
+        assert (config["bf16"], config["num_workers"]) == (bf16, workers), (extra, config["bf16"], config["num_workers"])
+
+
 def test_init_from_matches_outfit_codes_by_name(tiny_dataset, tmp_path):
     """Fine-tuning on a subset of outfits starts each outfit from the source's code of the same name."""
     src, out = tmp_path / "src", tmp_path / "ft"

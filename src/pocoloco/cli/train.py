@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
-from pocoloco.cli.common import add_threads_argument, choose_device, console, progress_bar
+from pocoloco.cli.common import add_threads_argument, choose_device, console, progress_bar, resolve_bf16
 from pocoloco.data.dataset import OpenedDataset
 from pocoloco.data.pack import is_pack, read_pack_meta, training_card
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
@@ -97,6 +97,12 @@ def _config_from_args(args: argparse.Namespace):
     if args.preset is None and args.init_from is not None and not args.resume:
         if extra:
             raise ValueError("--no-decomposition cannot change with --init-from (the network comes from the checkpoint)")
+        # the machine's settings do not travel with the weights: a fine-tune of a GPU-trained model on
+        # a CPU without native bf16 would otherwise run its forward pass emulated (~10x slower here)
+        # and start a GPU run's loader processes
+        for field, value in (("bf16", resolve_bf16(None, choose_device(args.device))), ("num_workers", 0)):
+            if field in have and field not in overrides:
+                overrides[field] = value
         return config_from_checkpoint(args.init_from, args.model, **overrides)
     if "batch_size" in overrides and "lr" not in overrides and args.lr_scaling != "none":
         base = cls.preset(args.preset or "small", **extra)
