@@ -1,0 +1,73 @@
+#!/usr/bin/env bash
+# Carry the shipped `medium` models over to data v3 (issue 39, damped cloth): make `medium` v3, score
+# the shipped (v2-trained) models on it, fine-tune each from its shipped weights on a clock, assemble
+# the hybrid of the two fine-tuned networks, and score those on the same frames. Every step resumes
+# where a killed run stopped: rerun the script.
+#
+#   bash scripts/finetune_medium_v3.sh     # ~2.5 h on a 2-core CPU: 4 / 2 / 1 sequences per subject
+#   TRAIN_SEQUENCES=24 TEST_SEQUENCES=8 HELDOUT_SEQUENCES=2 MIN_POCOLOCO=120 bash scripts/finetune_medium_v3.sh
+#                                          # all of medium (the v3 cloth makes it ~4 h here), longer
+#
+# Two jobs run side by side (one thread each): PocoLoco on one core, POP then CloSET on the other.
+# Each fine-tune runs on a time budget with a warm-stable-decay schedule, so it ends cooled down.
+# The comparison (`benchmarks/compare_quality.py`, paired per frame) is written to $RUNS/v3/*.md.
+# Needs `bash scripts/setup.sh` first.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=.venv/bin/python
+PL=.venv/bin/pocoloco
+RUNS=${RUNS:-$HOME/.cache/pocoloco/runs}/v3
+DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v3}
+TRAIN_SEQUENCES=${TRAIN_SEQUENCES:-4}       # of medium's 24 per subject
+TEST_SEQUENCES=${TEST_SEQUENCES:-2}         # of 8
+HELDOUT_SEQUENCES=${HELDOUT_SEQUENCES:-1}   # of 2
+MIN_POCOLOCO=${MIN_POCOLOCO:-40}
+MIN_POP=${MIN_POP:-15}
+MIN_CLOSET=${MIN_CLOSET:-25}
+mkdir -p "$RUNS"
+
+# 1. the data: medium's subjects, motions and captures with the v3 cloth (a dataset can grow later)
+$PL data synth --preset medium --train-sequences "$TRAIN_SEQUENCES" --test-sequences "$TEST_SEQUENCES" \
+  --heldout-sequences "$HELDOUT_SEQUENCES" --workers 2 --frame-storage compact --out "$DATA"
+
+# 2. the shipped models on it (before anything replaces them: default:hybrid links default and default:pop)
+quality() {  # quality OUT [--ckpt-... CKPT]...: both splits, the standard frames and seeds
+  local out=$1; shift
+  for split in test heldout; do
+    [ -f "$out/$split/quality.json" ] || $PL bench quality --data "$DATA" --split "$split" --frames 28 --seeds 0 1 \
+      --points 2048 "$@" --out "$out/$split"
+  done
+}
+quality "$RUNS/quality_shipped" --ckpt-pocoloco default --ckpt-pop default:pop --ckpt-closet default:closet \
+  --ckpt-hybrid default:hybrid
+
+# 3. the fine-tunes, side by side; each from the shipped weights, its cool-down on the clock
+resume() { [ -f "$1/checkpoints/latest" ] && echo --resume || true; }
+nice $PL train --data "$DATA" --init-from default --out "$RUNS/pocoloco" $(resume "$RUNS/pocoloco") \
+  --batch-size 32 --lr 3e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POCOLOCO" \
+  --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$RUNS/pocoloco.log" 2>&1 &
+POCO=$!
+( nice $PL train --model pop --data "$DATA" --init-from default:pop --out "$RUNS/pop" $(resume "$RUNS/pop") \
+    --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POP" \
+    --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$RUNS/pop.log" 2>&1
+  nice $PL train --model closet --data "$DATA" --init-from default:closet --out "$RUNS/closet" $(resume "$RUNS/closet") \
+    --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_CLOSET" \
+    --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$RUNS/closet.log" 2>&1 ) &
+PEERS=$!
+wait $POCO $PEERS
+
+# 4. the hybrid of the two fine-tuned networks, its maps learnt on v3 (the shipped recipe)
+[ -d "$RUNS/hybrid/checkpoints" ] || $PL hybrid --attached "$RUNS/pop" --free "$RUNS/pocoloco" --data "$DATA" \
+  --generator-share 0.5 --inside-tolerance 0.01 --trust 0.03 --out "$RUNS/hybrid"
+
+# 5. the fine-tuned models on the same frames, and the paired comparison per model and split
+quality "$RUNS/quality_finetuned" --ckpt-pocoloco "$RUNS/pocoloco" --ckpt-pop "$RUNS/pop" \
+  --ckpt-closet "$RUNS/closet" --ckpt-hybrid "$RUNS/hybrid"
+for split in test heldout; do
+  for model in pocoloco pop closet hybrid; do
+    $PY benchmarks/compare_quality.py "$RUNS/quality_shipped/$split/quality.json:$model" \
+      "$RUNS/quality_finetuned/$split/quality.json:$model" --json "$RUNS/compare_${split}_$model.json" \
+      > "$RUNS/compare_${split}_$model.md"
+  done
+done
+echo "finetune_medium_v3: done ($RUNS)"
