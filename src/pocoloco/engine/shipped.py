@@ -7,7 +7,9 @@ PocoLoco's ``latent_small`` preset (the linear-in-N latent denoiser, outfit code
 trained on the ``medium`` synthetic dataset (14 outfits, 7 garment kinds) on one GPU for 5.5 min
 (EMA weights); ``assets/pop_medium`` POP (``small`` preset) trained on ``medium``, 10,000 steps on
 one CPU thread; ``assets/closet_medium`` CloSET (``small`` preset) trained on ``medium``, 10,000
-steps on one CPU thread; the peers' raw weights (they keep no EMA). ``assets/hybrid_medium`` the hybrid of
+steps on one CPU thread; the peers' raw weights (they keep no EMA). All three were then fine-tuned
+on ``medium`` made with the data-v3 cloth (``scripts/finetune_medium_v3.sh``: 40 / 15 / 25 CPU
+minutes). ``assets/hybrid_medium`` the hybrid of
 the two (``default:pop`` + ``default``): its free-region maps and a link to each, no weights of its own
 (``pocoloco hybrid --link``). How each was trained and its evaluation are in README.md ("The default
 model", "POP and CloSET"). Written by :func:`pocoloco.engine.checkpoint.export_for_sampling`
