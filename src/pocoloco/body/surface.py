@@ -30,7 +30,6 @@ from pocoloco.ops import sample_surface
 from pocoloco.utils.atomic import atomic_open, save_npz_atomic
 
 __all__ = [
-    "vertex_normals",
     "BodySurface",
     "PositionMap",
     "UVMapReport",
@@ -43,6 +42,7 @@ __all__ = [
     "pixel_uv",
     "pose_mean_shape",
     "position_map",
+    "vertex_normals",
     "rasterize_uv",
     "rasterize_uv_reference",
     "sample_surface_points",
@@ -134,12 +134,6 @@ class PositionMap:
     mask: torch.Tensor
 
 
-# ---------------------------------------------------------------------------
-# UV rasterisation
-# ---------------------------------------------------------------------------
-
-
-
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(V, 3) float32 unit vertex normals of a mesh (V, 3) / (F, 3): the area-weighted sum of its
     faces' normals (outward for counter-clockwise faces; zero for a vertex no face uses)."""
@@ -150,6 +144,12 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     for corner in range(3):
         np.add.at(n, f[:, corner], face_normals)
     return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------
+# UV rasterisation
+# ---------------------------------------------------------------------------
+
 
 def pixel_uv(pixels: np.ndarray, resolution: int) -> np.ndarray:
     """(P, 2) integer (i, j) -> (P, 2) float32 (u, v) = ((j + .5) / R, 1 - (i + .5) / R)."""
