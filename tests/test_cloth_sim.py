@@ -147,6 +147,69 @@ def test_a_settled_state_is_reused_with_the_same_result(body, skirt):
         simulate_garment(body, skirt, other, settings, settled=first.settled)
 
 
+def _walk_and_turn(body, t: int, yaw: float = 0.0, shift=(0.0, 0.0, 0.0)):
+    """A short motion that walks forward (the root frame moves) and lifts a leg, the whole of it
+    turned by ``yaw`` about the vertical and moved by ``shift``; the (3, 3) turn."""
+    from scipy.spatial.transform import Rotation
+
+    rot = np.zeros((t, 24, 3), np.float32)
+    rot[:, 1, 0] = -0.5 * np.linspace(0.0, 1.0, t)  # left leg forward
+    trans = np.zeros((t, 3), np.float32)
+    trans[:, 1] = -0.03 * np.arange(t)  # 0.75 m/s at 25 fps
+    turn = Rotation.from_euler("z", yaw)
+    rot[:, 0] = (turn * Rotation.from_rotvec(rot[:, 0])).as_rotvec()
+    trans = turn.apply(trans) + np.asarray(shift)
+    return body.pose(rot, trans.astype(np.float32)), turn.as_matrix()
+
+
+@pytest.mark.slow  # a few seconds once the kernels are compiled
+def test_a_simulation_continues_from_its_final_state_bit_identically(body, skirt):
+    """Simulating frames 0..T-1 in one call equals simulating 0..m, then m..T-1 from the first call's
+    final state: positions, velocities, the moving root frame's velocity and the air's carry over."""
+    from pocoloco.synth.config import SynthConfig
+    from pocoloco.synth.pipeline import cloth_settings
+
+    settings = dataclasses.replace(cloth_settings(SynthConfig(), "skirt"), substeps=3, iterations=3, settle_frames=2)
+    assert settings.frame == "root" and settings.air_drag_normal > 0  # the state a continuation needs
+    posed, _ = _walk_and_turn(body, 7)
+    full = simulate_garment(body, skirt, posed, settings)
+    m = 3
+    head = simulate_garment(body, skirt, _slice(posed, 0, m + 1), settings)
+    tail = simulate_garment(body, skirt, _slice(posed, m, 7), settings, settled=head.final)
+    np.testing.assert_array_equal(head.vertices, full.vertices[: m + 1])
+    np.testing.assert_array_equal(tail.vertices, full.vertices[m:])
+    assert np.linalg.norm(head.final.frame_velocity) == pytest.approx(0.75, rel=0.05)
+    # without the frame's velocity the continuation goes wrong: the cloth would be thrown back
+    lost = dataclasses.replace(head.final, frame_velocity=None)
+    wrong = simulate_garment(body, skirt, _slice(posed, m, 7), settings, settled=lost)
+    assert np.abs(wrong.vertices[-1] - full.vertices[-1]).max() > 1e-3
+
+
+@pytest.mark.slow
+def test_a_turned_state_continues_as_the_turned_motion_would(body, skirt):
+    """The same motion turned about the vertical (and moved): continuing the unturned run's state,
+    turned, gives the turned run's cloth to rounding (the physics has no preferred heading)."""
+    from pocoloco.synth.config import SynthConfig
+    from pocoloco.synth.pipeline import cloth_settings
+
+    settings = dataclasses.replace(cloth_settings(SynthConfig(), "skirt"), substeps=3, iterations=3, settle_frames=2)
+    straight, _ = _walk_and_turn(body, 6)
+    turned, r = _walk_and_turn(body, 6, yaw=0.9, shift=(0.4, -0.2, 0.0))
+    m = 3
+    head = simulate_garment(body, skirt, _slice(straight, 0, m + 1), settings)
+    full = simulate_garment(body, skirt, turned, settings)
+    state = head.final.turned(r, turned.vertices[m])
+    tail = simulate_garment(body, skirt, _slice(turned, m, 6), settings, settled=state)
+    err = np.linalg.norm(tail.vertices - full.vertices[m:], axis=-1)
+    assert err.max() < 2e-3, err.max()  # metres: rounding, not another swing
+    expected = (head.vertices[-1] - straight.joints[m, 0]) @ r.T + turned.joints[m, 0]
+    np.testing.assert_allclose(tail.vertices[0], expected, atol=1e-5)
+
+
+def _slice(posed, a: int, b: int):
+    return type(posed)(posed.vertices[a:b], posed.joints[a:b], posed.vtransf[a:b])
+
+
 @pytest.mark.slow  # ~30 s of self-contact kernel compilation on a fresh warp cache, ~10 s after
 def test_self_contact_keeps_the_cloth_from_crossing_itself(body):
     """A wide maxi skirt folds while it settles; without self-contact its folds pass

@@ -142,3 +142,54 @@ def test_bench_distribution_ranks_the_truth_first_and_reports_every_row(tiny_dat
     r = run_cli("bench", "distribution", "--refs", str(tiny_dataset), "--ckpt-pocoloco", str(tiny_run),
                 "--out", str(tmp_path / "no"))  # fmt: skip
     assert r.returncode != 0 and "not a reference set" in r.stderr and not (tmp_path / "no").exists()
+
+
+@pytest.mark.slow  # ~1 min: tiny cloth, two references per window and two direct simulations
+def test_a_garments_windows_continue_one_prefix_as_a_direct_simulation_would(tiny_dataset, tmp_path):
+    """Both windows of a history continue one simulated prefix (turned to each join); the reference
+    is as near the direct simulation of the joined motion from rest as that simulation is to itself
+    turned by a heading (the cloth is chaotic: rounding alone moves a hem by millimetres)."""
+    from scipy.spatial.transform import Rotation
+
+    from pocoloco.data.format import DatasetLayout, read_frame, read_motion, read_sequence_meta
+    from pocoloco.synth.cloth_sim import simulate_garment
+    from pocoloco.synth.histories import (
+        HistoriesSpec,
+        RefPose,
+        _prefix,
+        _source,
+        join_motions,
+        make_histories,
+        own_motion,
+        reference_sets,
+    )
+    from pocoloco.synth.pipeline import cloth_settings, subject_assets
+
+    spec = HistoriesSpec(poses=1, histories=2, shared_seconds=(0.0, 0.2), subjects=("skirt",))
+    out = tmp_path / "refs"
+    make_histories(tiny_dataset, out, spec)
+    sets = reference_sets(out)
+    metas = [json.loads((s["own"].parent.parent / "sequence.json").read_text())["references"] for s in sets]
+    assert [r["prefix_seed"] for r in metas[0][:2]] == [r["prefix_seed"] for r in metas[1][:2]]  # one prefix each
+    s = next(s for s in sets if s["shared_seconds"] == 0.2)
+    _, config = _source(tiny_dataset)
+    pose = RefPose(**s["source"])
+    subject = next(x for x in config.subjects if x.name == pose.subject)
+    body, garment = subject_assets(subject, config)
+    src = DatasetLayout(tiny_dataset)
+    record = read_sequence_meta(src.sequence_meta_path(subject.name, "test", pose.sequence))
+    own = own_motion(config, body, "test", {**record, "name": pose.sequence},
+                     read_motion(src.motion_path(subject.name, "test", pose.sequence)))  # fmt: skip
+    t = own.num_frames - config.frames_per_sequence + pose.frame
+    _, _, prefix = _prefix(config, body, spec, 0, 0, 0)
+    rot, trans = join_motions(prefix.joint_rotvecs, prefix.root_translation, own.joint_rotvecs, own.root_translation,
+                              t - int(round(0.2 * config.fps)), t, config.blend_frames)  # fmt: skip
+    settings = cloth_settings(config, subject.garment)
+    direct = simulate_garment(body, garment, body.pose(rot, trans), settings).vertices[-1]
+    turn = Rotation.from_euler("z", 0.5)
+    rot_t = rot.copy()
+    rot_t[:, 0] = (turn * Rotation.from_rotvec(rot[:, 0])).as_rotvec()
+    turned = simulate_garment(body, garment, body.pose(rot_t, turn.apply(trans).astype(np.float32)), settings)
+    control = np.linalg.norm(turn.inv().apply(turned.vertices[-1]) - direct, axis=1).mean()
+    shared = np.linalg.norm(read_frame(s["refs"][0]).garment_vertices - direct, axis=1).mean()
+    assert control < 0.02 and shared < 3 * control + 0.002, (shared, control)

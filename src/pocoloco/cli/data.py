@@ -441,8 +441,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--seed", type=int, default=0, help="seed of the frames, prefix motions and capture (default 0)")
     s.add_argument("--subjects", nargs="+", help="only frames of these subjects (default: every subject)")
     s.add_argument("--workers", type=int, default=1, help="parallel worker processes (default 1)")
-    s.add_argument("--shard", metavar="K/N", help="make only every N-th reference from the K-th (shards may run "
-                   "at once into --out; the one that finds all done writes the card)")  # fmt: skip
+    s.add_argument("--shard", metavar="K/N", help="make only every N-th history (all its windows) from the K-th "
+                   "(shards may run at once into --out; the one that finds all done writes the card)")  # fmt: skip
     s.set_defaults(func=cmd_data_histories)
 
     s = data.add_parser("info", help="print a dataset's card as tables (and whether its frame files are all there)")

@@ -172,6 +172,8 @@ class ClothSequence:
     same in process CPU time (robust to other load on the machine);
     reset_count: how often the state was restored after a hard failure;
     settled: the cloth state after settling (reusable, see ``simulate_garment``);
+    final: the cloth state at the last frame (a later call continues from it: ``settled=final``
+    with a sequence whose frame 0 is this one's last);
     self_contact_off_from: the frame from which self-contact was switched off
     after a hard failure (``ClothSimSettings.self_contact_fallback``), or None.
     """
@@ -185,6 +187,7 @@ class ClothSequence:
     settings: ClothSimSettings = field(default_factory=ClothSimSettings)
     settled: SettledCloth | None = None
     self_contact_off_from: int | None = None
+    final: SettledCloth | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -338,13 +341,30 @@ def _record_substep(wp, device, kernels: Callable[[], None]):
 
 @dataclass
 class SettledCloth:
-    """Cloth state after settling on a first frame: particle positions and
-    velocities (Vg, 3) float32, and that frame's body vertices (V, 3) (a settled
-    state is only reused on the same first frame)."""
+    """Cloth state at a frame (after settling on a sequence's first frame, or at its last frame):
+    particle positions and velocities (Vg, 3) float32 in the simulation frame, that frame's body
+    vertices (V, 3) in the world (a state is only reused on the same body frame), the
+    simulation frame's world velocity (3,) there (zeros: at rest, or the world frame) and the
+    cloth's rest shape (Vg, 3): the garment skinned to the first frame of the simulation that
+    made the state (its triangles' rest shapes, bending rest angles and masses come from it)."""
 
     positions: np.ndarray
     velocities: np.ndarray
     first_frame: np.ndarray
+    frame_velocity: np.ndarray | None = None
+    rest_positions: np.ndarray | None = None
+
+    def turned(self, rotation: np.ndarray, first_frame: np.ndarray) -> SettledCloth:
+        """The same state with the body turned by ``rotation`` (3, 3) about the vertical (and moved):
+        positions, velocities and the frame's velocity rotated, on the body frame ``first_frame``.
+        Cloth physics here is invariant to a turn about gravity, so the turned state continues as
+        the original would have on the turned body (to rounding). Positions are relative to the
+        pelvis in the ``root`` frame; a turned ``world``-frame state needs the pelvis at the origin."""
+        r = np.asarray(rotation, dtype=np.float64)
+        fv = np.zeros(3) if self.frame_velocity is None else self.frame_velocity
+        rest = None if self.rest_positions is None else (self.rest_positions @ r.T).astype(np.float32)
+        return SettledCloth((self.positions @ r.T).astype(np.float32), (self.velocities @ r.T).astype(np.float32),
+                            first_frame, (r @ fv).astype(np.float64), rest)  # fmt: skip
 
 
 def simulate_garment(
@@ -365,7 +385,9 @@ def simulate_garment(
 
     settled: the state a previous call with the same garment, settings and
         frame 0 reached after settling (``ClothSequence.settled``): the settle
-        is skipped and the result is the same (the simulation is deterministic).
+        is skipped and the result is the same (the simulation is deterministic);
+        or the state a previous call ended in (``ClothSequence.final``, whose
+        last frame is this call's frame 0): the simulation continues it.
     judge_from: frames before it (lead-in frames the caller does not keep) are checked for
         hard failures only (NaN, explosion: the state is then restored), not for penetration,
         whose signed distances cost ~15 ms a frame; their stats report penetration as NaN.
@@ -404,11 +426,15 @@ def simulate_garment(
     pin_idx = np.flatnonzero(garment.pinned)
     x0 = skin_garment(garment, body, posed.vertices[0], posed.vtransf[0])
     x0[pin_idx] = pins[0]
+    # the cloth's rest shape: the garment skinned to frame 0 (a continued state brings its own)
+    rest = x0 if settled is None or settled.rest_positions is None else settled.rest_positions
+    if rest.shape != x0.shape:
+        raise ValueError("settled: the state was settled for another garment or first frame")
 
     builder = newton.ModelBuilder()  # Z up, gravity -9.81
     builder.add_cloth_mesh(
         pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
-        vertices=[wp.vec3(*p) for p in x0], indices=garment.faces.reshape(-1).tolist(),
+        vertices=[wp.vec3(*p) for p in rest], indices=garment.faces.reshape(-1).tolist(),
         density=s.density, tri_ke=s.tri_ke, tri_ka=s.tri_ka, tri_kd=s.tri_kd,
         edge_ke=s.edge_ke, edge_kd=s.edge_kd, particle_radius=s.particle_radius,
     )  # fmt: skip
@@ -526,12 +552,16 @@ def simulate_garment(
             raise ValueError("settled: the state was settled for another garment or first frame")
         state0.particle_q.assign(settled.positions)
         state0.particle_qd.assign(settled.velocities)
+        if settled.frame_velocity is not None and np.any(settled.frame_velocity):  # continued mid-motion
+            frame_velocity[0] = settled.frame_velocity
+            if drag is not None:
+                drag.set_air_velocity(-frame_velocity[0])
     else:
         for _ in range(s.settle_frames):
             for _ in range(s.substeps):
                 substep(0, 0.0, None)
     settled_out = SettledCloth(state0.particle_q.numpy().copy(), state0.particle_qd.numpy().copy(),
-                               world.vertices[0].copy())  # fmt: skip
+                               world.vertices[0].copy(), frame_velocity[0].copy(), np.array(rest, np.float32))  # fmt: skip
 
     out = np.zeros((T, len(x0), 3), dtype=np.float32)
     stats: list[ClothFrameStats] = []
@@ -570,5 +600,7 @@ def simulate_garment(
         if progress is not None:
             progress(t)
     n = max(T - 1, 1)
+    final = SettledCloth(state0.particle_q.numpy().copy(), state0.particle_qd.numpy().copy(),
+                         world.vertices[-1].copy(), frame_velocity[-1].copy(), np.array(rest, np.float32))  # fmt: skip
     return ClothSequence(out, garment.faces.copy(), stats, sim_time / n, cpu_time / n, resets, s, settled_out,
-                         self_contact_off_from)  # fmt: skip
+                         self_contact_off_from, final)  # fmt: skip

@@ -11,14 +11,17 @@ dataset's frames are (same point count, cameras, normals, labels).
 ``shared = 0``: only the pose is shared (the question a pose-only model answers); ``shared =
 2``: the last two seconds of motion are shared too (what a motion-aware model can know). Each
 history's prefix motion is the same for every window, so the windows differ only in where it
-joins the frame's motion.
+joins the frame's motion: the prefix's cloth is simulated once (from the subject's cloth settled
+at rest) and each window continues it, turned to face where its join faces.
 
 The result is a dataset in the usual format (``docs/reference/formats.md``; ``data verify`` /
 ``data info`` read it): one *sequence* per (pose, window), named
 ``<sequence>_f<frame>_s<shared>``, whose frames ``0 .. K-1`` are the K histories' states and frame
 ``K`` a copy of the frame's own scan; every frame has the same body. Its ``sequence.json`` lists
 each reference's prefix motion; the card's ``histories`` section the run's settings.
-Resumable: each reference is one simulation whose frame file is written atomically.
+Resumable: each reference's frame file is written atomically. Cost: ~50 simulated frames of
+prefix per history, then blend + shared frames per window (``medium``'s cloth: 0.5-0.9 CPU s per
+frame on a 2-core AVX2 machine).
 """
 
 from __future__ import annotations
@@ -194,7 +197,7 @@ def join_motions(prefix_rot: np.ndarray, prefix_trans: np.ndarray, own_rot: np.n
         raise ValueError(f"need 0 <= join <= end < {len(own_rot)}, got join {join}, end {end}")
     p_rot, p_trans = prefix_rot.astype(np.float64).copy(), prefix_trans.astype(np.float64).copy()
     o_rot, o_trans = own_rot.astype(np.float64), own_trans.astype(np.float64)
-    turn = Rotation.from_euler("z", _yaw(o_rot[join, 0]) - _yaw(p_rot[-1, 0]))
+    turn = join_turn(p_rot, o_rot, join)
     p_rot[:, 0] = (turn * Rotation.from_rotvec(p_rot[:, 0])).as_rotvec()
     p_trans = turn.apply(p_trans)
     v_a = p_trans[-1] - p_trans[-2] if len(p_trans) > 1 else np.zeros(3)
@@ -218,6 +221,15 @@ def join_motions(prefix_rot: np.ndarray, prefix_trans: np.ndarray, own_rot: np.n
     return rot, trans
 
 
+def join_turn(prefix_rot: np.ndarray, own_rot: np.ndarray, join: int):
+    """The turn about the vertical (a scipy ``Rotation``) that :func:`join_motions` gives the prefix so
+    its last frame faces where the own motion's frame ``join`` faces."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("z", _yaw(np.asarray(own_rot, np.float64)[join, 0])
+                               - _yaw(np.asarray(prefix_rot, np.float64)[-1, 0]))  # fmt: skip
+
+
 def _reference_seed(spec: HistoriesSpec, pose_index: int, k: int, attempt: int = 0) -> int:
     return int(np.random.SeedSequence([spec.seed, pose_index, k, attempt]).generate_state(1)[0] & 0x7FFFFFFF)
 
@@ -237,31 +249,28 @@ def _prefix(config: SynthConfig, body, spec: HistoriesSpec, pose_index: int, k: 
 
 @dataclass(frozen=True)
 class _Job:
+    """History ``k`` of the ``pose_index``-th pose, for every window of the spec."""
+
     pose_index: int
     pose: RefPose
-    shared: float
     k: int
 
 
-def _run_reference(source: str, out: str, spec_dict: dict, job_dict: dict) -> dict:
-    """Simulate and capture one reference (history k of one pose and window); its frame file
-    written atomically. Returns its record (kept by the caller for ``sequence.json``)."""
+#: per worker process: the cloth settled on the rest pose, per (subject, settings) (every prefix
+#: starts there: ``rest_to_motion`` puts the body at the origin in the rest pose)
+_SETTLED_AT_REST: dict = {}
+
+
+def _run_history(source: str, out: str, spec_dict: dict, job_dict: dict) -> list[dict]:
+    """Simulate and capture history k of one pose for every window (one frame file per window,
+    written atomically). Returns their records (kept by the caller for ``sequence.json``)."""
     with torch_threads(1):
-        return _run_reference_inner(Path(source), Path(out), HistoriesSpec(**spec_dict), _Job(
-            job_dict["pose_index"], RefPose(**job_dict["pose"]), job_dict["shared"], job_dict["k"]))  # fmt: skip
+        return _run_history_inner(Path(source), Path(out), HistoriesSpec(**spec_dict), _Job(
+            job_dict["pose_index"], RefPose(**job_dict["pose"]), job_dict["k"]))  # fmt: skip
 
 
-def _run_reference_inner(source: Path, out: Path, spec: HistoriesSpec, job: _Job) -> dict:
-    from .capture import LABEL_BODY, LABEL_GARMENT, CaptureMesh, CaptureSettings, capture_frame
-    from .cloth_sim import simulate_garment
-    from .pipeline import subject_assets, cloth_settings
-
-    card, config = _source(source)
-    subject = next(s for s in config.subjects if s.name == job.pose.subject)
-    src = DatasetLayout(source)
-    layout = DatasetLayout(out)
-    name = window_name(job.pose, job.shared)
-    path = layout.frame_path(subject.name, spec.split, name, job.k)
+def _read_record(path: Path) -> dict | None:
+    """A reference already made (its frame readable and its record written), or None."""
     record_path = path.with_suffix(".json")
     if path.exists() and record_path.exists():
         try:
@@ -269,34 +278,89 @@ def _run_reference_inner(source: Path, out: Path, spec: HistoriesSpec, job: _Job
             return json.loads(record_path.read_text())
         except (ValueError, OSError, json.JSONDecodeError):
             pass  # damaged: made again
+    return None
+
+
+def _run_history_inner(source: Path, out: Path, spec: HistoriesSpec, job: _Job) -> list[dict]:
+    """History k's prefix motion is simulated once, from the subject's cloth settled at rest, in the
+    orientation it was drawn in; each window then continues that cloth state, turned about the
+    vertical to where the window's join faces (``SettledCloth.turned``: the physics has no preferred
+    heading), through the blend and the frame's own motion. A window whose cloth fails (explodes,
+    ends in the body) draws another prefix motion, up to three."""
+    from .cloth_sim import simulate_garment
+    from .pipeline import cloth_settings, subject_assets
+
+    _, config = _source(source)
+    subject = next(s for s in config.subjects if s.name == job.pose.subject)
+    src, layout = DatasetLayout(source), DatasetLayout(out)
+    paths = {w: layout.frame_path(subject.name, spec.split, window_name(job.pose, w), job.k) for w in spec.shared_seconds}
+    records = {w: _read_record(p) for w, p in paths.items()}
+    pending = [w for w in spec.shared_seconds if records[w] is None]
+    if not pending:
+        return [records[w] for w in spec.shared_seconds]
     record = read_sequence_meta(src.sequence_meta_path(subject.name, spec.split, job.pose.sequence))
     stored = read_motion(src.motion_path(subject.name, spec.split, job.pose.sequence))
     body, garment = subject_assets(subject, config)
+    settings = cloth_settings(config, subject.garment) if garment is not None else None
     own = own_motion(config, body, spec.split, {**record, "name": job.pose.sequence}, stored)
     t = own.num_frames - config.frames_per_sequence + job.pose.frame
-    shared_frames = int(round(job.shared * config.fps))
-    join = t - shared_frames
-    if join < 1:
-        raise ValueError(f"{name}: the frame has only {t} frames of its own motion, {shared_frames} needed")
-    t0 = time.perf_counter()
-    result = None
+    joins = {}
+    for w in pending:
+        joins[w] = t - int(round(w * config.fps))
+        if joins[w] < 1:
+            raise ValueError(f"{window_name(job.pose, w)}: the frame has only {t} frames of its own motion, "
+                             f"{t - joins[w]} needed")  # fmt: skip
+    results: dict[float, tuple] = {}
     for attempt in range(3):  # a history whose cloth fails (explodes, enters the body) is drawn again
+        t0 = time.perf_counter()
         kind, seed, prefix = _prefix(config, body, spec, job.pose_index, job.k, attempt)
-        rot, trans = join_motions(prefix.joint_rotvecs, prefix.root_translation, own.joint_rotvecs,
-                                  own.root_translation, join, t, config.blend_frames)  # fmt: skip
-        posed = body.pose(rot, trans)
-        if garment is None:
-            result = (kind, seed, attempt, posed, None, None)
+        n_prefix = len(prefix.joint_rotvecs)
+        head = None
+        if garment is not None:
+            posed_prefix = body.pose(prefix.joint_rotvecs, prefix.root_translation)
+            key = (subject.name, repr(settings))
+            settled = _SETTLED_AT_REST.get(key)
+            if settled is not None and not np.array_equal(settled.first_frame, posed_prefix.vertices[0]):
+                settled = None
+            head = simulate_garment(body, garment, posed_prefix, settings, settled=settled,
+                                    judge_from=n_prefix)  # hard failures only: the windows are judged  # fmt: skip
+            _SETTLED_AT_REST[key] = head.settled
+        prefix_time = (time.perf_counter() - t0) / len(pending)
+        for w in pending:
+            t1 = time.perf_counter()
+            rot, trans = join_motions(prefix.joint_rotvecs, prefix.root_translation, own.joint_rotvecs,
+                                      own.root_translation, joins[w], t, config.blend_frames)  # fmt: skip
+            posed = body.pose(rot[n_prefix - 1 :], trans[n_prefix - 1 :])  # from the prefix's last frame on
+            if head is None:
+                results[w] = (kind, seed, attempt, len(rot), n_prefix, posed, None, None, 0.0)
+                continue
+            turn = join_turn(prefix.joint_rotvecs, own.joint_rotvecs, joins[w]).as_matrix()
+            state = head.final.turned(turn, posed.vertices[0])
+            seq = simulate_garment(body, garment, posed, settings, settled=state, judge_from=posed.vertices.shape[0] - 1)
+            stats = dataclasses.asdict(seq.stats[-1])
+            if stats["valid"]:
+                results[w] = (kind, seed, attempt, len(rot), n_prefix, posed, seq.vertices[-1].astype(np.float32),
+                              stats, prefix_time + time.perf_counter() - t1)  # fmt: skip
+        pending = [w for w in pending if w not in results]
+        if not pending:
             break
-        seq = simulate_garment(body, garment, posed, cloth_settings(config, subject.garment), judge_from=len(rot) - 1)
-        stats = dataclasses.asdict(seq.stats[-1])
-        if stats["valid"]:
-            result = (kind, seed, attempt, posed, seq.vertices[-1].astype(np.float32), stats)
-            break
-    if result is None:
-        raise RuntimeError(f"{name}: history {job.k}: the cloth failed in 3 prefix motions")
-    kind, seed, attempt, posed, cloth, stats = result
-    simulation = time.perf_counter() - t0
+    if pending:
+        raise RuntimeError(f"{window_name(job.pose, pending[0])}: history {job.k}: the cloth failed in 3 prefix motions")
+    for w, result in results.items():
+        records[w] = _capture_reference(src, paths[w], config, spec, job, subject, body, garment, w, result)
+    return [records[w] for w in spec.shared_seconds]
+
+
+def _capture_reference(src: DatasetLayout, path: Path, config: SynthConfig, spec: HistoriesSpec, job: _Job,
+                       subject, body, garment, shared: float, result: tuple) -> dict:  # fmt: skip
+    """Capture one simulated reference as the dataset's frames are captured; write its frame file and
+    record (atomically). ``result``: (prefix kind, prefix seed, redraws, simulated frames, prefix
+    frames, the posed body from the prefix's last frame on, cloth (Vg, 3) or None, the last frame's
+    cloth stats or None, simulation seconds)."""
+    from .capture import LABEL_BODY, LABEL_GARMENT, CaptureMesh, CaptureSettings, capture_frame
+
+    kind, seed, attempt, frames, n_prefix, posed, cloth, stats, simulation = result
+    name = window_name(job.pose, shared)
     own_frame = read_frame(src.frame_path(subject.name, spec.split, job.pose.sequence, job.pose.frame))
     body_diff = float(np.abs(posed.vertices[-1] - own_frame.body_vertices).max())
     if body_diff > 1e-4:
@@ -313,11 +377,11 @@ def _run_reference_inner(source: Path, out: Path, spec: HistoriesSpec, job: _Job
     write_frame(path, Frame(points=scan.points, normals=scan.normals, labels=scan.labels, parts=scan.parts,
                             joints=posed.joints[-1], body_vertices=posed.vertices[-1], vtransf=posed.vtransf[-1],
                             garment_vertices=cloth, frame_index=job.k), storage=config.frame_storage)  # fmt: skip
-    out_record = {"k": job.k, "prefix_kind": kind, "prefix_seed": seed, "prefix_frames": int(len(prefix.joint_rotvecs)),
-                  "blend_frames": config.blend_frames, "shared_frames": shared_frames, "redraws": attempt,
-                  "simulated_frames": int(len(posed.vertices)), "simulation_seconds": simulation,
+    out_record = {"k": job.k, "prefix_kind": kind, "prefix_seed": seed, "prefix_frames": int(n_prefix),
+                  "blend_frames": config.blend_frames, "shared_frames": int(round(shared * config.fps)),
+                  "redraws": attempt, "simulated_frames": int(frames), "simulation_seconds": simulation,
                   "penetration_max_mm": None if stats is None else 1000.0 * float(stats["penetration_max"])}  # fmt: skip
-    with atomic_open(record_path, "w") as fh:
+    with atomic_open(path.with_suffix(".json"), "w") as fh:
         json.dump(out_record, fh)
     return out_record
 
@@ -352,8 +416,8 @@ def make_histories(source: str | os.PathLike, out: str | os.PathLike, spec: Hist
                    shard: tuple[int, int] = (1, 1),
                    progress: Callable[[int, int], None] | None = None) -> dict:  # fmt: skip
     """Draw (or resume) the reference set of ``spec`` from the synthetic dataset ``source`` into
-    ``out`` (shard ``k`` of ``n``: every n-th reference from the k-th; the card is written by the
-    run that finds every reference done). Returns the card (``status`` "incomplete" until then)."""
+    ``out`` (shard ``k`` of ``n``: every n-th history from the k-th, each for every window; the card
+    is written by the run that finds every reference done). Returns the card (``status`` "incomplete" until then)."""
     spec.check()
     source, out = Path(source), output_folder(out)
     card, config = _source(source)
@@ -361,7 +425,8 @@ def make_histories(source: str | os.PathLike, out: str | os.PathLike, spec: Hist
     layout = DatasetLayout(out)
     header = {"source": os.fspath(source.resolve()), "split": spec.split, "poses": [dataclasses.asdict(p) for p in poses],
               "histories": spec.histories, "shared_seconds": list(spec.shared_seconds),
-              "prefix_seconds": spec.prefix_seconds, "seed": spec.seed, "subjects": list(spec.subjects)}  # fmt: skip
+              "prefix_seconds": spec.prefix_seconds, "seed": spec.seed, "subjects": list(spec.subjects),
+              "prefix_shared_by_windows": True}  # fmt: skip
     if layout.card_path.exists():
         have = read_card(out).get("histories")
         if not isinstance(have, dict) or {k: v for k, v in have.items() if k != "source"} != {
@@ -380,30 +445,31 @@ def make_histories(source: str | os.PathLike, out: str | os.PathLike, spec: Hist
         if not target.exists():
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(DatasetLayout(source).subject_path(subject), target)
-    jobs = [_Job(i, p, s, k) for i, p in enumerate(poses) for s in spec.shared_seconds for k in range(spec.histories)]
-    done_sequences = {(j.pose, j.shared) for j in jobs
-                      if layout.sequence_meta_path(j.pose.subject, spec.split, window_name(j.pose, j.shared)).exists()}  # fmt: skip
+    jobs = [_Job(i, p, k) for i, p in enumerate(poses) for k in range(spec.histories)]
+    windows = len(spec.shared_seconds)
+
+    def finished(pose: RefPose) -> bool:
+        return all(layout.sequence_meta_path(pose.subject, spec.split, window_name(pose, w)).exists()
+                   for w in spec.shared_seconds)  # fmt: skip
+
     k_shard, n_shard = shard
-    mine = [j for n, j in enumerate(jobs) if n % n_shard == k_shard - 1 and (j.pose, j.shared) not in done_sequences]
-    total, done = len(jobs), len(jobs) - len(mine)
+    mine = [j for n, j in enumerate(jobs) if n % n_shard == k_shard - 1 and not finished(j.pose)]
+    total, done = len(jobs) * windows, (len(jobs) - len(mine)) * windows
     if progress:
         progress(done, total)
     spec_dict = dataclasses.asdict(spec)
-    records: dict[tuple, list[dict]] = {}
 
-    def collect(job: _Job, rec: dict) -> None:
+    def collect(recs: list[dict]) -> None:
         nonlocal done
-        records.setdefault((job.pose, job.shared), []).append(rec)
-        done += 1
+        done += len(recs)
         if progress:
             progress(done, total)
 
     job_args = [(os.fspath(source), os.fspath(out), spec_dict,
-                 {"pose_index": j.pose_index, "pose": dataclasses.asdict(j.pose), "shared": j.shared, "k": j.k})
-                for j in mine]  # fmt: skip
+                 {"pose_index": j.pose_index, "pose": dataclasses.asdict(j.pose), "k": j.k}) for j in mine]  # fmt: skip
     if workers <= 1:
-        for j, a in zip(mine, job_args):
-            collect(j, _run_reference(*a))
+        for a in job_args:
+            collect(_run_history(*a))
     else:
         from .pipeline import init_worker
 
@@ -412,9 +478,9 @@ def make_histories(source: str | os.PathLike, out: str | os.PathLike, spec: Hist
         ctx = mp.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker,
                                  initargs=(os.getpid(), None)) as pool:  # fmt: skip
-            futures = {pool.submit(_run_reference, *a): j for j, a in zip(mine, job_args)}
+            futures = [pool.submit(_run_history, *a) for a in job_args]
             for f in as_completed(futures):
-                collect(futures[f], f.result())
+                collect(f.result())
     # a (pose, window) whose K references all exist is finished (whichever shard made them)
     for pose in poses:
         for shared in spec.shared_seconds:
