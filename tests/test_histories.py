@@ -138,6 +138,12 @@ def test_bench_distribution_ranks_the_truth_first_and_reports_every_row(tiny_dat
                 "nna_refs", "nna_samples"):  # fmt: skip
         assert key in st
     assert rows["posed_body"][w]["nna_samples"]["mean"] is None  # one cloud: no sample neighbour (NaN -> null)
+    # per garment kind (here only the tight body): the spread of the true states and every row's ES
+    kind = report["by_garment"]["tight"][w]
+    assert kind["poses"] == 2
+    assert kind["spread_refs"] == pytest.approx(rows["posed_body"][w]["spread_refs"]["mean"])
+    assert kind["energy_score"]["pocoloco"] == pytest.approx(es["pocoloco"])
+    assert "## Per garment kind" in (out / "distribution.md").read_text()
     assert len(report["per_pose"]) == 2 and "ES" in (out / "distribution.md").read_text()
     r = run_cli("bench", "distribution", "--refs", str(tiny_dataset), "--ckpt-pocoloco", str(tiny_run),
                 "--out", str(tmp_path / "no"))  # fmt: skip

@@ -150,6 +150,8 @@ def bench_distribution(
     if progress:
         progress(len(poses), len(poses))
     report = _aggregate(per_pose, list(methods), bootstrap, seed, probes)
+    kinds = {name: (info or {}).get("garment_kind") or "none" for name, info in read_card(refs)["subjects"].items()}
+    report["by_garment"] = by_garment(per_pose, kinds, [*methods, *ORACLE_ROWS], probes)
     report["settings"] = {
         "refs": str(refs), "split": hist["split"], "poses": len(poses), "histories": hist["histories"],
         "true_states_per_pose": hist["histories"] + 1, "windows": [f"{s:g}" for s in hist["shared_seconds"]],
@@ -191,6 +193,28 @@ def _aggregate(per_pose: list[dict], models: list[str], bootstrap: int, seed: in
     return {"rows": rows, "windows": windows}
 
 
+def by_garment(per_pose: list[dict], kinds: Mapping[str, str], names: list[str], probes: int) -> dict[str, Any]:
+    """Per garment kind (``kinds``: subject -> kind; "none" for a tight body) and window: the number of
+    poses, the true states' spread (how uncertain the garment is at the pose: its floor for every
+    per-frame score) and each row's energy score, means over the kind's poses, in cm per probe.
+    ``{kind: {window: {"poses", "spread_refs", "energy_score": {name: mean}}}}``."""
+    emb_scale = 100.0 / np.sqrt(probes)
+    out: dict[str, Any] = {}
+    for kind in sorted({kinds.get(r["subject"], "none") for r in per_pose}):
+        out[kind] = {}
+        for w in sorted({r["window"] for r in per_pose}, key=float):
+            mine = [r for r in per_pose if r["window"] == w and kinds.get(r["subject"], "none") == kind]
+            if not mine:
+                continue
+            out[kind][w] = {
+                "poses": len(mine),
+                "spread_refs": float(np.mean([r["rows"]["posed_body"]["spread_refs"] for r in mine]) * emb_scale),
+                "energy_score": {n: float(np.mean([r["rows"][n]["energy_score"] for r in mine]) * emb_scale)
+                                 for n in names if all(n in r["rows"] for r in mine)},
+            }  # fmt: skip
+    return out
+
+
 def distribution_markdown(report: dict[str, Any]) -> str:
     """One table per window: every row's statistics (mean [95 % interval] for the energy score)."""
     s = report["settings"]
@@ -217,5 +241,23 @@ def distribution_markdown(report: dict[str, Any]) -> str:
                 else:
                     cells.append(fmt.format(v["mean"]))
             lines.append(f"| {ORACLE_ROWS.get(n, n)} | " + " | ".join(cells) + " |")
+        lines.append("")
+    garments = report.get("by_garment")
+    if garments:
+        windows = report["windows"]
+        models = [n for n in report["rows"] if n not in ORACLE_ROWS]
+        lines += ["## Per garment kind", "",
+                  "How far apart the true states are (truth spread, cm) with each window, and each row's ES "
+                  "(cm; means over the kind's poses, no intervals: few poses each).", "",
+                  "| garment | poses | " + " | ".join(f"truth spread {w} s" for w in windows) + " | "
+                  + " | ".join(f"{n} ES {w} s" for n in ["truth_loo", *models] for w in windows) + " |",
+                  "|---|---|" + "---|" * (len(windows) * (2 + len(models)))]  # fmt: skip
+        for kind, per_w in garments.items():
+            cells = [kind, str(max(v["poses"] for v in per_w.values()))]
+            cells += [f"{per_w[w]['spread_refs']:.2f}" if w in per_w else "-" for w in windows]
+            for n in ["truth_loo", *models]:
+                cells += [f"{per_w[w]['energy_score'][n]:.2f}" if w in per_w and n in per_w[w]["energy_score"]
+                          else "-" for w in windows]  # fmt: skip
+            lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
