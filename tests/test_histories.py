@@ -171,7 +171,7 @@ def test_a_garments_windows_continue_one_prefix_as_a_direct_simulation_would(tin
     )
     from pocoloco.synth.pipeline import cloth_settings, subject_assets
 
-    spec = HistoriesSpec(poses=1, histories=2, shared_seconds=(0.0, 0.2), subjects=("skirt",))
+    spec = HistoriesSpec(poses=1, histories=2, shared_seconds=(0.0, 0.2), prefix_seconds=0.4, subjects=("skirt",))
     out = tmp_path / "refs"
     make_histories(tiny_dataset, out, spec)
     sets = reference_sets(out)
