@@ -100,3 +100,22 @@ def test_bad_input_gives_one_line(bad, msg):
     with pytest.raises(ValueError, match=msg) as e:
         motion_window(**args)
     assert "\n" not in str(e.value)
+
+
+def test_a_dataset_frames_window_ends_on_its_stored_skeleton(tiny_dataset):
+    """The window of a stored frame, redrawn from the sequence's seed: its current sample is the
+    frame's own skeleton (in its heading frame), and the first frame's reaches into the blend from rest."""
+    from pocoloco.data.format import DatasetLayout, read_frame
+    from pocoloco.synth.motion_windows import sequence_windows
+
+    layout = DatasetLayout(tiny_dataset)
+    seq = sorted(p.name for p in (tiny_dataset / "subjects" / "skirt" / "test").iterdir() if p.is_dir())[0]
+    windows = sequence_windows(tiny_dataset, "skirt", "test", seq)
+    frame = read_frame(layout.frame_path("skirt", "test", seq, 3))
+    joints = frame.joints.astype(np.float64)
+    axis = joints[1] - joints[2]
+    expected = Rotation.from_euler("z", -math.atan2(axis[1], axis[0])).apply(joints - joints[0])
+    np.testing.assert_allclose(windows[3].joints[0], expected, atol=2e-4)
+    assert len({w.joints.shape for w in windows}) == 1
+    # two seconds back from the first stored frame lie in the blend from rest and before it
+    assert np.abs(windows[0].joints[-1] - windows[0].joints[0]).max() > 1e-3
