@@ -163,11 +163,11 @@ def test_a_garments_windows_continue_one_prefix_as_a_direct_simulation_would(tin
         HistoriesSpec,
         RefPose,
         _prefix,
-        _source,
         join_motions,
         make_histories,
         own_motion,
         reference_sets,
+        synth_source,
     )
     from pocoloco.synth.pipeline import cloth_settings, subject_assets
 
@@ -178,7 +178,7 @@ def test_a_garments_windows_continue_one_prefix_as_a_direct_simulation_would(tin
     metas = [json.loads((s["own"].parent.parent / "sequence.json").read_text())["references"] for s in sets]
     assert [r["prefix_seed"] for r in metas[0][:2]] == [r["prefix_seed"] for r in metas[1][:2]]  # one prefix each
     s = next(s for s in sets if s["shared_seconds"] == 0.2)
-    _, config = _source(tiny_dataset)
+    _, config = synth_source(tiny_dataset)
     pose = RefPose(**s["source"])
     subject = next(x for x in config.subjects if x.name == pose.subject)
     body, garment = subject_assets(subject, config)

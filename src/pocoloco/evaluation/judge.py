@@ -104,7 +104,8 @@ def bench_distribution(
     if points < 16 or probes < 8:
         raise ValueError(f"--points must be >= 16 and --probes >= 8, got {points} and {probes}")
     pairs = reference_sets(refs)
-    hist = read_card(refs)["histories"]
+    card = read_card(refs)
+    hist = card["histories"]
     out = output_folder(out)
     probe = probe_points(probes, seed=seed)
     methods = {}
@@ -150,7 +151,7 @@ def bench_distribution(
     if progress:
         progress(len(poses), len(poses))
     report = _aggregate(per_pose, list(methods), bootstrap, seed, probes)
-    kinds = {name: (info or {}).get("garment_kind") or "none" for name, info in read_card(refs)["subjects"].items()}
+    kinds = {name: (info or {}).get("garment_kind") or "none" for name, info in card["subjects"].items()}
     report["by_garment"] = by_garment(per_pose, kinds, [*methods, *ORACLE_ROWS], probes)
     report["settings"] = {
         "refs": str(refs), "split": hist["split"], "poses": len(poses), "histories": hist["histories"],
@@ -194,9 +195,10 @@ def _aggregate(per_pose: list[dict], models: list[str], bootstrap: int, seed: in
 
 
 def by_garment(per_pose: list[dict], kinds: Mapping[str, str], names: list[str], probes: int) -> dict[str, Any]:
-    """Per garment kind (``kinds``: subject -> kind; "none" for a tight body) and window: the number of
-    poses, the true states' spread (how uncertain the garment is at the pose: its floor for every
-    per-frame score) and each row's energy score, means over the kind's poses, in cm per probe.
+    """Per garment kind (``kinds``: subject -> kind, e.g. "tight"; "none" where the card names none)
+    and window: the number of poses, the true states' spread (how uncertain the garment is at the
+    pose: its floor for every per-frame score) and each row's energy score, means over the kind's
+    poses, in cm per probe.
     ``{kind: {window: {"poses", "spread_refs", "energy_score": {name: mean}}}}``."""
     emb_scale = 100.0 / np.sqrt(probes)
     out: dict[str, Any] = {}

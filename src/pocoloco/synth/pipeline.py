@@ -270,14 +270,15 @@ _BODIES: dict = {}
 _SETTLED: dict = {}
 
 
-def _subject_key(subject: SubjectSpec, config: SynthConfig) -> tuple:
+def subject_key(subject: SubjectSpec, config: SynthConfig) -> tuple:
+    """What makes a subject's body and garment: the key of the per-process caches."""
     return (subject.name, json.dumps(subject.phenotype, sort_keys=True), subject.garment, json.dumps(
         subject.garment_params, sort_keys=True), config.garment_resolution, config.garment_tessellation)  # fmt: skip
 
 
 def subject_assets(subject: SubjectSpec, config: SynthConfig):
     """(AnnyBody, Garment | None) for a subject, built once per process."""
-    key = _subject_key(subject, config)
+    key = subject_key(subject, config)
     if key not in _BODIES:
         from ..body import AnnyBody
 
@@ -374,7 +375,7 @@ def _run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Ca
     if garment is not None:
         cloth_vertices, cloth_stats, timings["simulation"] = _simulate_cached(
             body, garment, posed, seq_dir, start, cloth_settings(config, job.subject.garment),
-            _subject_key(job.subject, config),
+            subject_key(job.subject, config),
             config.self_intersection_every,
         )
 
@@ -455,17 +456,30 @@ def _written_labels(path: Path) -> np.ndarray | None:
         return None
 
 
-def _simulate_cached(body, garment, posed, seq_dir: Path, start: int, settings=None, subject_key=None,
+def simulate_settling_once(body, garment, posed, settings, cache_key: tuple | None, judge_from: int = 0):
+    """``simulate_garment``, the cloth settled on the first frame kept per process under
+    ``cache_key`` (:func:`subject_key`; None: not kept) and the settings, and reused by the next
+    simulation of that subject that starts on the same frame (the result is identical: the
+    simulation is deterministic)."""
+    from .cloth_sim import simulate_garment
+
+    key = (cache_key, repr(settings))
+    settled = _SETTLED.get(key)
+    if settled is not None and not np.array_equal(settled.first_frame, posed.vertices[0]):
+        settled = None
+    seq = simulate_garment(body, garment, posed, settings, settled=settled, judge_from=judge_from)
+    if cache_key is not None:
+        _SETTLED[key] = seq.settled
+    return seq
+
+
+def _simulate_cached(body, garment, posed, seq_dir: Path, start: int, settings=None, cache_key=None,
                      self_intersection_every: int = 0):
     """Simulate the garment (or load the cached result). Returns stored-frame
     vertices (T, Vg, 3), per-stored-frame stats dicts and the seconds spent.
     Every ``self_intersection_every``-th stored frame (0: none) also gets its
     count of crossing garment triangle pairs (~0.05 s each for 2.6K vertices).
-    The cloth settled on the first frame is kept per process and reused by the
-    subject's next sequence when its first frame is the same (the result is
-    identical: the simulation is deterministic)."""
-    from .cloth_sim import simulate_garment
-
+    The cloth settled on the first frame is reused as :func:`simulate_settling_once` says."""
     cache = seq_dir / "cloth.npz"
     if cache.exists():
         try:
@@ -474,13 +488,7 @@ def _simulate_cached(body, garment, posed, seq_dir: Path, start: int, settings=N
         except Exception:  # a corrupt cache is simply recomputed
             cache.unlink(missing_ok=True)
     t0 = time.perf_counter()
-    key = (subject_key, repr(settings))
-    settled = _SETTLED.get(key)
-    if settled is not None and not np.array_equal(settled.first_frame, posed.vertices[0]):
-        settled = None
-    seq = simulate_garment(body, garment, posed, settings, settled=settled, judge_from=start)
-    if subject_key is not None:
-        _SETTLED[key] = seq.settled
+    seq = simulate_settling_once(body, garment, posed, settings, cache_key, judge_from=start)
     stats = [dataclasses.asdict(s) for s in seq.stats[start:]]
     if seq.settings.self_contact:  # which frames kept self-contact (it is dropped after a tear)
         off = seq.self_contact_off_from
