@@ -1,5 +1,6 @@
 """The motion window: the last seconds of a skeleton sequence seen from its current frame."""
 
+import json
 import math
 
 import numpy as np
@@ -119,3 +120,203 @@ def test_a_dataset_frames_window_ends_on_its_stored_skeleton(tiny_dataset):
     assert len({w.joints.shape for w in windows}) == 1
     # two seconds back from the first stored frame lie in the blend from rest and before it
     assert np.abs(windows[0].joints[-1] - windows[0].joints[0]).max() > 1e-3
+
+
+# ------------------------------------------------------------------ windows in the data and models
+def _slow_features(window, turn, scale):
+    """motion_features by loops over joints and samples."""
+    S, J = window.joints.shape[:2]
+    c, s = math.cos(turn), math.sin(turn)
+
+    def rot(v):
+        return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
+
+    rows = []
+    for j in range(J):
+        row = []
+        for k in range(1, S):
+            row += list(rot(window.joints[k, j] - window.joints[0, j]) / scale)
+        for k in range(S):
+            row += list(rot(window.root_velocity[k]) / scale)
+        row += list(window.yaw_rate)
+        rows.append(row)
+    return np.array(rows)
+
+
+def test_features_match_a_loop_reference_and_rest_is_zero():
+    from pocoloco.data.motion_window import motion_feature_dim, motion_features
+
+    w = motion_window(_walk(), 40, 25.0)
+    fast = motion_features(w, 0.7, 0.3)
+    assert fast.shape == (24, motion_feature_dim(17)) == (24, 116)
+    np.testing.assert_allclose(fast, _slow_features(w, 0.7, 0.3), atol=1e-4)
+    still = np.repeat(_walk(1), 30, axis=0)  # a body standing still
+    assert np.abs(motion_features(motion_window(still, 29, 25.0), 0.3, 0.3)).max() < 1e-6
+
+
+def test_synth_stores_each_sequences_whole_motion(tiny_dataset):
+    """``data synth`` writes motion_history.npz: the same rows the seed redraws, stored frame i at
+    row ``first + i``, the motion before it too; ``data motion-history`` finds them all there."""
+    from pocoloco.data.format import DatasetLayout, read_frame
+    from pocoloco.data.motion_window import read_motion_history
+    from pocoloco.synth.motion_windows import sequence_history, write_motion_histories
+
+    layout = DatasetLayout(tiny_dataset)
+    seq = layout.sequences("skirt", "test")[0]
+    stored = read_motion_history(layout.motion_history_path("skirt", "test", seq))
+    redrawn = sequence_history(tiny_dataset, "skirt", "test", seq)
+    np.testing.assert_allclose(stored.joints, redrawn.joints, atol=1e-6)
+    assert stored.first == redrawn.first > 0
+    frame = read_frame(layout.frame_path("skirt", "test", seq, 2), ["joints"])
+    np.testing.assert_allclose(stored.joints[stored.first + 2], frame.joints, atol=1e-5)
+    written, kept = write_motion_histories(tiny_dataset)
+    assert written == 0 and kept == sum(len(layout.sequences(s, sp)) for s in layout.subjects()
+                                        for sp in ("train", "test", "heldout"))  # fmt: skip
+
+
+def test_dataset_windows_from_the_history_or_padded_from_the_frames(tiny_dataset, tmp_path):
+    import shutil
+
+    import torch
+
+    from pocoloco.data.dataset import PointCloudDataset, sequence_history
+
+    ds = PointCloudDataset(tiny_dataset, "train", num_points=None, motion_window=2.0)
+    item = ds[3]
+    assert item["motion"].shape == (24, ds.motion_feature_dim) == (24, 116)
+    assert torch.isfinite(item["motion"]).all() and item["motion"].abs().max() > 0
+    a = ds.motion_features(3, rng=np.random.default_rng([0, 4, 7]))
+    b = ds.motion_features(3, rng=np.random.default_rng([0, 4, 7]))
+    assert torch.equal(a, b) and not torch.equal(a, item["motion"])  # augmented, reproducibly
+    # without motion_history.npz: the stored frames' skeletons, padded before the first one
+    copy = tmp_path / "data"
+    shutil.copytree(tiny_dataset, copy)
+    for f in copy.rglob("motion_history.npz"):
+        f.unlink()
+    padded = PointCloudDataset(copy, "train", num_points=None, motion_window=2.0)
+    subject, sequence, _ = padded.frames[3]
+    history = padded.history(subject, sequence)
+    assert history.padded and history.first == 0
+    full = sequence_history(tiny_dataset / "subjects" / subject / "train" / sequence)
+    np.testing.assert_allclose(history.joints, full.joints[full.first:], atol=1e-5)
+    assert padded[3]["motion"].shape == item["motion"].shape
+
+
+def test_a_motion_encoder_starts_as_the_model_without_it():
+    """Zero-initialised: a --motion-window model loaded with a pose-only model's weights gives the
+    same outputs, with or without motion; it answers motion once trained; bad motion: one line."""
+    import torch
+
+    from pocoloco.models.conditioning import PoseCondition
+    from pocoloco.models.latent import LatentDenoiser, latent_preset
+
+    torch.manual_seed(0)
+    base = LatentDenoiser(latent_preset("tiny"))
+    mover = LatentDenoiser(latent_preset("tiny", motion_window=2.0))
+    missing, unexpected = mover.load_state_dict(base.state_dict(), strict=False)
+    assert not unexpected and all(k.startswith("motion_in.") for k in missing)
+    x, t, joints = torch.randn(2, 50, 3), torch.tensor([10, 500]), torch.randn(2, 24, 3)
+    motion = torch.randn(2, 24, 116)
+    with torch.no_grad():
+        ref = base(x, t, joints)
+        assert torch.equal(mover(x, t, PoseCondition(joints, motion=motion)), ref)
+        assert torch.equal(mover(x, t, joints), ref)  # no motion: a body at rest
+        torch.nn.init.normal_(mover.motion_in.out.weight, std=0.5)
+        torch.nn.init.normal_(base.out.weight, std=0.5)
+        mover.out.weight.copy_(base.out.weight)
+        moved = mover(x, t, PoseCondition(joints, motion=motion))
+        assert not torch.allclose(moved, mover(x, t, PoseCondition(joints, motion=torch.zeros_like(motion))))
+    with pytest.raises(ValueError, match="motion must be") as e:
+        mover(x, t, PoseCondition(joints, motion=motion[:, :, :10]))
+    assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="no motion window"):
+        base(x, t, PoseCondition(joints, motion=motion))
+
+
+@pytest.mark.parametrize("make, fps, msg", [
+    (lambda w: w[:, :20], 25.0, "shape"),
+    (lambda w: np.where(np.arange(len(w))[:, None, None] == 3, np.nan, w), 25.0, "NaN"),
+    (lambda w: w, 0.0, "--fps"),
+    (lambda w: w, 5000.0, "--fps"),
+    (lambda w: w + np.arange(len(w))[:, None, None] * np.array([1.0, 0.0, 0.0]), 25.0, "m/s"),  # 25 m/s
+])  # fmt: skip
+def test_bad_motion_files_give_one_line(tiny_dataset, tmp_path, make, fps, msg):
+    from pocoloco.data.dataset import sequence_history
+    from pocoloco.data.poses import load_motion
+
+    seq = next((tiny_dataset / "subjects" / "skirt" / "test").iterdir())
+    walk = sequence_history(seq).joints
+    np.save(tmp_path / "m.npy", make(walk))
+    with pytest.raises(ValueError, match=msg) as e:
+        load_motion(tmp_path / "m.npy", fps)
+    assert "\n" not in str(e.value)
+
+
+def test_a_motion_file_gives_its_last_frame_and_window(tiny_dataset, tmp_path):
+    from pocoloco.data.dataset import sequence_history
+    from pocoloco.data.poses import load_motion
+
+    seq = next((tiny_dataset / "subjects" / "skirt" / "test").iterdir())
+    history = sequence_history(seq)
+    np.save(tmp_path / "walk.npy", history.joints)
+    pose, note = load_motion(tmp_path / "walk.npy", history.fps, 2.0)
+    np.testing.assert_allclose(pose.joints, history.joints[-1])
+    expected = motion_window(history.joints, len(history.joints) - 1, history.fps)
+    np.testing.assert_allclose(pose.motion.joints, expected.joints)
+    assert (note is None) == ((len(history.joints) - 1) / history.fps >= 2.0)
+    np.save(tmp_path / "short.npy", history.joints[-5:])
+    _, note = load_motion(tmp_path / "short.npy", history.fps, 2.0)
+    assert note is not None and "first frame" in note
+
+
+def test_train_sample_and_eval_with_a_motion_window(tiny_dataset, tmp_path, capsys):
+    """A --motion-window fine-tune from a pose-only run starts at it; DATASET: frames, --motion files
+    and eval's --history modes reach the model; a pose-only model says it ignores --motion."""
+    from pocoloco.cli import main as cli_main
+
+    base, run = tmp_path / "base", tmp_path / "run"
+    common = ["--data", str(tiny_dataset), "--no-progress", "--device", "cpu", "--sample-every", "0", "--threads", "1"]
+    assert cli_main(["train", "--out", str(base), "--preset", "latent_tiny", "--steps", "2", *common]) in (0, None)
+    assert cli_main(["train", "--out", str(run), "--init-from", str(base), "--motion-window", "2.0", "--steps", "2",
+                     "--lr-schedule", "constant", *common]) in (0, None)  # fmt: skip
+    from pocoloco.methods import load_method
+
+    m = load_method(run)
+    assert m.motion_window == 2.0 and m.config.denoiser.motion_window == 2.0
+    seq = sorted((tiny_dataset / "subjects" / "skirt" / "test").iterdir())[0]
+    pose = m.load_pose(f"{tiny_dataset}:skirt/test/{seq.name}/3")
+    assert pose.motion is not None and pose.motion.joints.shape == (17, 24, 3)
+    from pocoloco.data.dataset import sequence_history
+
+    np.save(tmp_path / "walk.npy", sequence_history(seq).joints)
+    capsys.readouterr()
+    out = tmp_path / "s"
+    assert cli_main(["sample", "--ckpt", str(run), "--motion", str(tmp_path / "walk.npy"), "--fps", "25", "--num", "1",
+                     "--steps", "2", "--points", "64", "--no-render", "--out", str(out)]) in (0, None)  # fmt: skip
+    assert json.loads((out / "sample.json").read_text())["motion"] == "given"
+    assert cli_main(["sample", "--ckpt", str(run), "--joints", "demo:skirt", "--num", "1", "--steps", "2",
+                     "--points", "64", "--no-render", "--out", str(tmp_path / "r")]) in (0, None)  # fmt: skip
+    assert "taken at rest" in capsys.readouterr().out
+    assert cli_main(["sample", "--ckpt", str(base), "--motion", str(tmp_path / "walk.npy"), "--num", "1", "--steps",
+                     "2", "--points", "64", "--no-render", "--out", str(tmp_path / "p")]) in (0, None)  # fmt: skip
+    assert "sees the pose alone" in capsys.readouterr().out
+    scores = {}
+    for history in ("dataset", "rest", "shuffled"):
+        dst = tmp_path / f"eval_{history}"
+        assert cli_main(["eval", "--ckpt", str(run), "--data", str(tiny_dataset), "--frames", "2", "--points", "64",
+                         "--seeds", "0", "--steps", "2", "--no-baselines", "--history", history,
+                         "--out", str(dst)]) in (0, None)  # fmt: skip
+        ev = json.loads((dst / "eval.json").read_text())
+        assert ev["settings"]["history"] == history
+        scores[history] = [f["key"] for f in ev["frames"]]
+    assert scores["dataset"] == scores["rest"] == scores["shuffled"]  # the same frames
+
+
+def test_shuffled_history_comes_from_another_sequence_of_the_same_subject():
+    from pocoloco.evaluation.evaluate import shuffled_frame
+
+    frames = [("a", "s0", "a0"), ("a", "s0", "a1"), ("a", "s1", "a2"), ("a", "s1", "a3"), ("b", "s0", "b0")]
+    picks = {shuffled_frame(frames, "a", "s0", f"a/test/s0/{i}") for i in range(20)}
+    assert picks <= {"a2", "a3"} and len(picks) == 2
+    assert shuffled_frame(frames, "a", "s0", "k") == shuffled_frame(frames, "a", "s0", "k")
+    assert shuffled_frame(frames, "b", "s0", "k") == "b0"  # one sequence only: its own frames

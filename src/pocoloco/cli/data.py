@@ -17,6 +17,7 @@ from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.synth.config import CLOTH_VERSIONS, SYNTH_PRESETS, cloth_version, config_of_card, synth_preset
 from pocoloco.synth.fabric import DAMPING_MODELS
 from pocoloco.synth.histories import HistoriesSpec, make_histories
+from pocoloco.synth.motion_windows import write_motion_histories
 from pocoloco.synth.distributed import BACKENDS, LaunchSettings, launch_synth
 from pocoloco.data.format import (
     FRAME_STORAGES,
@@ -28,6 +29,7 @@ from pocoloco.data.format import (
     scan_frames,
     verify_dataset,
 )
+from pocoloco.data.motion_window import read_motion_history
 from pocoloco.data.pack import pack_summary, write_pack
 from pocoloco.data.published import CLOUD_CHECK_HELP, export_frame, import_loose_style
 from pocoloco.viz.preview import preview_dataset
@@ -182,6 +184,12 @@ def cmd_data_histories(args: argparse.Namespace) -> None:
     print_card(card, out)
 
 
+def cmd_data_motion_history(args: argparse.Namespace) -> None:
+    with progress_bar("motion histories") as update:
+        written, kept = write_motion_histories(args.path, progress=update)
+    print(f"{args.path}: {written} motion histories written, {kept} already there")
+
+
 def cmd_data_info(args: argparse.Namespace) -> None:
     print_card(read_card(Path(args.path)), Path(args.path))
 
@@ -266,10 +274,28 @@ def print_card(card: dict, path: Path) -> None:
                          f"{hist.get('histories')} histories (+ the frame's own scan) x shared windows "
                          f"{hist.get('shared_seconds')} s; prefix motions {hist.get('prefix_seconds')} s, seed "
                          f"{hist.get('seed')}"))  # fmt: skip
+    con.print(escape(_motion_line(path)))
     con.print(files_line)
     if card.get("status", "complete") != "complete":
         again = "data histories" if isinstance(hist, dict) else "data synth"
         con.print(f"[yellow]incomplete: rerun the same `pocoloco {again}` command to resume[/]")
+
+
+def _motion_line(path: Path) -> str:
+    """What motion windows (issue 41) the dataset's sequences can give their frames."""
+    layout = DatasetLayout(path)
+    seqs = [(s, sp, q) for s in layout.subjects() for sp in SPLITS for q in layout.sequences(s, sp)]
+    have = [layout.motion_history_path(*k) for k in seqs if layout.motion_history_path(*k).is_file()]
+    if not seqs:
+        return "motion windows: no sequences"
+    if not have:
+        return (f"motion windows: none of the {len(seqs)} sequences stores its motion before the first frame; windows "
+                f"reaching before it hold that frame (`pocoloco data motion-history {path}` adds them to a "
+                "synthetic dataset)")  # fmt: skip
+    before = min(read_motion_history(p).first / read_motion_history(p).fps for p in have[:50])
+    return (f"motion windows: {len(have)} of {len(seqs)} sequences store their whole motion (motion_history.npz; "
+            f"{before:.2f} s or more before the first stored frame, the rest pose before that): any window W, "
+            "e.g. `train --motion-window 2.0`")  # fmt: skip
 
 
 def cmd_data_verify(args: argparse.Namespace) -> None:
@@ -444,6 +470,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--shard", metavar="K/N", help="make only every N-th history (all its windows) from the K-th "
                    "(shards may run at once into --out; the one that finds all done writes the card)")  # fmt: skip
     s.set_defaults(func=cmd_data_histories)
+
+    s = data.add_parser("motion-history", help="store every sequence's whole body motion (the warm-up and blend "
+                        "from rest before the first stored frame too), from which --motion-window models cut each "
+                        "frame's window (a dataset made by `pocoloco data synth`; resumable)")  # fmt: skip
+    s.add_argument("path", help="a dataset made by `pocoloco data synth`")
+    s.set_defaults(func=cmd_data_motion_history)
 
     s = data.add_parser("info", help="print a dataset's card as tables (and whether its frame files are all there)")
     s.add_argument("path", help="dataset folder (holds card.json)")

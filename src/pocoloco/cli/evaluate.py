@@ -21,6 +21,7 @@ from pocoloco.engine.checkpoint import latest_checkpoint, read_meta
 from pocoloco.evaluation.baselines import NEAREST_ALIGNS
 from pocoloco.evaluation.evaluate import (
     GARMENT_COLUMNS,
+    HISTORY_MODES,
     EvalSettings,
     evaluate,
     markdown_table,
@@ -42,6 +43,14 @@ from pocoloco.methods.registry import config_from_checkpoint
 from pocoloco.utils.atomic import output_folder
 
 __all__ = ["register"]
+
+
+def add_history_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--history", choices=HISTORY_MODES, default="dataset",
+                        help="the motion before each frame a --motion-window model is given: the frame's own "
+                             "(dataset), none (rest: the body at rest), or another frame's of the same subject "
+                             "(shuffled: is it the motion or the extra capacity?); pose-only models ignore it "
+                             "(default dataset)")  # fmt: skip
 
 
 def add_nearest_align_argument(parser: argparse.ArgumentParser) -> None:
@@ -66,7 +75,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             baselines=() if args.no_baselines else EvalSettings.baselines,
                             subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
                             use_ema=not args.raw_weights, clip=args.clip or None, bf16=resolve_bf16(args.bf16, args.device),
-                            nearest_align=args.nearest_align, outfit=args.outfit, even=args.even)  # fmt: skip
+                            nearest_align=args.nearest_align, outfit=args.outfit, even=args.even,
+                            history=args.history)  # fmt: skip
     if settings.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {settings.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
     fmt.read_card(args.data)
@@ -100,6 +110,7 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-baselines", action="store_true", help="skip the nearest-frame / posed-body / GT rows")
     parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
     add_nearest_align_argument(parser)
+    add_history_argument(parser)
     parser.add_argument("--batch-size", type=int, default=4, help="clouds sampled together (default 4)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")
     parser.add_argument("--clip", type=float, default=5.0,
@@ -130,7 +141,8 @@ def _train_missing(key: str, data, work: Path, steps: int, preset: str) -> Path:
 def cmd_bench_quality(args: argparse.Namespace) -> None:
     settings = EvalSettings(split=args.split, num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
                             sampler=args.sampler, steps=args.steps, clip=5.0, nearest_align=args.nearest_align,
-                            subjects=tuple(args.subjects) if args.subjects else None, even=args.even)  # fmt: skip
+                            subjects=tuple(args.subjects) if args.subjects else None, even=args.even,
+                            history=args.history)  # fmt: skip
     con = console(stderr=True)
     ckpts = {key: getattr(args, f"ckpt_{key}") for key in QUALITY_ROWS}
     if args.train_steps is not None and (args.train_steps < 1 or args.work is None):
@@ -182,6 +194,7 @@ def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, help="PocoLoco sampler steps (default: the sampler's)")
     add_even_argument(parser)
     add_nearest_align_argument(parser)
+    add_history_argument(parser)
     add_threads_argument(parser)
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1 (default cpu)")
     parser.add_argument("--out", required=True, help="output folder (quality.json, quality.md, quality.png)")

@@ -20,7 +20,9 @@ from pocoloco.cli.common import (
     resolve_bf16,
     steps_defaults,
 )
-from pocoloco.data.poses import pose_spec_kind
+from pocoloco.data.dataset import DEFAULT_FPS
+from pocoloco.data.motion_window import DEFAULT_SECONDS
+from pocoloco.data.poses import load_motion, pose_spec_kind
 from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.methods import SamplerOptions, fit_to_memory, predict_clouds
 from pocoloco.methods.outputs import write_samples
@@ -38,9 +40,13 @@ def cmd_sample(args: argparse.Namespace) -> None:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
     if args.clip < 0:
         raise ValueError(f"--clip must be >= 0 (0 = off), got {args.clip}")
+    if args.motion is not None and args.joints is not None:
+        raise ValueError("--motion and --joints exclude each other (the motion's last frame is the pose)")
+    if args.fps is not None and args.motion is None:
+        raise ValueError("--fps applies to --motion only")
     out = output_folder(args.out)
     method = load_method_from_args(args)
-    spec = os.fspath(args.joints)
+    spec = os.fspath(args.motion if args.motion is not None else args.joints or "demo:skirt")
     if method.deterministic:
         if args.num is not None and args.num != 1:
             raise ValueError(f"--num {args.num}: {method.title} is deterministic (one cloud per pose and outfit); "
@@ -55,13 +61,28 @@ def cmd_sample(args: argparse.Namespace) -> None:
                              batch_size=args.batch_size, even=args.even)  # fmt: skip
     if not method.deterministic and args.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
-    if method.needs_body:  # the body is posed with the outfit's phenotype
+    notes = []
+    if args.motion is not None:
+        if method.needs_body:
+            raise ValueError(f"--motion gives joints only; {method.title} needs the posed body (a DATASET: frame or "
+                             "demo:OUTFIT with --joints)")  # fmt: skip
+        fps = DEFAULT_FPS if args.fps is None else args.fps
+        pose, note = load_motion(spec, fps, method.motion_window or DEFAULT_SECONDS, any_pose=args.any_pose)
+        notes += [note] if note else []
+        notes += [] if args.fps is not None else [f"--motion read at {fps:g} frames per second (give --fps)"]
+        outfit = pick_outfit(method, args.outfit, spec)
+    elif method.needs_body:  # the body is posed with the outfit's phenotype
         pose_spec_kind(spec)  # bare joints: the one-line error first
         outfit = pick_outfit(method, args.outfit, spec)
         pose = method.load_pose(spec, outfit, args.frame_id, any_pose=args.any_pose)
     else:  # a bad joints file is named before a missing --outfit
         pose = method.load_pose(spec, None, args.frame_id, any_pose=args.any_pose)
         outfit = pick_outfit(method, args.outfit, spec)
+    if method.motion_window and pose.motion is None:
+        notes.append(f"{spec}: no motion before this pose: the body is taken at rest (give --motion FILE or a "
+                     "DATASET: frame)")  # fmt: skip
+    elif not method.motion_window and args.motion is not None:
+        notes.append(f"{method.title} ({method.path}) sees the pose alone: the motion before it is not used")
     method.check_options(options)
     options = fit_to_memory(method, args.points, num, options)
     seeds = [args.seed + k for k in range(num)]
@@ -71,7 +92,8 @@ def cmd_sample(args: argparse.Namespace) -> None:
     seconds = time.perf_counter() - t0
     settings = {
         "checkpoint": str(method.path), "model_kind": method.kind, "model": method.title, "step": method.step,
-        "preset": method.config.preset, "joints": spec, "frame_id": args.frame_id, "joints_m": pose.joints.tolist(),
+        "preset": method.config.preset, "joints": spec, "motion_window_s": method.motion_window,
+        "motion": "none (at rest)" if pose.motion is None else "given", "frame_id": args.frame_id, "joints_m": pose.joints.tolist(),
         "num": num, "points": args.points, "seed": args.seed, "seeds": seeds, "deterministic": method.deterministic, "even": args.even,
         **method.sample_settings(options, args.points),
     }  # fmt: skip
@@ -83,6 +105,8 @@ def cmd_sample(args: argparse.Namespace) -> None:
     what = f"{num} samples" if not method.deterministic else f"1 {method.title} cloud"
     how = (f"{args.sampler} {settings['steps']} steps" if "steps" in settings
            else f"outfit {method.outfit_names()[outfit]}" if outfit is not None else method.title)  # fmt: skip
+    for note in notes:
+        print(f"note: {note}")
     print(f"wrote {what} of {args.points} points to {out} ({seconds / num:.3f} s per sample, {how})")
 
 
@@ -92,12 +116,16 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
                         help="checkpoint folder, checkpoints folder or run folder of any model; 'default' (the "
                              "default) = the PocoLoco model shipped with pocoloco (latent denoiser, trained on medium), "
                              "default:pop / default:closet its shipped peers, default:hybrid the hybrid of POP and it")  # fmt: skip
-    parser.add_argument("--joints", default="demo:skirt",
+    parser.add_argument("--joints", default=None,
                         help="pose: .npy/.npz (24, 3) joints, a LOOSE-style joints .txt, a dataset frame .npz, "
                              "DATASET:subject/split/sequence/index, or demo:OUTFIT (a shipped pose, one per outfit: "
                              "demo:skirt_a ... demo:trousers_b; demo:skirt = demo:skirt_a; default demo:skirt). POP / "
                              "CloSET need the posed body: a dataset frame, demo:OUTFIT, or an .npz with anny pose "
                              "parameters joint_rotvecs (24, 3)")  # fmt: skip
+    parser.add_argument("--motion", metavar="FILE",
+                        help="a joints sequence .npy / .npz (T, 24, 3), metres, z up: its last frame is the pose and "
+                             "a --motion-window model also sees the motion before it (instead of --joints)")  # fmt: skip
+    parser.add_argument("--fps", type=float, help="frames per second of --motion (default 25)")
     parser.add_argument("--frame-id", type=int, help="line of a joints .txt to use (by frame id; default: first)")
     parser.add_argument("--num", type=int, default=None,
                         help="K hypotheses to draw (default 3; POP / CloSET are deterministic: 1)")  # fmt: skip

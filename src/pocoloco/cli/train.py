@@ -46,7 +46,8 @@ FIELD_OPTIONS = {
     "min_snr": "min_snr_gamma", "workers": "num_workers", "normal_start": "normal_start",
     "query_points": "query_points", "subjects": "subjects", "outfit_codes": "outfit_codes",
     "body_shape": "body_shape", "body_points": "body_points", "canonical_heading": "canonical_heading",
-    "joint_velocity": "joint_velocity", "lr_schedule": "lr_schedule", "decay_steps": "decay_steps",
+    "joint_velocity": "joint_velocity", "motion_window": "motion_window", "history_dropout": "history_dropout",
+    "lr_schedule": "lr_schedule", "decay_steps": "decay_steps",
 }  # fmt: skip
 
 
@@ -243,6 +244,13 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                    help="latent presets: also condition on the joints' velocities (the neighbouring frame of the "
                         "sequence; the cloth follows the motion, not only the pose). Sampling takes them from a "
                         "DATASET: frame; other poses and the apps take the body at rest (not in the paper; default off)")  # fmt: skip
+    g.add_argument("--motion-window", type=float, metavar="SECONDS",
+                   help="latent presets: also condition on the last SECONDS of the body's motion (8 samples per "
+                        "second; 2.0 is issue 41's window). Sampling takes it from a DATASET: frame or `sample "
+                        "--motion`; other poses are taken at rest (not in the paper; default 0: the pose alone)")  # fmt: skip
+    g.add_argument("--history-dropout", type=float, metavar="P",
+                   help="with --motion-window: share of training frames shown at rest, so the model also samples "
+                        "without motion (default 0.15)")  # fmt: skip
     parser.add_argument("--subjects", nargs="+",
                         help="train on these subjects only: one model per subject as the PocoLoco paper, or hold one "
                              "out for `pocoloco fit` (default: all)")  # fmt: skip

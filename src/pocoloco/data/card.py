@@ -57,6 +57,10 @@ class DatasetLayout:
     def motion_path(self, subject: str, split: str, sequence: str) -> Path:
         return self.sequence_dir(subject, split, sequence) / "motion.npz"
 
+    def motion_history_path(self, subject: str, split: str, sequence: str) -> Path:
+        """The sequence's whole motion, before its first stored frame too (issue 41's windows)."""
+        return self.sequence_dir(subject, split, sequence) / "motion_history.npz"
+
     def frames_dir(self, subject: str, split: str, sequence: str) -> Path:
         return self.sequence_dir(subject, split, sequence) / "frames"
 

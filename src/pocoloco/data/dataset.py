@@ -30,6 +30,7 @@ import dataclasses
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -37,8 +38,20 @@ import torch
 from torch.utils.data import Dataset
 
 from . import format as fmt
+from .frame import FRAME_FILE_NAME
+from .motion_window import (
+    DEFAULT_HZ,
+    MotionHistory,
+    MotionWindow,
+    heading_of,
+    motion_feature_dim,
+    motion_features,
+    read_motion_history,
+    window_samples,
+)
 
-__all__ = ["Normalisation", "OpenedDataset", "PointCloudDataset", "frame_velocity", "rotate_z"]
+__all__ = ["Normalisation", "OpenedDataset", "PointCloudDataset", "frame_motion_window", "frame_velocity", "rotate_z",
+           "sequence_history"]
 
 #: frames per second of a dataset whose card does not record it (the synthetic presets' rate)
 DEFAULT_FPS = 25.0
@@ -171,6 +184,51 @@ def frame_velocity(path: str | os.PathLike, joints: np.ndarray, fps: float | Non
     return np.zeros_like(np.asarray(joints, np.float32))
 
 
+def sequence_history(sequence_dir: str | os.PathLike, fps: float | None = None) -> MotionHistory:
+    """A dataset sequence's whole motion (issue 41): its ``motion_history.npz`` (``pocoloco data
+    motion-history`` writes it for a synthetic dataset: the motion before the first stored frame
+    too), else the stored frames' skeletons (``padded``: windows reaching before the first stored
+    frame hold it; a rejected frame holds the one before it). fps: None reads ``sequence.json``."""
+    folder = Path(sequence_dir)
+    if (folder / "motion_history.npz").is_file():
+        return read_motion_history(folder / "motion_history.npz")
+    if fps is None:
+        try:
+            fps = float(fmt.read_sequence_meta(folder / "sequence.json").get("fps") or DEFAULT_FPS)
+        except (OSError, ValueError, TypeError):
+            fps = DEFAULT_FPS
+    names = sorted(n for n in os.listdir(folder / "frames") if FRAME_FILE_NAME.match(n)) \
+        if (folder / "frames").is_dir() else []  # fmt: skip
+    if not names:
+        raise ValueError(f"{folder}: no frames to take a motion from")
+    stored = {int(FRAME_FILE_NAME.match(n).group(1)): fmt.read_frame(folder / "frames" / n, ["joints"]).joints
+              for n in names}  # fmt: skip
+    joints, last = [], stored[min(stored)]
+    for i in range(max(stored) + 1):
+        last = stored.get(i, last)
+        joints.append(last)
+    return MotionHistory(np.stack(joints).astype(np.float32), float(fps), 0, padded=True)
+
+
+_HISTORIES: dict[str, MotionHistory] = {}
+
+
+def frame_motion_window(path: str | os.PathLike, seconds: float, hz: float = DEFAULT_HZ) -> MotionWindow:
+    """The motion window of the dataset frame file ``path`` (``.../<sequence>/frames/000123.npz``):
+    the last ``seconds`` of its sequence's motion (:func:`sequence_history`, cached per sequence)."""
+    path = Path(path)
+    folder = str(path.parent.parent)
+    if folder not in _HISTORIES:
+        if len(_HISTORIES) > 64:
+            _HISTORIES.clear()
+        _HISTORIES[folder] = sequence_history(folder)
+    history = _HISTORIES[folder]
+    frame = int(path.stem)
+    if history.first + frame >= len(history.joints):
+        raise ValueError(f"{path}: frame {frame} is beyond its sequence's motion ({len(history.joints)} frames)")
+    return history.window(frame, seconds, hz)
+
+
 @dataclass(frozen=True)
 class OpenedDataset:
     """A dataset folder opened once per command and handed down instead of its path: the card (read
@@ -254,6 +312,7 @@ class PointCloudDataset(Dataset):
         body_point_ids: Sequence[int] | None = None,
         heading: bool = False,
         velocity: bool = False,
+        motion_window: float = 0.0,
     ):
         opened = OpenedDataset.open(root, subjects=[])  # the card (read here unless the caller opened it)
         self.root = opened.root
@@ -279,6 +338,10 @@ class PointCloudDataset(Dataset):
         if heading:
             self.normalisation = dataclasses.replace(self.normalisation, heading=True)
         self.velocity = velocity
+        if not (np.isfinite(motion_window) and motion_window >= 0):
+            raise ValueError(f"motion_window must be >= 0 seconds, got {motion_window}")
+        self.motion_window = float(motion_window)
+        self._histories: dict[tuple[str, str], MotionHistory] = {}
         self.fps = float((self.card.get("generation_config") or {}).get("fps") or DEFAULT_FPS)
         self.layout = opened.layout
         chosen = self.subject_names if subjects is None else sorted(subjects)
@@ -332,6 +395,8 @@ class PointCloudDataset(Dataset):
         if self.velocity:
             v = self.normalisation.normalise_velocity(frame_velocity(path, fr.joints, self.fps), fr.joints)
             item["velocity"] = torch.from_numpy(np.ascontiguousarray(v, np.float32))
+        if self.motion_window:
+            item["motion"] = self.motion_features(index, fr.joints)
         if self.with_normals:
             normals = fr.normals[sel]
             if self.normalisation.heading:  # directions turn with the body
@@ -345,3 +410,41 @@ class PointCloudDataset(Dataset):
             body = self.normalisation.normalise(fr.body_vertices[self.body_point_ids], fr.joints)[0]
             item["body"] = torch.from_numpy(np.ascontiguousarray(body, np.float32))
         return item
+
+    # ----------------------------------------------------------------- motion windows (issue 41)
+    def history(self, subject: str, sequence: str) -> MotionHistory:
+        """The sequence's whole motion: its ``motion_history.npz`` (``pocoloco data motion-history``
+        writes it for a synthetic dataset), else the stored frames' skeletons (``padded``: windows
+        reaching before the first stored frame hold it). Cached per sequence."""
+        key = (subject, sequence)
+        if key not in self._histories:
+            self._histories[key] = sequence_history(self.layout.sequence_dir(subject, self.split, sequence), self.fps)
+        return self._histories[key]
+
+    def motion_features(self, index: int, joints: np.ndarray | None = None,
+                        rng: np.random.Generator | None = None) -> torch.Tensor:  # fmt: skip
+        """(J, F) the motion-window features of frame ``index`` (``motion_window`` seconds at 8 Hz,
+        :func:`~pocoloco.data.motion_window.motion_features`), in the frame's normalised point frame.
+        ``rng``: training's augmentation (time-warp +-15 %, past samples jittered by up to one
+        frame, 5 mm noise on the past joints). ``joints``: the frame's (J, 3), if already read."""
+        subject, sequence, path = self.frames[index]
+        frame = int(os.path.basename(path)[:-4])
+        if joints is None:
+            joints = fmt.read_frame(path, ["joints"]).joints
+        history = self.history(subject, sequence)
+        seconds, hz, lag = self.motion_window, DEFAULT_HZ, 0.0
+        if rng is not None:
+            warp = rng.uniform(0.85, 1.15)
+            seconds, hz, lag = seconds * warp, hz / warp, int(rng.integers(-1, 2)) / history.fps
+        window = history.window(frame, seconds, hz, lag)
+        if rng is not None:
+            noisy = window.joints.copy()
+            noisy[1:] += rng.normal(0.0, 0.005, noisy[1:].shape).astype(np.float32)
+            window = dataclasses.replace(window, joints=noisy)
+        turn = heading_of(history.joints[history.first + frame]) - float(self.normalisation.angle(joints))
+        return torch.from_numpy(motion_features(window, turn, self.normalisation.std))
+
+    @property
+    def motion_feature_dim(self) -> int:
+        """F of the frames' motion features (0 without a motion window)."""
+        return motion_feature_dim(window_samples(self.motion_window, DEFAULT_HZ)) if self.motion_window else 0

@@ -8,6 +8,7 @@ In short::
       subjects/<subject>/subject.npz                # body template, faces, UVs, garment rest mesh
       subjects/<subject>/<split>/<sequence>/sequence.json
       subjects/<subject>/<split>/<sequence>/motion.npz
+      subjects/<subject>/<split>/<sequence>/motion_history.npz   # optional: the motion before frame 0 too
       subjects/<subject>/<split>/<sequence>/frames/000123.npz
 
 Every file is written atomically (temp file + ``os.replace``), so an

@@ -36,6 +36,7 @@ from pocoloco.data.format import (
     read_frame,
     read_motion,
 )
+from pocoloco.data.motion_window import MotionWindow, motion_window
 from pocoloco.data.published import read_joints_txt
 from pocoloco.utils.npfile import numpy_file_problem
 
@@ -51,6 +52,7 @@ __all__ = [
     "is_anny_pose_file",
     "load_body_pose",
     "load_joints",
+    "load_motion",
     "motion_path_of",
     "outfit_of_spec",
     "pose_from_anny_file",
@@ -179,6 +181,51 @@ def _load_array_file(path: Path) -> np.ndarray:
         raise ValueError(f"{path}: cannot read joints ({type(e).__name__}: {' '.join(str(e).split())})") from None
 
 
+#: fastest a body's root may travel in a motion file (m/s; a sprinter's top speed is ~12) and the
+#: fastest it may turn (rad/s; a pirouette is ~4 turns a second): beyond them a file is refused
+MAX_ROOT_SPEED, MAX_YAW_RATE = 15.0, 30.0
+#: frames per second a motion file may have
+FPS_RANGE = (1.0, 1000.0)
+
+
+def load_motion(path: str | os.PathLike, fps: float, seconds: float = 2.0,
+                any_pose: bool = False) -> tuple[Pose, str | None]:  # fmt: skip
+    """A joints sequence file (``.npy`` / ``.npz`` (T, 24, 3), metres, z up, at ``fps``) -> the Pose
+    of its **last** frame carrying the ``seconds`` of motion before it
+    (:func:`~pocoloco.data.motion_window.motion_window`), and a note for the user (a sequence shorter
+    than the window is padded with its first frame, as a body at rest before it) or None. One-line
+    errors for a wrong shape, NaN, an fps out of range, a last frame that is not a human skeleton
+    (unless ``any_pose``), and implausible speeds (``MAX_ROOT_SPEED``, ``MAX_YAW_RATE``)."""
+    src = os.fspath(path)
+    if not Path(src).is_file():
+        raise ValueError(f"{src}: no such motion file")
+    if not (np.isfinite(fps) and FPS_RANGE[0] <= fps <= FPS_RANGE[1]):
+        raise ValueError(f"--fps {fps}: expected frames per second between {FPS_RANGE[0]:g} and {FPS_RANGE[1]:g}")
+    seq = np.asarray(_load_array_file(Path(src)))
+    if seq.dtype.kind not in "fiu" or seq.ndim != 3 or seq.shape[1:] != (NUM_JOINTS, 3) or len(seq) < 1:
+        raise ValueError(f"{src}: a motion is a (T, {NUM_JOINTS}, 3) joints array, got shape {seq.shape}")
+    if not np.isfinite(seq).all():
+        raise ValueError(f"{src}: the motion contains NaN or infinite values")
+    seq = seq.astype(np.float32)
+    last = seq[-1] if any_pose else check_skeleton(f"{src} (last frame)", seq[-1])
+    if len(seq) > 1:
+        speed = np.linalg.norm(np.diff(seq[:, 0], axis=0), axis=-1).max() * fps
+        if speed > MAX_ROOT_SPEED:
+            raise ValueError(f"{src}: the root moves at up to {speed:.1f} m/s at --fps {fps:g} (more than "
+                             f"{MAX_ROOT_SPEED:g}): wrong fps, or not metres?")  # fmt: skip
+        across = seq[:, 1] - seq[:, 2]
+        yaw = np.unwrap(np.arctan2(across[:, 1], across[:, 0]))
+        turn = np.abs(np.diff(yaw)).max() * fps
+        if turn > MAX_YAW_RATE:
+            raise ValueError(f"{src}: the body turns at up to {turn:.1f} rad/s at --fps {fps:g} (more than "
+                             f"{MAX_YAW_RATE:g}): wrong fps, or not z up?")  # fmt: skip
+    window = motion_window(seq, len(seq) - 1, fps, seconds)
+    covered = (len(seq) - 1) / fps
+    note = (f"{src}: {len(seq)} frames cover {covered:.2f} s of the {seconds:g} s window; the earlier part holds "
+            "its first frame (a body at rest before it)") if covered + 1e-9 < seconds else None  # fmt: skip
+    return Pose(last, source=f"motion:{src}", motion=window), note
+
+
 def dataset_frame_path(spec: str) -> Path:
     """``DATASET:subject/split/sequence/index`` -> the frame file (the dataset is validated)."""
     root, _, key = spec.rpartition(":")
@@ -262,7 +309,10 @@ class Pose:
     None; subject: the dataset subject the body belongs to (None for joints / an anny pose file);
     source: where it came from; velocity (J, 3) joint velocities in m/s (a dataset frame's, for
     models conditioned on them) or None (at rest); joint_rotvecs (24, 3) / root_translation (3,):
-    the anny pose parameters it was posed from (an anny pose file, a motion frame), or None.
+    the anny pose parameters it was posed from (an anny pose file, a motion frame), or None;
+    motion: the last seconds of the body's motion before it
+    (:class:`~pocoloco.data.motion_window.MotionWindow`, for models conditioned on them) or None
+    (the body at rest).
     """
 
     joints: np.ndarray
@@ -274,6 +324,7 @@ class Pose:
     velocity: np.ndarray | None = None
     joint_rotvecs: np.ndarray | None = None
     root_translation: np.ndarray | None = None
+    motion: MotionWindow | None = None
 
     @property
     def has_body(self) -> bool:

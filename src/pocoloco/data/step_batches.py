@@ -21,7 +21,9 @@ class StepBatches(torch.utils.data.Dataset):
 
     Items: ``points`` (B, N, C) normalised (C = 3, or 6 with unit normals), ``joints`` (B, J, 3)
     normalised, ``root`` (B, 3) metres, ``index`` (B,) frame indices, ``subject`` (B,) the frames'
-    subject ids (``dataset.subject_names`` order), and ``body`` (B, K, 3) when the dataset gives it.
+    subject ids (``dataset.subject_names`` order), ``body`` (B, K, 3) when the dataset gives it, and
+    ``motion`` (B, J, F) motion-window features when the dataset has a ``motion_window``, augmented
+    from ``default_rng([seed, 4, g])`` (:meth:`PointCloudDataset.motion_features`).
     """
 
     def __init__(self, dataset: PointCloudDataset, batch_size: int, num_points: int, seed: int, steps: int,
@@ -51,7 +53,7 @@ class StepBatches(torch.utils.data.Dataset):
 
     def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
         g, idx = self.frame_indices(int(step))
-        pts, jts, roots, angles, subjects, bodies, velocities = [], [], [], [], [], [], []
+        pts, jts, roots, angles, subjects, bodies, velocities, motions = [], [], [], [], [], [], [], []
         for gk, i in zip(g, idx, strict=True):
             item = self.dataset[int(i)]
             n = item["points"].shape[0]
@@ -71,10 +73,14 @@ class StepBatches(torch.utils.data.Dataset):
                 bodies.append(item["body"])
             if "velocity" in item:
                 velocities.append(item["velocity"])
+            if "motion" in item:  # the window again, augmented: time-warp, jitter, noise
+                motions.append(self.dataset.motion_features(int(i), rng=np.random.default_rng([self.seed, 4, int(gk)])))
         batch = {"points": torch.stack(pts), "joints": torch.stack(jts), "root": torch.stack(roots),
                  "angle": torch.stack(angles), "index": torch.from_numpy(idx), "subject": torch.tensor(subjects, dtype=torch.long)}  # fmt: skip
         if bodies:
             batch["body"] = torch.stack(bodies)
         if velocities:
             batch["velocity"] = torch.stack(velocities)
+        if motions:
+            batch["motion"] = torch.stack(motions)
         return batch

@@ -290,6 +290,11 @@ class TrainingTask(ABC):
         matched by outfit name when the run trains another set of outfits. Default: unchanged."""
         return state
 
+    def fresh_keys(self, missing: list[str]) -> bool:
+        """``--init-from``: may these tensors, absent from the source checkpoint, keep this run's own
+        initialisation (a new part that starts as a no-op)? Default: no (a one-line error)."""
+        return False
+
     def log_extra(self, step: int) -> dict[str, Any]:
         """More fields for the metrics record of (0-based) ``step``."""
         return {}
@@ -484,6 +489,10 @@ def load_initial_weights(model: nn.Module, path: str | os.PathLike, task: Traini
     state = task.initial_state(ck.ema_state if ck.ema_state is not None else ck.model_state, ck)
     own = model.state_dict()
     missing, extra = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+    fresh = missing and task.fresh_keys(missing)
+    if fresh:  # new zero-initialised parts keep this run's initialisation
+        state = {**state, **{k: own[k] for k in missing}}
+        missing = []
     shapes = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
     if missing or extra or shapes:
         what = (f"{len(missing)} tensor(s) missing, e.g. {missing[0]}" if missing else

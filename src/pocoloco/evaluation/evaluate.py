@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import os
 import time
+import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,7 +129,11 @@ class EvalSettings:
     (``NearestFrameBaseline``). outfit: draw every frame in this trained outfit (models with outfit
     codes, e.g. a fitted outfit or the nearest trained one for an unseen subject; None: each
     frame's subject). even: the models' points spread evenly (``SamplerOptions.even``; the GT
-    subsets and the baselines stay random).
+    subsets and the baselines stay random). history: the motion window a motion-aware model is
+    given (issue 41; pose-only models ignore it): ``dataset`` the frame's own, ``rest`` none (the
+    body at rest: the pose-only use of the same model), ``shuffled`` the window of another frame of
+    the same subject and split (in another sequence where there is one; fixed per frame), which
+    tells the motion's information from the extra capacity.
     """
 
     split: str = "test"
@@ -146,6 +151,7 @@ class EvalSettings:
     nearest_align: str = "root"
     outfit: str | None = None
     even: bool = False
+    history: str = "dataset"
 
     def __post_init__(self):
         if self.split not in fmt.SPLITS:
@@ -165,8 +171,22 @@ class EvalSettings:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.clip is not None and not self.clip > 0:
             raise ValueError(f"clip must be > 0, got {self.clip}")
+        if self.history not in HISTORY_MODES:
+            raise ValueError(f"history must be one of {', '.join(HISTORY_MODES)}, got {self.history!r}")
         if self.nearest_align not in NEAREST_ALIGNS:
             raise ValueError(f"nearest_align must be one of {', '.join(NEAREST_ALIGNS)}, got {self.nearest_align!r}")
+
+
+#: what a motion-aware model is given as the motion before each frame (``EvalSettings.history``)
+HISTORY_MODES = ("dataset", "rest", "shuffled")
+
+
+def shuffled_frame(frames: Sequence[tuple[str, str, Any]], subject: str, sequence: str, key: str):
+    """The frame file whose motion window ``--history shuffled`` gives the frame ``key``: a frame of
+    the same subject among ``frames`` [(subject, sequence, path)], in another sequence where there is
+    one, drawn from a generator seeded by the key (the same on every run)."""
+    same = [p for s, q, p in frames if s == subject and q != sequence] or [p for s, _, p in frames if s == subject]
+    return same[int(np.random.default_rng(zlib.crc32(key.encode())).integers(len(same)))]
 
 
 # ---------------------------------------------------------------------------------- evaluation
@@ -252,6 +272,9 @@ def evaluate(
         if method is not None:
             method = methods.get(subject, methods.get(None))
             pose = method.pose_from_frame(path, subject, frame=fr, cache=mean_cache)
+            if method.motion_window and settings.history != "dataset":
+                pose.motion = (None if settings.history == "rest" else
+                               method.motion_of_frame(shuffled_frame(all_frames, subject, sequence, key)))  # fmt: skip
             outfit = method.outfit_id(settings.outfit or subject) if method.outfit_names() else None
             t0 = time.perf_counter()
             pred = predict_clouds(method, pose, settings.num_points, seeds, outfit, options)
@@ -358,7 +381,7 @@ def _settings_dict(s: EvalSettings) -> dict[str, Any]:
     return {"split": s.split, "num_frames": s.num_frames, "num_points": s.num_points, "seeds": list(s.seeds),
             "sampler": s.sampler, "steps": s.steps, "baselines": list(s.baselines),
             "subjects": None if s.subjects is None else list(s.subjects), "weights": "ema" if s.use_ema else "raw",
-            "clip": s.clip, "outfit": s.outfit, "even": s.even}  # fmt: skip
+            "clip": s.clip, "outfit": s.outfit, "even": s.even, "history": s.history}  # fmt: skip
 
 
 def _check_normalisation(normalisation, card: dict[str, Any], ckpt: Path, data) -> None:

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from pocoloco.data.dataset import Normalisation
+from pocoloco.data.dataset import Normalisation, frame_motion_window
 from pocoloco.data.frame import read_frame
 from pocoloco.data.poses import (
     MeanShapeCache,
@@ -268,6 +268,19 @@ class Method(ABC):
         """The pose of a dataset frame file (``frame``: the already read ``Frame``, if any)."""
         joints = (frame if frame is not None else read_frame(path, ["joints"])).joints
         return Pose(np.asarray(joints, np.float32), subject=subject, source=str(path))
+
+    @property
+    def motion_window(self) -> float:
+        """Seconds of past motion the model is conditioned on (0: the pose alone, every method of
+        the papers)."""
+        return 0.0
+
+    def motion_of_frame(self, path: str | Path):
+        """The motion window this model takes for the dataset frame file ``path``
+        (:class:`~pocoloco.data.motion_window.MotionWindow`), or None for a pose-only model."""
+        if not self.motion_window:
+            return None
+        return frame_motion_window(path, self.motion_window)
 
     def pose_from_anny(self, pose: Pose, outfit: int | None) -> Pose:
         """``pose``'s anny pose parameters (``joint_rotvecs``) posed on ``outfit``'s body shape (the

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-__all__ = ["SHAPE_KEYS", "OutfitBound", "PoseCondition", "WhoWearsWhat", "body_of", "phenotype_vector",
-           "split_condition"]
+__all__ = ["SHAPE_KEYS", "MotionEncoder", "OutfitBound", "PoseCondition", "WhoWearsWhat", "body_of", "phenotype_vector",
+           "motion_of", "split_condition"]
 
 #: anny's phenotype parameters, in the order of a body-shape vector (``body.anny_body.PHENOTYPE_KEYS``;
 #: repeated here so the networks do not import the body model)
@@ -48,7 +48,9 @@ class PoseCondition:
     """joints (B, J, 3) normalised; outfit (B,) int64 or None; shape (B, S) or None; code (B, D) or
     None: an outfit embedding given directly instead of an id (fitting a new outfit); body (B, K, 3)
     normalised posed-body vertices or None; velocity (B, J, 3) normalised joint velocities or None
-    (a model trained with them then takes the body as at rest)."""
+    (a model trained with them then takes the body as at rest); motion (B, J, F) motion-window
+    features (:func:`pocoloco.data.motion_window.motion_features`) or None (a model trained with
+    them then takes the body as at rest: all zeros)."""
 
     joints: torch.Tensor
     outfit: torch.Tensor | None = None
@@ -56,6 +58,7 @@ class PoseCondition:
     code: torch.Tensor | None = None
     body: torch.Tensor | None = None
     velocity: torch.Tensor | None = None
+    motion: torch.Tensor | None = None
 
 
 def split_condition(cond) -> tuple[torch.Tensor, torch.Tensor | torch.Tensor | None, torch.Tensor | None]:
@@ -74,6 +77,38 @@ def body_of(cond) -> torch.Tensor | None:
 def velocity_of(cond) -> torch.Tensor | None:
     """The (B, J, 3) joint velocities of a condition, or None."""
     return cond.velocity if isinstance(cond, PoseCondition) else None
+
+
+def motion_of(cond) -> torch.Tensor | None:
+    """The (B, J, F) motion-window features of a condition, or None."""
+    return cond.motion if isinstance(cond, PoseCondition) else None
+
+
+class MotionEncoder(nn.Module):
+    """The last seconds of motion -> one (B, J, D) update per joint token (issue 41).
+
+    Localised per body part like Dyco (Zhou et al., ECCV 2024: pose deltas per part through a small
+    bottleneck): joint j's features (its past positions relative to its current one, the root's
+    velocity and yaw rate; F values) and a learned embedding of j go through a shared MLP
+    F -> H -> ``bottleneck`` -> D. The last layer is zero-initialised, so a model given it starts
+    exactly as the model without it (a fine-tune from a pose-only checkpoint starts at that model),
+    and all-zero features (a body at rest) give a constant the training's history dropout teaches.
+    """
+
+    def __init__(self, feature_dim: int, num_joints: int, width: int, hidden: int = 128, bottleneck: int = 32):
+        super().__init__()
+        self.feature_dim = int(feature_dim)
+        self.inp = nn.Linear(feature_dim, hidden)
+        self.joint_embed = nn.Parameter(torch.randn(num_joints, hidden) * 0.02)  # (J, H)
+        self.mid = nn.Linear(hidden, bottleneck)
+        self.out = nn.Linear(bottleneck, width)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, motion: torch.Tensor) -> torch.Tensor:
+        """motion (B, J, F) -> (B, J, D)."""
+        h = torch.nn.functional.gelu(self.inp(motion) + self.joint_embed)
+        return self.out(torch.nn.functional.gelu(self.mid(h)))
 
 
 class WhoWearsWhat(nn.Module):

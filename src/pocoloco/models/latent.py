@@ -76,7 +76,15 @@ from typing import Any, ClassVar
 import torch
 from torch import nn
 
-from pocoloco.models.conditioning import PoseCondition, WhoWearsWhat, body_of, split_condition, velocity_of
+from pocoloco.models.conditioning import (
+    MotionEncoder,
+    PoseCondition,
+    WhoWearsWhat,
+    body_of,
+    motion_of,
+    split_condition,
+    velocity_of,
+)
 from pocoloco.models.layers import (
     ATTENTION_IMPLS,
     MLP,
@@ -109,7 +117,10 @@ class LatentDenoiserConfig(Config):
     also gets its offsets to them, as to the joints. joint_velocity: the joint tokens also get an
     MLP of each joint's velocity (:class:`~pocoloco.models.conditioning.PoseCondition` ``velocity``;
     not in the paper: the cloth follows the motion, not only the pose); zero-initialised, and zero
-    velocity (a body at rest) when the condition has none
+    velocity (a body at rest) when the condition has none. motion_window: seconds of past motion
+    the joint tokens also see (0: none; :class:`~pocoloco.models.conditioning.MotionEncoder` of the
+    condition's ``motion`` features, sampled at ``motion_hz``; not in the paper; zero-initialised,
+    and a body at rest when the condition has none)
     (``attention="dense"`` is the materialised-softmax reference, same weights and maths).
     """
 
@@ -135,6 +146,8 @@ class LatentDenoiserConfig(Config):
     shape_dim: int = 0
     body_points: int = 0
     joint_velocity: bool = False
+    motion_window: float = 0.0
+    motion_hz: float = 8.0
 
     #: older checkpoints stored the diffusion parametrisation here; it is the training config's
     legacy_fields: ClassVar[frozenset[str]] = frozenset({"prediction_type"})
@@ -163,6 +176,8 @@ class LatentDenoiserConfig(Config):
         for name in ("mlp_ratio", "point_mlp_ratio"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not (self.motion_window >= 0 and self.motion_hz > 0):
+            raise ValueError(f"motion_window must be >= 0 and motion_hz > 0, got {self.motion_window}, {self.motion_hz}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
 
@@ -175,6 +190,13 @@ class LatentDenoiserConfig(Config):
     def point_dim(self) -> int:
         """Width P of the point stream."""
         return self.point_width if self.point_width is not None else self.width
+
+    @property
+    def motion_feature_dim(self) -> int:
+        """F of the motion features the model takes (0: none; 116 for 2 s at 8 Hz)."""
+        if not self.motion_window:
+            return 0
+        return 7 * (int(round(self.motion_window * self.motion_hz)) + 1) - 3  # data.motion_window.motion_feature_dim
 
     @property
     def num_tokens(self) -> int:
@@ -276,6 +298,8 @@ class LatentDenoiser(PointDenoiserBase):
         if self.velocity_in is not None:  # starts as the model without motion
             nn.init.zeros_(self.velocity_in[2].weight)
             nn.init.zeros_(self.velocity_in[2].bias)
+        self.motion_in = (MotionEncoder(cfg.motion_feature_dim, cfg.num_joints, D) if cfg.motion_window
+                          else None)  # fmt: skip
         # posed-body tokens: Linear(posenc(b_k)) + E_k, like the joints (K fixed vertex ids)
         self.body_in = nn.Linear(enc_dim, D) if cfg.body_points else None
         self.body_embed = nn.Parameter(torch.randn(cfg.body_points, D) * 0.02) if cfg.body_points else None
@@ -340,6 +364,18 @@ class LatentDenoiser(PointDenoiserBase):
             joint_tokens = joint_tokens + self.velocity_in(velocity.to(joint_tokens.dtype))
         elif velocity is not None:
             raise ValueError("this model takes no joint velocities (trained without --joint-velocity)")
+        motion = motion_of(cond)
+        if self.motion_in is not None:
+            if motion is not None:
+                want = (B, self.config.num_joints, self.config.motion_feature_dim)
+                if tuple(motion.shape) != want or not torch.isfinite(motion).all():
+                    raise ValueError(f"motion must be finite features of shape {want}, got {tuple(motion.shape)}")
+                joint_tokens = joint_tokens + self.motion_in(motion.to(joint_tokens.dtype))
+            else:  # a body at rest: all-zero features
+                joint_tokens = joint_tokens + self.motion_in(joint_tokens.new_zeros(
+                    B, self.config.num_joints, self.config.motion_feature_dim))  # fmt: skip
+        elif motion is not None:
+            raise ValueError("this model takes no motion window (trained without --motion-window)")
         latents = self.latents.expand(B, -1, -1).to(joint_tokens.dtype)  # (B, M, D)
         stream = [latents, time.to(joint_tokens.dtype), joint_tokens]
         if self.who is not None:

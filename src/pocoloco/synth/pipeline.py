@@ -73,6 +73,7 @@ from ..data.format import (
     write_sequence_meta,
 )
 from ..data.format import write_subject as format_write_subject
+from ..data.motion_window import MotionHistory, write_motion_history
 
 
 
@@ -368,6 +369,9 @@ def _run_sequence(config: SynthConfig, out: Path, job: SequenceJob, progress: Ca
         layout.motion_path(job.subject.name, job.split, job.name),
         StoredMotion(full.joint_rotvecs[start:], full.root_translation[start:]),
     )
+    joints = body.pose_joints(full.joint_rotvecs) + np.asarray(full.root_translation, np.float32)[:, None]
+    write_motion_history(layout.motion_history_path(job.subject.name, job.split, job.name),
+                         MotionHistory(np.asarray(joints, np.float32), float(config.fps), start))  # motion windows
     timings["motion"] = time.perf_counter() - t0
 
     # 3. cloth simulation (cached)

@@ -59,7 +59,11 @@ class PocoLocoTrainConfig(Config):
     not in the paper), so the model need not learn each facing direction; sampling turns the result
     back. joint_velocity: latent presets: also condition on the joints' velocities (difference to the
     neighbouring frame of the sequence; not in the paper: the cloth follows the motion); sampling
-    takes them from a dataset frame, else the body is taken at rest.
+    takes them from a dataset frame, else the body is taken at rest. motion_window: latent presets:
+    also condition on the last this-many seconds of the body's motion (issue 41: 8 samples per
+    second, :func:`pocoloco.data.motion_window.motion_features`; 0: the pose alone); training
+    augments the windows (time-warp, jitter, noise) and replaces a ``history_dropout`` share of them
+    by a body at rest, so the same model also samples without motion.
     """
 
     preset: str = "small"
@@ -97,6 +101,8 @@ class PocoLocoTrainConfig(Config):
     body_points: int = 0
     canonical_heading: bool = False
     joint_velocity: bool = False
+    motion_window: float = 0.0
+    history_dropout: float = 0.15
 
     def __post_init__(self):
         if self.model != "pocoloco":
@@ -116,6 +122,12 @@ class PocoLocoTrainConfig(Config):
             raise ValueError("body_points (--body-points) needs the latent denoiser (e.g. --preset latent_small)")
         if self.joint_velocity and self.architecture != "latent":
             raise ValueError("joint_velocity (--joint-velocity) needs the latent denoiser (e.g. --preset latent_small)")
+        if self.motion_window and self.architecture != "latent":
+            raise ValueError("motion_window (--motion-window) needs the latent denoiser (e.g. --preset latent_small)")
+        if not (math.isfinite(self.motion_window) and 0 <= self.motion_window <= 10):
+            raise ValueError(f"motion_window must be between 0 and 10 seconds, got {self.motion_window}")
+        if not 0 <= self.history_dropout < 1:
+            raise ValueError(f"history_dropout must be in [0, 1), got {self.history_dropout}")
         for name in ("warmup_steps", "ckpt_every", "sample_every", "num_workers", "body_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")

@@ -190,7 +190,8 @@ class PocoLocoMethod(Method):
         joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
         subject = subject_of_spec(str(spec))  # None unless a DATASET:... frame
         velocity = frame_velocity(dataset_frame_path(str(spec)), joints) if self.config.joint_velocity and subject else None
-        return Pose(joints, subject=outfit_of_spec(str(spec)), source=str(spec), velocity=velocity)
+        motion = self.motion_of_frame(dataset_frame_path(str(spec))) if subject else None
+        return Pose(joints, subject=outfit_of_spec(str(spec)), source=str(spec), velocity=velocity, motion=motion)
 
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
         if self.needs_body:
@@ -199,7 +200,12 @@ class PocoLocoMethod(Method):
             pose = super().pose_from_frame(path, subject, frame=frame, cache=cache)
         if self.config.joint_velocity:  # the motion, from the neighbouring frame of the sequence
             pose.velocity = frame_velocity(path, pose.joints)
+        pose.motion = self.motion_of_frame(path)
         return pose
+
+    @property
+    def motion_window(self) -> float:  # type: ignore[override]
+        return float(self.config.motion_window)
 
     def predict(self, pose: Pose, num_points: int, seeds: Sequence[int] = (0,), outfit: int | None = None,
                 options: SamplerOptions = SamplerOptions(), code: torch.Tensor | None = None) -> SampledClouds:  # fmt: skip
@@ -218,7 +224,8 @@ class PocoLocoMethod(Method):
                              num_points, sampler=options.sampler, steps=options.steps, seeds=list(seeds),
                              batch_size=options.batch_size, progress=options.progress, clip=options.clip,
                              bf16=options.bf16, body=self.body_points_of(pose),
-                             velocity=pose.velocity if self.config.joint_velocity else None, **kw)  # fmt: skip
+                             velocity=pose.velocity if self.config.joint_velocity else None,
+                             motion=pose.motion if self.config.motion_window else None, **kw)  # fmt: skip
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         steps = options.steps if options.steps is not None else SAMPLER_STEPS[options.sampler]

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from pocoloco.data.dataset import Normalisation, rotate_z
+from pocoloco.data.motion_window import MotionWindow, heading_of, motion_features
 from pocoloco.data.poses import check_joints
 from pocoloco.diffusion.samplers import (
     SAMPLER_STEPS,
@@ -43,12 +44,13 @@ DEFAULT_CLIP = 5.0
 
 def condition_for(joints: torch.Tensor, outfit: int | None = None, shape: Sequence[float] | None = None,
                   body: torch.Tensor | None = None, code: torch.Tensor | None = None,
-                  velocity: torch.Tensor | None = None) -> torch.Tensor | PoseCondition:  # fmt: skip
+                  velocity: torch.Tensor | None = None, motion: torch.Tensor | None = None
+                  ) -> torch.Tensor | PoseCondition:  # fmt: skip
     """The denoiser's conditioning for B copies of one pose: the (B, J, 3) joints alone, or a
     :class:`~pocoloco.models.conditioning.PoseCondition` with the outfit id (or an outfit code (D,)
     instead), the body shape, the (1, K, 3) normalised posed-body vertices and the (1, J, 3)
-    normalised joint velocities."""
-    if outfit is None and shape is None and body is None and code is None and velocity is None:
+    normalised joint velocities and the (1, J, F) motion-window features."""
+    if outfit is None and shape is None and body is None and code is None and velocity is None and motion is None:
         return joints
     B = joints.shape[0]
     return PoseCondition(joints, None if outfit is None else torch.full((B,), int(outfit), device=joints.device),
@@ -56,7 +58,8 @@ def condition_for(joints: torch.Tensor, outfit: int | None = None, shape: Sequen
                          .expand(B, -1).to(joints.dtype),
                          code=None if code is None else code.to(joints.device, joints.dtype).reshape(1, -1).expand(B, -1),
                          body=None if body is None else body.to(joints.device, joints.dtype).expand(B, -1, -1),
-                         velocity=None if velocity is None else velocity.to(joints.device, joints.dtype).expand(B, -1, -1))  # fmt: skip
+                         velocity=None if velocity is None else velocity.to(joints.device, joints.dtype).expand(B, -1, -1),
+                         motion=None if motion is None else motion.to(joints.device, joints.dtype).expand(B, -1, -1))  # fmt: skip
 
 
 @torch.no_grad()
@@ -79,6 +82,7 @@ def sample_clouds(
     body: np.ndarray | None = None,
     code: torch.Tensor | None = None,
     velocity: np.ndarray | None = None,
+    motion: MotionWindow | None = None,
 ) -> SampledClouds:
     """Draw ``num`` clouds of ``num_points`` points from the denoiser, conditioned on one pose.
 
@@ -108,6 +112,9 @@ def sample_clouds(
         code: an outfit code (D,) used instead of ``outfit``'s embedding (a fitted outfit).
         velocity: (J, 3) joint velocities in m/s, same frame as ``joints`` (models trained with
             ``joint_velocity``; None: the body at rest).
+        motion: the last seconds of the motion before the pose (models trained with a
+            ``motion_window``: a :class:`~pocoloco.data.motion_window.MotionWindow` of as many
+            samples; None: the body at rest).
         bf16: run the denoiser under bf16 autocast (its matmuls and attention in bfloat16; the
             sampler's arithmetic and the returned points stay float32). Several times faster on
             CPUs with AMX / avx512_bf16 and on recent GPUs; slower on CPUs without them.
@@ -144,6 +151,15 @@ def sample_clouds(
             raise ValueError(f"velocity must be a finite {joints.shape} array of joint velocities (m/s), got "
                              f"shape {velocity.shape}")  # fmt: skip
         velocity_t = torch.as_tensor(normalisation.normalise_velocity(velocity, joints), dtype=dtype, device=device)[None]
+    motion_t = None
+    if motion is not None:
+        want = int(round(den.motion_window * den.motion_hz)) + 1 if getattr(den, "motion_window", 0) else 0
+        if not want:
+            raise ValueError("this model takes no motion window (trained without --motion-window)")
+        if motion.joints.shape != (want, J, 3):
+            raise ValueError(f"motion: the model takes {want} samples of {J} joints, got {motion.joints.shape[:2]}")
+        turn = heading_of(joints) - float(normalisation.angle(joints))  # heading frame -> the points' frame
+        motion_t = torch.as_tensor(motion_features(motion, turn, normalisation.std), dtype=dtype, device=device)[None]
     root = normalisation.root(joints)  # (3,) metres
     schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
     kwargs: dict[str, Any] = {"prediction_type": config.prediction_type, "clip": clip}
@@ -158,7 +174,7 @@ def sample_clouds(
             rng = PerSampleRNG(chunk, device=device)
             noise = rng.randn((num_points, C), dtype=dtype, device=device)  # (B, N, C)
             cond = condition_for(torch.as_tensor(joints_n, dtype=dtype, device=device).expand(len(chunk), J, 3),
-                                 outfit, shape, body_t, code, velocity_t)  # fmt: skip
+                                 outfit, shape, body_t, code, velocity_t, motion_t)  # fmt: skip
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 x = sample(sampler, model, schedule, noise, cond, rng=rng, **kwargs)  # (B, N, C)
             out[b0 : b0 + len(chunk)] = x.float().cpu().numpy()

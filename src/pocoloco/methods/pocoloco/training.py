@@ -52,7 +52,8 @@ class PocoLocoTask(TrainingTask):
         self.dataset = open_point_clouds(data, "train", num_points=None, with_normals=config.denoiser.point_channels == 6,
                                          random_subsample=False, subjects=config.subjects,
                                          body_point_ids=self.body_point_ids,
-                                         heading=config.canonical_heading, velocity=config.joint_velocity)  # fmt: skip
+                                         heading=config.canonical_heading, velocity=config.joint_velocity,
+                                         **({"motion_window": config.motion_window} if config.motion_window else {}))  # fmt: skip
         self.normalisation = self.dataset.normalisation
         # who wears what: one outfit per subject (ids in the dataset's sorted subject order) and its
         # anny phenotype; the denoiser's config is resolved here so the checkpoint records it
@@ -67,7 +68,8 @@ class PocoLocoTask(TrainingTask):
             num_outfits=len(names) if config.outfit_codes else 0,
             shape_dim=len(SHAPE_KEYS) if config.body_shape else 0,
             **({"body_points": config.body_points} if config.body_points else {}),
-            **({"joint_velocity": True} if config.joint_velocity else {})))  # fmt: skip
+            **({"joint_velocity": True} if config.joint_velocity else {}),
+            **({"motion_window": config.motion_window} if config.motion_window else {})))  # fmt: skip
         self.schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
         self.generator: torch.Generator | None = None
         self._preview_frames: list[dict[str, Any]] | None = None
@@ -82,6 +84,11 @@ class PocoLocoTask(TrainingTask):
             if key.endswith("outfit_embed.weight") and source != mine and len(codes) == len(source):
                 out[key] = torch.stack([codes[source.index(n)] if n in source else codes.mean(0) for n in mine])
         return out
+
+    def fresh_keys(self, missing: list[str]) -> bool:
+        """``--init-from`` a pose-only checkpoint into a ``--motion-window`` run: the motion encoder
+        keeps its own (zero-output) initialisation, so the run starts exactly at that model."""
+        return bool(self.config.motion_window) and all(k.startswith("motion_in.") for k in missing)
 
     def step_bytes(self) -> int | None:
         per_point = training_point_bytes(self.config)
@@ -104,25 +111,32 @@ class PocoLocoTask(TrainingTask):
         return StepBatches(self.dataset, c.batch_size, c.num_points, c.seed, c.steps, rank, world)
 
     def condition(self, joints: torch.Tensor, subject: torch.Tensor, body: torch.Tensor | None = None,
-                  velocity: torch.Tensor | None = None) -> torch.Tensor | PoseCondition:  # fmt: skip
+                  velocity: torch.Tensor | None = None, motion: torch.Tensor | None = None
+                  ) -> torch.Tensor | PoseCondition:  # fmt: skip
         """The denoiser's conditioning for frames of these subject ids (B,): the joints alone, or
-        with the outfit ids, body shapes, posed bodies (B, K, 3) and joint velocities (B, J, 3)
-        the config asks for."""
+        with the outfit ids, body shapes, posed bodies (B, K, 3), joint velocities (B, J, 3) and
+        motion-window features (B, J, F) the config asks for."""
         c = self.config
-        if not (c.outfit_codes or c.body_shape or c.body_points or c.joint_velocity):
+        if not (c.outfit_codes or c.body_shape or c.body_points or c.joint_velocity or c.motion_window):
             return joints
         outfit = self.outfit_of_subject[subject.cpu()].to(joints.device)
         return PoseCondition(joints, outfit if c.outfit_codes else None,
                              self.shapes.to(joints.device)[outfit] if c.body_shape else None,
                              body=body if c.body_points else None,
-                             velocity=velocity if c.joint_velocity else None)  # fmt: skip
+                             velocity=velocity if c.joint_velocity else None,
+                             motion=motion if c.motion_window else None)  # fmt: skip
 
     def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
         c = self.config
         x0 = batch["points"]  # (B, N, C)
-        cond = self.condition(batch["joints"], batch["subject"], batch.get("body"), batch.get("velocity"))
         if self.generator is None or self.generator.device != x0.device:
             self.generator = torch.Generator(x0.device)
+        motion = batch.get("motion")
+        if motion is not None and c.history_dropout:  # history dropout: some frames as at rest
+            self.generator.manual_seed(seed_of(c.seed, 5, step, rank))
+            keep = torch.rand(motion.shape[0], generator=self.generator, device=motion.device) >= c.history_dropout
+            motion = motion * keep[:, None, None].to(motion.dtype)
+        cond = self.condition(batch["joints"], batch["subject"], batch.get("body"), batch.get("velocity"), motion)
         self.generator.manual_seed(seed_of(c.seed, 2, step, rank))
         weighting = "min_snr" if c.min_snr_gamma is not None else "none"
         loss, logs = diffusion_loss(net, x0, cond, self.schedule, c.prediction_type, weighting,
