@@ -320,3 +320,40 @@ def test_shuffled_history_comes_from_another_sequence_of_the_same_subject():
     assert picks <= {"a2", "a3"} and len(picks) == 2
     assert shuffled_frame(frames, "a", "s0", "k") == shuffled_frame(frames, "a", "s0", "k")
     assert shuffled_frame(frames, "b", "s0", "k") == "b0"  # one sequence only: its own frames
+
+
+def test_pop_with_a_motion_window_starts_as_pop_and_trains(tiny_dataset, tmp_path):
+    """The ablation: POP whose pose features get the window's code. Loaded with a pose-only POP's
+    weights it computes the same features; a fine-tune from it trains, samples and evaluates."""
+    import dataclasses
+
+    import torch
+
+    from pocoloco.cli import main as cli_main
+    from pocoloco.methods import load_method
+    from pocoloco.models.pop import POP
+
+    base, run = tmp_path / "pop", tmp_path / "pop_motion"
+    common = ["--model", "pop", "--data", str(tiny_dataset), "--no-progress", "--sample-every", "0", "--threads", "1"]
+    assert cli_main(["train", "--preset", "tiny", "--steps", "2", "--out", str(base), *common]) in (0, None)
+    pop = load_method(base).model
+    mover = POP(dataclasses.replace(pop.config, motion_window=2.0), pop.surface, pop.num_outfits, pop.num_vertices)
+    missing, unexpected = mover.load_state_dict(pop.state_dict(), strict=False)
+    mover.eval()  # batch norm: the loaded running statistics, as the loaded POP
+    assert not unexpected and missing and all(k.startswith("motion_in.") for k in missing)
+    posmap, geom = torch.randn(2, 3, pop.config.input_resolution, pop.config.input_resolution), pop.geom[:1].expand(2, -1, -1, -1)
+    with torch.no_grad():
+        assert torch.equal(mover.feature_maps(posmap, geom, torch.randn(2, 24, 116)), pop.feature_maps(posmap, geom))
+    with pytest.raises(ValueError, match="no motion window"):
+        pop.feature_maps(posmap, geom, torch.randn(2, 24, 116))
+    assert cli_main(["train", "--init-from", str(base), "--motion-window", "2.0", "--steps", "2", "--out", str(run),
+                     *common]) in (0, None)  # fmt: skip
+    m = load_method(run)
+    assert m.motion_window == 2.0
+    seq = sorted((tiny_dataset / "subjects" / "skirt" / "test").iterdir())[0]
+    pose = m.load_pose(f"{tiny_dataset}:skirt/test/{seq.name}/3")
+    assert pose.motion is not None
+    assert m.sample(pose, 64, 0).points.shape == (1, 64, 3)
+    code = cli_main(["train", "--model", "closet", "--preset", "tiny", "--motion-window", "2", "--steps", "1", "--data",
+                     str(tiny_dataset), "--out", str(tmp_path / "c"), "--no-progress"])  # fmt: skip
+    assert code not in (0, None) and not (tmp_path / "c" / "checkpoints").exists()  # CloSET has no motion window

@@ -43,6 +43,7 @@ from .motion_window import (
     DEFAULT_HZ,
     MotionHistory,
     MotionWindow,
+    augmented_window,
     heading_of,
     motion_feature_dim,
     motion_features,
@@ -432,15 +433,10 @@ class PointCloudDataset(Dataset):
         if joints is None:
             joints = fmt.read_frame(path, ["joints"]).joints
         history = self.history(subject, sequence)
-        seconds, hz, lag = self.motion_window, DEFAULT_HZ, 0.0
-        if rng is not None:
-            warp = rng.uniform(0.85, 1.15)
-            seconds, hz, lag = seconds * warp, hz / warp, int(rng.integers(-1, 2)) / history.fps
-        window = history.window(frame, seconds, hz, lag)
-        if rng is not None:
-            noisy = window.joints.copy()
-            noisy[1:] += rng.normal(0.0, 0.005, noisy[1:].shape).astype(np.float32)
-            window = dataclasses.replace(window, joints=noisy)
+        if rng is None:
+            window = history.window(frame, self.motion_window)
+        else:
+            window = augmented_window(history, frame, self.motion_window, rng)
         turn = heading_of(history.joints[history.first + frame]) - float(self.normalisation.angle(joints))
         return torch.from_numpy(motion_features(window, turn, self.normalisation.std))
 

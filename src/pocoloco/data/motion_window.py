@@ -136,6 +136,18 @@ class MotionHistory:
         return motion_window(self.joints, self.first + int(frame), self.fps, seconds, hz, lag)
 
 
+def augmented_window(history: MotionHistory, frame: int, seconds: float, rng: np.random.Generator) -> MotionWindow:
+    """Training's augmentation of stored frame ``frame``'s window (issue 41): the window's time
+    warped by a factor in [0.85, 1.15] (the same number of samples over 0.85-1.15 x ``seconds``),
+    its past samples shifted by -1, 0 or +1 frame, and 5 mm of noise on their joints."""
+    warp = rng.uniform(0.85, 1.15)
+    lag = int(rng.integers(-1, 2)) / history.fps
+    window = history.window(frame, seconds * warp, DEFAULT_HZ / warp, lag)
+    noisy = window.joints.copy()
+    noisy[1:] += rng.normal(0.0, 0.005, noisy[1:].shape).astype(np.float32)
+    return MotionWindow(noisy, window.root_velocity, window.yaw_rate)
+
+
 def write_motion_history(path: str | os.PathLike, history: MotionHistory) -> None:
     """Write ``motion_history.npz`` atomically after checking it."""
     j = _check(history.joints, history.fps, 1.0, 1.0).astype(np.float32)

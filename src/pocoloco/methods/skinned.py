@@ -89,6 +89,9 @@ class SkinnedTrainConfig(Config):
     num_workers: DataLoader worker processes building the steps' batches (0: the main process).
     lr_schedule: ``constant`` (both papers), ``cosine`` or ``wsd`` (constant, then linear to 0 over the
     last ``decay_steps``: a cool-down, e.g. of a shipped model with ``--init-from``).
+    motion_window / history_dropout: POP only: the code of the last this-many seconds of motion joins
+    the pose features (issue 41's ablation; :class:`~pocoloco.models.pop.POPConfig`), a
+    ``history_dropout`` share of training frames shown at rest.
     """
 
     model: str = "pop"
@@ -115,6 +118,8 @@ class SkinnedTrainConfig(Config):
     num_workers: int = 0
     lr_schedule: str = "constant"
     decay_steps: int = 0
+    motion_window: float = 0.0
+    history_dropout: float = 0.15
 
     def __post_init__(self):
         if self.model not in SKINNED_KINDS:
@@ -136,6 +141,12 @@ class SkinnedTrainConfig(Config):
             raise ValueError(f"ema_decay must be in [0, 1) or None, got {self.ema_decay}")
         if self.grad_clip is not None and not self.grad_clip > 0:
             raise ValueError(f"grad_clip must be > 0 or None, got {self.grad_clip}")
+        if self.motion_window and self.model != "pop":
+            raise ValueError("--motion-window applies to --model pocoloco (latent presets) and pop")
+        if not (math.isfinite(self.motion_window) and 0 <= self.motion_window <= 10):
+            raise ValueError(f"motion_window must be between 0 and 10 seconds, got {self.motion_window}")
+        if not 0 <= self.history_dropout < 1:
+            raise ValueError(f"history_dropout must be in [0, 1), got {self.history_dropout}")
         if self.bf16 and self.model == "pop":
             raise ValueError("bf16 is not available for POP: its fused BatchNorm + softplus decoder runs in float32")
         if self.subjects is not None:
@@ -144,6 +155,7 @@ class SkinnedTrainConfig(Config):
             object.__setattr__(self, "subjects", sorted(str(x) for x in self.subjects))
         if self.model == "pop":
             net = POPConfig.from_dict(self.net).to_dict() if self.net else POPConfig().to_dict()
+            net["motion_window"] = float(self.motion_window)  # the network's input follows the run's
             object.__setattr__(self, "pop_weights", POPLossWeights.from_dict(self.pop_weights).to_dict())
             object.__setattr__(self, "closet_weights", {})
         else:
@@ -303,6 +315,9 @@ class SkinnedTask(TrainingTask):
     def __init__(self, config: SkinnedTrainConfig, data: str | Path):
         self.config, self.kind = config, config.model
         packed = is_pack(data)
+        if packed and config.motion_window:
+            raise ValueError(f"{data}: a training pack holds no motion histories yet: train --motion-window on the "
+                             "dataset folder")  # fmt: skip
         if packed:  # a --bodies training pack: its rigs give the subjects' assets
             meta = read_pack_meta(data)
             self.normalisation = Normalisation.from_card({"normalisation": meta["normalisation"]})

@@ -59,6 +59,8 @@ from pocoloco.body.surface import (
     pixel_uv,
     uv_to_grid,
 )
+from pocoloco.body.skeleton import NUM_JOINTS
+from pocoloco.models.conditioning import MotionEncoder
 from pocoloco.models.pop_decoder import ShapeDecoder
 from pocoloco.utils.config import Config
 
@@ -93,6 +95,9 @@ class POPConfig(Config):
     displacement_scale: s in x = T (s r) + p (0.02 in the public code).
     pose_input: "mean_shape" = the UNet sees the posed mean-shape body (paper Sec. 3.2,
         body-shape agnostic), "subject" = the subject's own posed body.
+    motion_window: seconds of past motion whose code joins the pose features (issue 41's ablation:
+        motion information without a generative model; 0: the pose alone, the paper's POP), at
+        ``motion_hz`` samples per second.
     The network only: the loss weights are :class:`POPLossWeights`, the learning rates, batch and
     scan points the training run's (``pocoloco.methods.skinned.SkinnedTrainConfig``).
     """
@@ -114,7 +119,16 @@ class POPConfig(Config):
     decoder_impl: Literal["linear_valid", "conv1d_all_pixels"] = "linear_valid"
     transform_mode: Literal["blend", "polar"] = "blend"
     pose_input: Literal["mean_shape", "subject"] = "mean_shape"
+    motion_window: float = 0.0
+    motion_hz: float = 8.0
     legacy_fields: ClassVar[frozenset[str]] = LEGACY_TRAINING_FIELDS
+
+    @property
+    def motion_feature_dim(self) -> int:
+        """F of the motion features the model takes (0: none; 116 for 2 s at 8 Hz)."""
+        if not self.motion_window:
+            return 0
+        return 7 * (int(round(self.motion_window * self.motion_hz)) + 1) - 3  # data.motion_window.motion_feature_dim
 
     def __post_init__(self):
         def pos_int(name):
@@ -131,6 +145,9 @@ class POPConfig(Config):
         if self.input_resolution % (2 ** len(self.unet_channels)):
             raise ValueError(f"POPConfig.input_resolution={self.input_resolution} must be divisible by "
                              f"2**{len(self.unet_channels)} (one halving per UNet level)")  # fmt: skip
+        if not (self.motion_window >= 0 and self.motion_hz > 0):
+            raise ValueError(f"POPConfig.motion_window must be >= 0 and motion_hz > 0, got {self.motion_window}, "
+                             f"{self.motion_hz}")  # fmt: skip
         if self.geom_kernel % 2 == 0:
             raise ValueError(f"POPConfig.geom_kernel must be odd, got {self.geom_kernel}")
         if not 2 <= self.skip_layer < self.branch_layer <= self.decoder_layers:
@@ -202,6 +219,7 @@ class POPBatch:
     outfit:        (B,) int64 outfit id (row of the geometric feature tensor).
     scan_points:   (B, N, 3) ground-truth points, or None (inference).
     scan_normals:  (B, N, 3) their unit normals, or None.
+    motion:        (B, J, F) motion-window features (a ``motion_window`` model), or None (at rest).
     """
 
     pose_vertices: torch.Tensor
@@ -210,11 +228,12 @@ class POPBatch:
     outfit: torch.Tensor
     scan_points: torch.Tensor | None = None
     scan_normals: torch.Tensor | None = None
+    motion: torch.Tensor | None = None
 
     def to(self, device) -> POPBatch:
         return POPBatch(*(None if t is None else t.to(device) for t in
                           (self.pose_vertices, self.body_vertices, self.vtransf, self.outfit,
-                           self.scan_points, self.scan_normals)))  # fmt: skip
+                           self.scan_points, self.scan_normals, self.motion)))  # fmt: skip
 
 
 @dataclass
@@ -343,6 +362,10 @@ class POP(nn.Module):
                              persistent=False)  # fmt: skip  (Rq*Rq, 2) row-major
 
         self.unet = PoseUNet(3, c.pose_channels, c.unet_channels)
+        # the last seconds of motion -> a (B, Cp) code added to every pose-feature pixel; zero-initialised
+        # so a model given it starts as the pose-only POP it is fine-tuned from
+        self.motion_in = (MotionEncoder(c.motion_feature_dim, NUM_JOINTS, c.pose_channels) if c.motion_window
+                          else None)  # fmt: skip
         self.geom = nn.Parameter(torch.randn(num_outfits, c.geom_channels, c.input_resolution, c.input_resolution)
                                  * c.geom_init_std)  # fmt: skip
         pad = c.geom_kernel // 2
@@ -422,9 +445,20 @@ class POP(nn.Module):
         flat = pose_vertices.new_zeros(B, R * R, 3).index_copy(1, self.in_flat, p)
         return flat.reshape(B, R, R, 3).permute(0, 3, 1, 2)
 
-    def feature_maps(self, posmap: torch.Tensor, geom: torch.Tensor) -> torch.Tensor:
-        """(B, 3, Ri, Ri) posmap, (B, Cg, Ri, Ri) raw geometric features -> (B, Cp+Cg, Ri, Ri)."""
-        return torch.cat([self.unet(posmap), self.geom_smooth(geom)], dim=1)
+    def feature_maps(self, posmap: torch.Tensor, geom: torch.Tensor, motion: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, 3, Ri, Ri) posmap, (B, Cg, Ri, Ri) raw geometric features [, (B, J, F) motion-window
+        features] -> (B, Cp+Cg, Ri, Ri)."""
+        pose = self.unet(posmap)
+        if self.motion_in is not None:
+            want = (posmap.shape[0], NUM_JOINTS, self.config.motion_feature_dim)
+            if motion is None:  # a body at rest
+                motion = pose.new_zeros(want)
+            if tuple(motion.shape) != want or not torch.isfinite(motion).all():
+                raise ValueError(f"motion must be finite features of shape {want}, got {tuple(motion.shape)}")
+            pose = pose + self.motion_in(motion.to(pose.dtype)).mean(1)[:, :, None, None]
+        elif motion is not None:
+            raise ValueError("this POP takes no motion window (trained without --motion-window)")
+        return torch.cat([pose, self.geom_smooth(geom)], dim=1)
 
     def decode(self, feats: torch.Tensor, query_uv: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, C, Ri, Ri) feature maps -> raw (B, P, 3) displacement, (B, P, 3) normal at
@@ -509,7 +543,7 @@ class POP(nn.Module):
             if geom.ndim != 4 or tuple(geom.shape[1:]) != want or geom.shape[0] not in (1, B):
                 raise ValueError(f"geom must have shape (1 or B, {', '.join(map(str, want))}), got {tuple(geom.shape)}")
             geom = geom.expand(B, *want)
-        feats = self.feature_maps(self.input_posmap(pv), geom)
+        feats = self.feature_maps(self.input_posmap(pv), geom, batch.motion)
         q_face, q_bary = (self.q_face, self.q_bary) if query is None else (query.face_idx, query.barycentric)
         if query is not None and interpolate:
             r_raw, n_raw = self.decode_interpolated(feats, query.uv)

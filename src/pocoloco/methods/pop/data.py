@@ -16,10 +16,21 @@ import torch
 from pocoloco.body.skeleton import NUM_JOINTS
 from pocoloco.body.surface import pose_mean_shape
 from pocoloco.data.format import DatasetLayout, read_frame, read_motion, read_subject
+from pocoloco.data.motion_window import MotionWindow, heading_of, motion_features
 from pocoloco.methods.pop.losses import check_scan, normal_weight_at, pop_losses
 from pocoloco.models.pop import POP, POPBatch, POPLossWeights
 
-__all__ = ["POPDataset", "POPSample", "collate_pop", "make_optimizer", "pop_sample_from_frame", "train_step"]
+__all__ = ["MOTION_SCALE_M", "POPDataset", "POPSample", "collate_pop", "make_optimizer", "pop_motion_features",
+           "pop_sample_from_frame", "train_step"]
+
+#: the length unit of POP's motion features (POP's frames are pelvis-centred metres, not normalised)
+MOTION_SCALE_M = 0.25
+
+
+def pop_motion_features(window: MotionWindow, joints: np.ndarray) -> np.ndarray:
+    """(J, F) motion-window features in POP's frame (pelvis-centred, world-aligned; lengths in units
+    of ``MOTION_SCALE_M``) for the pose ``joints`` (J, 3) the window ends on."""
+    return motion_features(window, heading_of(joints), MOTION_SCALE_M)
 
 
 def make_optimizer(model: POP, lr: float = 3e-4, lr_features: float = 5e-4) -> torch.optim.Adam:
@@ -46,7 +57,8 @@ def train_step(model: POP, optimizer: torch.optim.Optimizer, batch: POPBatch, st
 @dataclass
 class POPSample:
     """One pelvis-centred training frame (numpy float32): pose_vertices (V, 3), body_vertices
-    (V, 3), vtransf (V, 3, 3), scan_points (N, 3), scan_normals (N, 3), outfit id."""
+    (V, 3), vtransf (V, 3, 3), scan_points (N, 3), scan_normals (N, 3), outfit id; motion (J, F)
+    motion-window features (:func:`pop_motion_features`) or None."""
 
     pose_vertices: np.ndarray
     body_vertices: np.ndarray
@@ -54,17 +66,19 @@ class POPSample:
     scan_points: np.ndarray
     scan_normals: np.ndarray
     outfit: int
+    motion: np.ndarray | None = None
 
 
 def pop_sample_from_frame(frame, outfit: int, num_points: int, rng: np.random.Generator | None = None,
                           pose_vertices: np.ndarray | None = None, num_vertices: int | None = None,
-                          src: str = "frame") -> POPSample:  # fmt: skip
+                          src: str = "frame", motion: np.ndarray | None = None) -> POPSample:  # fmt: skip
     """A dataset ``Frame`` -> ``POPSample``: subtract the root joint (joints[0]) from the
     scan and body (POP's frames are pelvis-centred) and draw ``num_points`` scan points
     without replacement (all of them, in order, when ``rng`` is None and N == num_points).
 
     pose_vertices: (V, 3) body for the pose encoder, already centred on its own root
-    joint (the posed mean shape); None = the subject's centred body.
+    joint (the posed mean shape); None = the subject's centred body. motion: (J, F) the frame's
+    motion-window features (:func:`pop_motion_features`), passed through.
     """
     if frame.body_vertices is None or frame.vtransf is None:
         raise ValueError(f"{src}: POP needs body_vertices and vtransf (synthetic data); the frame has none")
@@ -95,7 +109,7 @@ def pop_sample_from_frame(frame, outfit: int, num_points: int, rng: np.random.Ge
         if pose.shape != (V, 3):
             raise ValueError(f"{src}: pose_vertices must have shape ({V}, 3), got {pose.shape}")
     return POPSample(pose, body, np.asarray(frame.vtransf, np.float32), (frame.points[sel] - root).astype(np.float32),
-                     np.asarray(frame.normals[sel], np.float32), int(outfit))  # fmt: skip
+                     np.asarray(frame.normals[sel], np.float32), int(outfit), motion)  # fmt: skip
 
 
 def collate_pop(samples: Sequence[POPSample]) -> POPBatch:
@@ -103,10 +117,13 @@ def collate_pop(samples: Sequence[POPSample]) -> POPBatch:
     if not samples:
         raise ValueError("collate_pop needs at least one sample")
     st = lambda k: torch.from_numpy(np.stack([getattr(s, k) for s in samples]))  # noqa: E731
+    if len({s.motion is None for s in samples}) > 1:
+        raise ValueError("collate_pop: some samples have a motion window and some not")
     try:
         return POPBatch(st("pose_vertices"), st("body_vertices"), st("vtransf"),
                         torch.tensor([s.outfit for s in samples], dtype=torch.long),
-                        st("scan_points"), st("scan_normals"))  # fmt: skip
+                        st("scan_points"), st("scan_normals"),
+                        None if samples[0].motion is None else st("motion"))  # fmt: skip
     except ValueError as e:
         raise ValueError(f"collate_pop: samples differ in shape ({e})") from None
 

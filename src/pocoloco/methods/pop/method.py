@@ -22,8 +22,10 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 
 from pocoloco.body.surface import BodySurface, largest_component_faces
-from pocoloco.data.poses import Pose
-from pocoloco.methods.pop.data import collate_pop, make_optimizer, pop_sample_from_frame
+from pocoloco.data.dataset import sequence_history
+from pocoloco.data.motion_window import augmented_window
+from pocoloco.data.poses import Pose, dataset_frame_path, subject_of_spec
+from pocoloco.methods.pop.data import collate_pop, make_optimizer, pop_motion_features, pop_sample_from_frame
 from pocoloco.methods.pop.fitting import POPFit, fit_unseen_outfit
 from pocoloco.methods.pop.losses import check_scan, normal_weight_at, pop_losses
 from pocoloco.methods.skinned import SkinnedMethod, SkinnedTask, SkinnedTrainConfig
@@ -89,7 +91,27 @@ class POPMethod(SkinnedMethod):
         if self.finer_map not in ("interpolate", "decode"):
             raise ValueError(f"finer_map must be 'interpolate' or 'decode', got {self.finer_map!r}")
         interpolate = self.finer_map == "interpolate" and resolution != self.model.config.query_resolution
-        return self.model(POPBatch(pv, body, vt, outfit_t), geom=code, query=query, interpolate=interpolate)
+        motion = None
+        if self.motion_window and pose.motion is not None:
+            motion = torch.from_numpy(pop_motion_features(pose.motion, np.asarray(pose.joints)))[None].to(body.device)
+        return self.model(POPBatch(pv, body, vt, outfit_t, motion=motion), geom=code, query=query,
+                          interpolate=interpolate)  # fmt: skip
+
+    @property
+    def motion_window(self) -> float:  # type: ignore[override]
+        return float(self.config.net.get("motion_window", 0.0))
+
+    def pose_from_frame(self, path, subject: str, frame=None, cache=None) -> Pose:
+        pose = super().pose_from_frame(path, subject, frame=frame, cache=cache)
+        pose.motion = self.motion_of_frame(path)
+        return pose
+
+    def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
+                  any_pose: bool = False) -> Pose:  # fmt: skip
+        pose = super().load_pose(spec, outfit, frame_id, any_pose)
+        if self.motion_window and subject_of_spec(str(spec)):  # a DATASET: frame: its motion before it
+            pose.motion = self.motion_of_frame(dataset_frame_path(str(spec)))
+        return pose
 
     # ------------------------------------------------------------------- unseen outfits (Eq. 7)
     fits_outfits = True
@@ -158,6 +180,7 @@ class POPTask(SkinnedTask):
     method = POPMethod
 
     def build_model(self) -> nn.Module:
+        self._histories: dict[str, Any] = {}
         first = self.assets[next(iter(self.assets))]
         faces = np.asarray(first.faces, np.int64)
         surface = BodySurface(faces, first.uv, np.asarray(first.uv_faces, np.int64), largest_component_faces(faces))
@@ -175,9 +198,28 @@ class POPTask(SkinnedTask):
         samples = []
         for it in items:
             rng = np.random.default_rng([c.seed, 1, it.position])
+            motion = self.motion_features(it) if c.motion_window else None
             samples.append(pop_sample_from_frame(it.frame, self.outfits[it.subject], c.num_points, rng, it.mean_shape,
-                                                 num_vertices=int(self.model.num_vertices), src=os.fspath(it.path)))  # fmt: skip
+                                                 num_vertices=int(self.model.num_vertices), src=os.fspath(it.path),
+                                                 motion=motion))  # fmt: skip
         return collate_pop(samples)
+
+    def motion_features(self, item) -> np.ndarray:
+        """(J, F) the step frame's motion window, augmented, or at rest (zeros) for a
+        ``history_dropout`` share of frames; all from (seed, 4, position)."""
+        c = self.config
+        rng = np.random.default_rng([c.seed, 4, item.position])
+        folder = str(Path(item.path).parent.parent)
+        if folder not in self._histories:
+            self._histories[folder] = sequence_history(folder)
+        window = augmented_window(self._histories[folder], int(item.frame.frame_index), c.motion_window, rng)
+        features = pop_motion_features(window, np.asarray(item.frame.joints))
+        return features * 0.0 if rng.random() < c.history_dropout else features
+
+    def fresh_keys(self, missing: list[str]) -> bool:
+        """``--init-from`` a pose-only POP into a ``--motion-window`` run: the zero-initialised motion
+        encoder keeps its own weights, so the run starts at that POP."""
+        return bool(self.config.motion_window) and all(k.startswith("motion_in.") for k in missing)
 
     def loss(self, net: nn.Module, batch: POPBatch, step: int, rank: int):
         weights = self.config.pop_loss_weights()
