@@ -294,9 +294,11 @@ def test_train_sample_and_eval_with_a_motion_window(tiny_dataset, tmp_path, caps
     assert cli_main(["sample", "--ckpt", str(run), "--motion", str(tmp_path / "walk.npy"), "--fps", "25", "--num", "1",
                      "--steps", "2", "--points", "64", "--no-render", "--out", str(out)]) in (0, None)  # fmt: skip
     assert json.loads((out / "sample.json").read_text())["motion"] == "given"
-    assert cli_main(["sample", "--ckpt", str(run), "--joints", "demo:skirt", "--num", "1", "--steps", "2",
+    np.save(tmp_path / "pose.npy", sequence_history(seq).joints[-1])  # bare joints: no motion
+    assert cli_main(["sample", "--ckpt", str(run), "--joints", str(tmp_path / "pose.npy"), "--num", "1", "--steps", "2",
                      "--points", "64", "--no-render", "--out", str(tmp_path / "r")]) in (0, None)  # fmt: skip
     assert "taken at rest" in capsys.readouterr().out
+    assert m.load_pose("demo:skirt").motion.joints.shape == (17, 24, 3)  # the demo poses carry their motion
     assert cli_main(["sample", "--ckpt", str(base), "--motion", str(tmp_path / "walk.npy"), "--num", "1", "--steps",
                      "2", "--points", "64", "--no-render", "--out", str(tmp_path / "p")]) in (0, None)  # fmt: skip
     assert "sees the pose alone" in capsys.readouterr().out
@@ -357,3 +359,16 @@ def test_pop_with_a_motion_window_starts_as_pop_and_trains(tiny_dataset, tmp_pat
     code = cli_main(["train", "--model", "closet", "--preset", "tiny", "--motion-window", "2", "--steps", "1", "--data",
                      str(tiny_dataset), "--out", str(tmp_path / "c"), "--no-progress"])  # fmt: skip
     assert code not in (0, None) and not (tmp_path / "c" / "checkpoints").exists()  # CloSET has no motion window
+
+
+def test_every_demo_pose_ships_the_window_that_ends_on_it():
+    from pocoloco.data.poses import demo_motion, demo_pose_names, load_joints
+
+    for name in demo_pose_names():
+        w = demo_motion(f"demo:{name}", 2.0)
+        joints = load_joints(f"demo:{name}", None, 24).astype(np.float64)
+        axis = joints[1] - joints[2]
+        now = Rotation.from_euler("z", -math.atan2(axis[1], axis[0])).apply(joints - joints[0])
+        np.testing.assert_allclose(w.joints[0], now, atol=2e-3)  # float16
+        assert np.abs(w.joints[-1] - w.joints[0]).max() > 0.01  # the body moved into it
+        assert demo_motion(f"demo:{name}", 1.5) is None  # another window length: none

@@ -46,6 +46,7 @@ __all__ = [
     "Pose",
     "check_joints",
     "dataset_frame_path",
+    "demo_motion",
     "demo_pose_names",
     "demo_pose_outfit",
     "demo_pose_path",
@@ -93,6 +94,18 @@ def demo_pose_outfit(name: str) -> str:
     path = demo_pose_path(name)
     with np.load(path, allow_pickle=False) as z:
         return str(z["outfit"]) if "outfit" in z.files else path.stem
+
+
+def demo_motion(spec: str, seconds: float) -> MotionWindow | None:
+    """The motion window a ``demo:NAME`` pose ships with (the 2 s at 8 Hz before its frame), for a
+    model whose window is ``seconds`` long; None for another spec, another window length, or 0."""
+    if not seconds or not str(spec).startswith("demo:") or Path(spec).exists():
+        return None
+    with np.load(demo_pose_path(str(spec)[5:]), allow_pickle=False) as z:
+        if "motion_window_joints" not in z.files or abs(float(z["motion_seconds"]) - seconds) > 1e-6:
+            return None
+        return MotionWindow(z["motion_window_joints"].astype(np.float32), z["motion_root_velocity"].astype(np.float32),
+                            z["motion_yaw_rate"].astype(np.float32))  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------ joints

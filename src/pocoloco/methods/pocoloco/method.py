@@ -13,6 +13,7 @@ import torch
 from pocoloco.data.dataset import frame_velocity
 from pocoloco.data.poses import (
     MeanShapeCache,
+    demo_motion,
     Pose,
     dataset_frame_path,
     load_body_pose,
@@ -190,7 +191,7 @@ class PocoLocoMethod(Method):
         joints = load_joints(spec, frame_id, self.config.denoiser.num_joints, any_pose=any_pose)
         subject = subject_of_spec(str(spec))  # None unless a DATASET:... frame
         velocity = frame_velocity(dataset_frame_path(str(spec)), joints) if self.config.joint_velocity and subject else None
-        motion = self.motion_of_frame(dataset_frame_path(str(spec))) if subject else None
+        motion = self.motion_of_frame(dataset_frame_path(str(spec))) if subject else demo_motion(str(spec), self.motion_window)
         return Pose(joints, subject=outfit_of_spec(str(spec)), source=str(spec), velocity=velocity, motion=motion)
 
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:

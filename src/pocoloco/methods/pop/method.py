@@ -24,7 +24,7 @@ from torch.nn.parallel import DistributedDataParallel
 from pocoloco.body.surface import BodySurface, largest_component_faces
 from pocoloco.data.dataset import sequence_history
 from pocoloco.data.motion_window import augmented_window
-from pocoloco.data.poses import Pose, dataset_frame_path, subject_of_spec
+from pocoloco.data.poses import Pose, dataset_frame_path, demo_motion, subject_of_spec
 from pocoloco.methods.pop.data import collate_pop, make_optimizer, pop_motion_features, pop_sample_from_frame
 from pocoloco.methods.pop.fitting import POPFit, fit_unseen_outfit
 from pocoloco.methods.pop.losses import check_scan, normal_weight_at, pop_losses
@@ -111,6 +111,8 @@ class POPMethod(SkinnedMethod):
         pose = super().load_pose(spec, outfit, frame_id, any_pose)
         if self.motion_window and subject_of_spec(str(spec)):  # a DATASET: frame: its motion before it
             pose.motion = self.motion_of_frame(dataset_frame_path(str(spec)))
+        else:  # a demo pose ships its motion
+            pose.motion = demo_motion(str(spec), self.motion_window)
         return pose
 
     # ------------------------------------------------------------------- unseen outfits (Eq. 7)
