@@ -372,3 +372,34 @@ def test_every_demo_pose_ships_the_window_that_ends_on_it():
         np.testing.assert_allclose(w.joints[0], now, atol=2e-3)  # float16
         assert np.abs(w.joints[-1] - w.joints[0]).max() > 0.01  # the body moved into it
         assert demo_motion(f"demo:{name}", 1.5) is None  # another window length: none
+
+
+def test_animation_gives_each_frame_its_own_window():
+    """A motion-aware prior: the frames' windows reach the denoiser (other windows, other clouds;
+    no windows = every frame at rest = all-None windows), and it is left at rest afterwards."""
+    import torch
+
+    from pocoloco.apps.animation import animate
+    from pocoloco.data.dataset import Normalisation
+    from pocoloco.diffusion.schedules import NoiseSchedule
+    from pocoloco.methods.base import PointPrior
+    from pocoloco.models.conditioning import OutfitBound
+    from pocoloco.models.latent import LatentDenoiser, latent_preset
+
+    torch.manual_seed(0)
+    net = LatentDenoiser(latent_preset("tiny", motion_window=2.0)).eval()
+    torch.nn.init.normal_(net.motion_in.out.weight, std=0.5)
+    torch.nn.init.normal_(net.out.weight, std=0.1)
+    prior = PointPrior(OutfitBound(net, None), Normalisation((0.0, 0.0, 0.0), 0.3), NoiseSchedule.from_kind("four", 1000),
+                       "epsilon", 3, 24)  # fmt: skip
+    walk = _walk(40)
+    frames = walk[[30, 35]]
+    windows = [motion_window(walk, 30, 25.0), motion_window(walk, 35, 25.0)]
+    kw = dict(method="independent", steps=3, seed=0)
+    moving = animate(prior, frames, 32, windows=windows, **kw).points
+    assert prior.denoiser.motion is None
+    still = animate(prior, frames, 32, **kw).points
+    np.testing.assert_array_equal(still, animate(prior, frames, 32, windows=[None, None], **kw).points)
+    assert np.abs(moving - still).max() > 1e-4
+    with pytest.raises(ValueError, match="one entry per frame"):
+        animate(prior, frames, 32, windows=windows[:1], **kw)

@@ -32,10 +32,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from pocoloco.apps.common import denoise_from, subset, to_metres, to_normalised
 from pocoloco.data import format as fmt
 from pocoloco.data.format import read_frame
+from pocoloco.data.motion_window import MotionWindow, heading_of, motion_features, motion_window
 from pocoloco.data.poses import check_joints, check_skeleton
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.evaluation.metrics import chamfer_cm, nearest
@@ -146,6 +148,7 @@ def animate(
     anchor: str = "root",
     finish: Callable[[int, np.ndarray, int], np.ndarray] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    windows: Sequence[MotionWindow | None] | None = None,
 ) -> Animation:
     """Clouds (T, N, 3) for the poses ``joints`` (T, J, 3) (module docstring for the methods).
 
@@ -154,7 +157,9 @@ def animate(
     at most t; from-scratch frames use the sampler's default or ``steps``). finish: ``(k,
     points (num_points, 3) metres, seed) -> (N, 3)``, frame k's cloud made from the prior's (the
     chain still carries the prior's clouds; :class:`~pocoloco.methods.base.AnimationPrior`); the
-    frames then have no normals.
+    frames then have no normals. windows: each frame's motion window (issue 41), given to a prior
+    whose denoiser takes one (``prior.denoiser.motion``, a motion-aware model): the hems lag and
+    swing with the motion before each frame; None: every frame at rest.
     """
 
     if method not in METHODS:
@@ -181,7 +186,14 @@ def animate(
     points = np.empty((F, num_points, 3), np.float32)
     normals = np.empty((F, num_points, 3), np.float32) if C == 6 else None
     finished: list[np.ndarray] = []
+    if windows is not None and len(windows) != F:
+        raise ValueError(f"windows must have one entry per frame ({F}), got {len(windows)}")
+    takes_motion = hasattr(prior.denoiser, "motion") and getattr(prior.denoiser.config, "motion_window", 0)
     for k in range(F):
+        if takes_motion:
+            window = None if windows is None else windows[k]
+            prior.denoiser.motion = None if window is None else torch.from_numpy(motion_features(
+                window, heading_of(joints[k]) - float(normalisation.angle(joints[k])), normalisation.std))  # fmt: skip
         if method != "chain" or k == 0:
             x = denoise_from(prior, joints[k], None, T, sampler, steps, [seeds[k]],
                              num_points=num_points)  # fmt: skip
@@ -199,6 +211,8 @@ def animate(
             finished.append(np.asarray(finish(k, points[k], seeds[k]), np.float32))
         if progress is not None:
             progress(k + 1, F)
+    if takes_motion:
+        prior.denoiser.motion = None
     if finish is not None:
         return Animation(np.stack(finished), None, seeds)
     return Animation(points, normals, seeds)

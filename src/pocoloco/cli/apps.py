@@ -37,6 +37,7 @@ from pocoloco.cli.common import (
     pick_outfit,
     progress_bar,
 )
+from pocoloco.data.motion_window import motion_window
 from pocoloco.data.poses import load_joints, subject_of_spec
 from pocoloco.data.published import CLOUD_CHECK_HELP, write_ply
 from pocoloco.diffusion.samplers import check_sampler
@@ -278,6 +279,9 @@ def add_animate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--points", type=int, default=2048, help="N points per frame (default 2048)")
     parser.add_argument("--frames", help="frames to animate, START:STOP[:STEP] (default: all)")
     parser.add_argument("--fps", type=float, default=10.0, help="GIF frame rate (default 10)")
+    parser.add_argument("--motion-fps", type=float, default=25.0,
+                        help="frames per second of a --motion joints file, for models trained with --motion-window "
+                             "(each frame gets the motion before it; dataset sequences know theirs; default 25)")  # fmt: skip
     add_app_arguments(parser, "output folder (frame_0000.ply ..., animation.gif, animation.json)")
 
 
@@ -300,6 +304,8 @@ def cmd_animate(args: argparse.Namespace) -> None:
         raise ValueError(f"--points must be >= 1, got {args.points}")
     if not 0 < args.fps <= 1000:
         raise ValueError(f"--fps must be in (0, 1000], got {args.fps}")
+    if not 0 < args.motion_fps <= 1000:
+        raise ValueError(f"--motion-fps must be in (0, 1000], got {args.motion_fps}")
     method = load_method_from_args(args)
     outfit = pick_outfit(method, args.outfit, args.motion)
     hook = method.animation_prior(outfit, args.points)
@@ -319,18 +325,23 @@ def cmd_animate(args: argparse.Namespace) -> None:
     if not 1 <= args.t <= T:
         raise ValueError(f"--t must be in [1, {T}] (the model's training timesteps), got {args.t}")
     joints = motion.joints[chosen]
+    windows = None
+    if method.motion_window:  # each frame its own window: the dataset's motion, or the given joints' at --fps
+        windows = ([method.motion_of_frame(motion.frames[i]) for i in chosen] if motion.frames is not None else
+                   [motion_window(motion.joints, i, args.motion_fps, method.motion_window) for i in chosen])  # fmt: skip
     check_memory(method, args.points, len(chosen))  # every frame is kept
     t0 = time.perf_counter()
     with progress_bar("animate", total=len(chosen)) as update:
         anim = animate(prior, joints, hook.prior_points, method=args.method, t=args.t,
                        sampler=args.sampler, steps=args.steps, seed=args.seed, anchor=args.anchor,
-                       finish=finish, progress=update)  # fmt: skip
+                       finish=finish, progress=update, windows=windows)  # fmt: skip
     seconds = time.perf_counter() - t0
     info: dict[str, Any] = {
         "checkpoint": str(ckpt), "step": step, "motion": motion.name, "frames": chosen, "method": args.method,
         "t": args.t if args.method == "chain" else None, "anchor": args.anchor if args.method == "chain" else None,
         "points": args.points, "sampler": args.sampler, "steps": args.steps, "seeds": anim.seeds,
         "seconds_total": seconds, "seconds_per_frame": seconds / len(chosen),
+        "motion_window_s": method.motion_window,
     }  # fmt: skip
     if motion.frames is not None:
         info["metrics"] = evaluate_animation(anim.points, [motion.frames[i] for i in chosen], args.points)

@@ -198,6 +198,9 @@ class OutfitBound(nn.Module):
         self.register_buffer("shape", None if shape is None else torch.as_tensor(shape, dtype=torch.float32),
                              persistent=False)  # fmt: skip
         self.code = code  # (D,): an outfit embedding used instead of ``outfit``
+        #: (J, F) motion-window features of the pose being drawn (a ``motion_window`` model; None: at
+        #: rest). The apps set it per pose (animation: each frame its own window).
+        self.motion: torch.Tensor | None = None
 
     @property
     def config(self):
@@ -208,4 +211,5 @@ class OutfitBound(nn.Module):
         outfit = None if self.outfit is None else torch.full((B,), int(self.outfit), device=joints.device)
         shape = None if self.shape is None else self.shape.to(device=joints.device, dtype=joints.dtype).expand(B, -1)
         code = None if self.code is None else self.code.to(device=joints.device, dtype=joints.dtype).reshape(1, -1).expand(B, -1)
-        return self.model(x, t, PoseCondition(joints, outfit, shape, code))
+        motion = None if self.motion is None else self.motion.to(device=joints.device, dtype=joints.dtype).expand(B, -1, -1)
+        return self.model(x, t, PoseCondition(joints, outfit, shape, code, motion=motion))

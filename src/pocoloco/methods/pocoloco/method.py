@@ -123,7 +123,7 @@ class PocoLocoMethod(Method):
                              "animation take models conditioned on joints (and outfit) only; use pocoloco sample / eval")  # fmt: skip
         if not self.knows_who_wears_what:
             self.outfit_id(outfit)  # any outfit is a one-line error
-            return self.model
+            return OutfitBound(self.model, None) if self.motion_window else self.model  # (its motion is set per pose)
         if outfit is None:
             raise ValueError(f"--outfit is required (this PocoLoco checkpoint knows outfits {', '.join(self.outfit_names())})")
         kw = self.condition(outfit)
