@@ -403,3 +403,25 @@ def test_animation_gives_each_frame_its_own_window():
     assert np.abs(moving - still).max() > 1e-4
     with pytest.raises(ValueError, match="one entry per frame"):
         animate(prior, frames, 32, windows=windows[:1], **kw)
+
+
+def test_a_pack_carries_the_motion_histories(tiny_dataset, tmp_path):
+    """``data pack --motion``: the packed frames' windows are the dataset folder's (within the
+    joints' quantisation); a pack without them says how to make one; a --motion-window run trains
+    on it."""
+    from pocoloco.cli import main as cli_main
+    from pocoloco.data.dataset import PointCloudDataset
+    from pocoloco.data.pack import PackedDataset, write_pack
+
+    write_pack(tiny_dataset, tmp_path / "m.pack", points=64, motion=True)
+    write_pack(tiny_dataset, tmp_path / "p.pack", points=64)
+    packed = PackedDataset(tmp_path / "m.pack", "train", motion_window=2.0)
+    folder = PointCloudDataset(tiny_dataset, "train", num_points=None, motion_window=2.0)
+    where = {folder.frame_key(i): i for i in range(len(folder))}
+    for i in (0, len(packed) - 1):
+        np.testing.assert_allclose(packed[i]["motion"], folder[where[packed.frame_key(i)]]["motion"], atol=0.02)
+    with pytest.raises(ValueError, match="data pack --motion") as e:
+        PackedDataset(tmp_path / "p.pack", "train", motion_window=2.0)
+    assert "\n" not in str(e.value)
+    assert cli_main(["train", "--data", str(tmp_path / "m.pack"), "--preset", "latent_tiny", "--motion-window", "2.0",
+                     "--steps", "2", "--num-points", "64", "--out", str(tmp_path / "run"), "--no-progress", "--sample-every", "0"]) in (0, None)  # fmt: skip

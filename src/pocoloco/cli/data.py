@@ -394,7 +394,8 @@ def cmd_data_pack(args: argparse.Namespace) -> None:
     with progress_bar("frames", transient=False) as update:
         meta = write_pack(args.path, out, splits=args.splits, every=args.every, eval_every=args.eval_every,
                           points=args.points, resolution_mm=args.resolution_mm, subjects=subjects,
-                          velocity=args.velocity, bodies=args.bodies, seed=args.seed, progress=update)  # fmt: skip
+                          velocity=args.velocity, bodies=args.bodies, motion=args.motion, seed=args.seed,
+                          progress=update)  # fmt: skip
     print(f"wrote {out}: {pack_summary(meta)}")
 
 
@@ -535,6 +536,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--resolution-mm", type=float, default=1.0, help="position quantisation step in mm (default 1)")
     s.add_argument("--subjects", help="only these subjects, comma-separated (default: all)")
     s.add_argument("--velocity", action="store_true", help="also store joint velocities (for --joint-velocity models)")
+    s.add_argument("--motion", action="store_true",
+                   help="also store every packed sequence's whole motion (for --motion-window models; ~1-2 %% of a "
+                        "pack's bytes)")  # fmt: skip
     s.add_argument("--bodies", action="store_true",
                    help="also store the points' normals and each frame's posed body and posed mean shape, as 24 "
                         "skinning transforms (what POP and CloSET train on; needs anny)")  # fmt: skip

@@ -52,7 +52,7 @@ from .motion_window import (
 )
 
 __all__ = ["Normalisation", "OpenedDataset", "PointCloudDataset", "frame_motion_window", "frame_velocity", "rotate_z",
-           "sequence_history"]
+           "sequence_history", "window_features"]
 
 #: frames per second of a dataset whose card does not record it (the synthetic presets' rate)
 DEFAULT_FPS = 25.0
@@ -209,6 +209,17 @@ def sequence_history(sequence_dir: str | os.PathLike, fps: float | None = None) 
         last = stored.get(i, last)
         joints.append(last)
     return MotionHistory(np.stack(joints).astype(np.float32), float(fps), 0, padded=True)
+
+
+def window_features(history: MotionHistory, frame: int, seconds: float, normalisation: Normalisation,
+                    joints: np.ndarray, rng: np.random.Generator | None = None) -> torch.Tensor:  # fmt: skip
+    """(J, F) the motion-window features of stored frame ``frame`` of ``history`` in the frame's
+    normalised point frame (``joints`` (J, 3) its skeleton, metres): the last ``seconds`` at 8 Hz
+    (:func:`~pocoloco.data.motion_window.motion_features`); ``rng``: training's augmentation
+    (:func:`~pocoloco.data.motion_window.augmented_window`)."""
+    window = history.window(frame, seconds) if rng is None else augmented_window(history, frame, seconds, rng)
+    turn = heading_of(joints) - float(normalisation.angle(joints))
+    return torch.from_numpy(motion_features(window, turn, normalisation.std))
 
 
 _HISTORIES: dict[str, MotionHistory] = {}
@@ -432,13 +443,7 @@ class PointCloudDataset(Dataset):
         frame = int(os.path.basename(path)[:-4])
         if joints is None:
             joints = fmt.read_frame(path, ["joints"]).joints
-        history = self.history(subject, sequence)
-        if rng is None:
-            window = history.window(frame, self.motion_window)
-        else:
-            window = augmented_window(history, frame, self.motion_window, rng)
-        turn = heading_of(history.joints[history.first + frame]) - float(self.normalisation.angle(joints))
-        return torch.from_numpy(motion_features(window, turn, self.normalisation.std))
+        return window_features(self.history(subject, sequence), frame, self.motion_window, self.normalisation, joints, rng)
 
     @property
     def motion_feature_dim(self) -> int:

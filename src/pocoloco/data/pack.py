@@ -22,6 +22,16 @@ File layout (a zip written by ``numpy.savez``, members stored; written atomicall
                          between neighbours, bytes shuffled (low bytes, then high bytes)
     <split>_velocity     LZMA bytes of float16 (F, J, 3) joint velocities, m/s (only if ``velocity``)
 
+With ``motion`` (``pocoloco data pack --motion``: what ``train --motion-window`` reads) also the
+whole motion of every packed sequence (:func:`~pocoloco.data.dataset.sequence_history`, the rows
+before its first stored frame included)::
+
+    history_joints       LZMA bytes of int16 (sum T_s, 24, 3): each row's joints minus its root, in
+                         ``JOINT_RESOLUTION_M`` units, sequences one after another
+    history_root         float32 (sum T_s, 3): each row's root, metres
+    history_rows         int64 (S, 3): each sequence's first row there, its row count T_s, and the
+                         row of its stored frame 0
+
 With ``bodies`` (``pocoloco data pack --bodies``: what POP and CloSET train on) also::
 
     <split>_normals      LZMA bytes of int8 (F, P, 2): the points' unit normals, octahedral code, in
@@ -65,7 +75,8 @@ from ..body.anny_body import AnnyBody
 from ..body.rig import SkeletonRig
 from ..utils.atomic import atomic_open
 from . import format as fmt
-from .dataset import DEFAULT_FPS, Normalisation, PointCloudDataset, frame_velocity
+from .dataset import DEFAULT_FPS, Normalisation, PointCloudDataset, frame_velocity, sequence_history, window_features
+from .motion_window import DEFAULT_HZ, MotionHistory, motion_feature_dim, window_samples
 from .frame import Frame, SubjectAsset
 from .pack_codec import (
     bytes_member,
@@ -121,6 +132,7 @@ def write_pack(
     subjects: Sequence[str] | None = None,
     velocity: bool = False,
     bodies: bool = False,
+    motion: bool = False,
     seed: int = 0,
     select: Callable[[str, Path], np.ndarray] | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -134,7 +146,8 @@ def write_pack(
     (:func:`~pocoloco.data.dataset.frame_velocity`, from the full dataset). bodies: also the
     points' normals and each frame's posed body and posed mean shape as skinning transforms, with
     the rigs that turn them back into vertices (needs anny; every rebuilt body is checked against
-    the frame's stored one, ``BODY_TOLERANCE_M``). select(subject, frame
+    the frame's stored one, ``BODY_TOLERANCE_M``). motion: also every packed sequence's whole
+    motion, for motion-window training (module docstring). select(subject, frame
     path) -> (N,) bool: draw the points among these only (a region of the body, e.g. the hybrid
     method's free region); frames with fewer than ``points`` selected points are left out (their
     count is the meta's ``skipped``). progress(done, total): called after each frame. Returns the pack's meta (sizes in ``bytes``). One-line ValueErrors for
@@ -236,13 +249,15 @@ def write_pack(
         members[f"{split}_points"] = bytes_member(encode_points(rel, resolution))
         if vel is not None:
             members[f"{split}_velocity"] = lzma_array(vel.astype("<f2"))
+    if motion:
+        members.update(_history_members(layout, sequences, fps))
     meta = {
         "format": PACK_FORMAT, "version": PACK_VERSION, "source": os.fspath(data),
         "subject_names": names,
         "subjects": {s: {k: card["subjects"][s].get(k) for k in ("phenotype", "garment_kind")} for s in chosen},
         "normalisation": card["normalisation"], "fps": fps, "resolution_m": resolution,
         "joint_resolution_m": JOINT_RESOLUTION_M, "points_per_frame": points, "seed": seed, "every": every,
-        "eval_every": eval_every, "velocity": bool(velocity), "bodies": None if rigs is None else rigs.meta(),
+        "eval_every": eval_every, "velocity": bool(velocity), "motion": bool(motion), "bodies": None if rigs is None else rigs.meta(),
         "sequences": sequences,
         "splits": {sp: len(fr) for sp, fr in plan.items()}, "skipped": skipped,
         "crc32": {k: zlib.crc32(np.ascontiguousarray(v).tobytes()) for k, v in members.items()},
@@ -252,6 +267,39 @@ def write_pack(
         np.savez(f, **members)
     meta["bytes"] = os.path.getsize(out)
     return meta
+
+
+def _history_members(layout, sequences: Sequence[str], fps: float) -> dict[str, np.ndarray]:
+    """The ``history_*`` members of the packed sequences ``["<subject>/<split>/<sequence>"]``."""
+    rows, roots, parts, start = [], [], [], 0
+    for key in sequences:
+        subject, split, sequence = key.split("/")
+        h = sequence_history(layout.sequence_dir(subject, split, sequence), fps)
+        rows.append((start, len(h.joints), h.first))
+        roots.append(h.joints[:, 0].astype(np.float32))
+        parts.append(h.joints - h.joints[:, :1])
+        start += len(h.joints)
+    return {"history_joints": bytes_member(encode_int16(np.concatenate(parts), JOINT_RESOLUTION_M, "motion histories")),
+            "history_root": np.concatenate(roots), "history_rows": np.asarray(rows, np.int64).reshape(-1, 3)}
+
+
+@functools.lru_cache(maxsize=2)
+def _load_histories(src: str, mtime_ns: int, size: int) -> list[MotionHistory]:
+    """The packed sequences' motion histories (``meta["sequences"]`` order)."""
+    meta, z = _open_members(src)
+    try:
+        if not meta.get("motion"):
+            raise ValueError(f"{src}: the pack holds no motion histories: make it with `pocoloco data pack --motion`")
+        m = _checked_members(src, meta, z, ["history_joints", "history_root", "history_rows"])
+    finally:
+        z.close()
+    try:
+        rows = m["history_rows"].reshape(-1, 3)
+        root = m["history_root"].reshape(-1, 3)
+        joints = decode_int16(m["history_joints"].tobytes(), (len(root), 24, 3), JOINT_RESOLUTION_M) + root[:, None]
+    except (ValueError, lzma.LZMAError) as e:
+        raise ValueError(f"{src}: damaged pack ({e})") from None
+    return [MotionHistory(joints[a:a + n], float(meta["fps"]), int(first)) for a, n, first in rows]
 
 
 class _PackRigs:
@@ -483,7 +531,7 @@ class PackedDataset(Dataset):
 
     def __init__(self, path: str | os.PathLike, split: str = "train", *, subjects: Sequence[str] | None = None,
                  with_normals: bool = False, body_point_ids: Sequence[int] | None = None, heading: bool = False,
-                 velocity: bool = False, _bodies: bool = False):  # fmt: skip
+                 velocity: bool = False, motion_window: float = 0.0, _bodies: bool = False):  # fmt: skip
         src = self.root = os.fspath(path)
         if with_normals:
             raise ValueError(f"{src}: PocoLoco reads no normals from a training pack (6-channel denoisers train on "
@@ -508,6 +556,9 @@ class PackedDataset(Dataset):
                 raise ValueError(f"{src}: unknown subjects {unknown}; the pack holds {sorted(meta['subjects'])}")
         self.split, self.num_points, self.with_normals, self.body_point_ids = split, None, False, None
         self.velocity, self.fps = velocity, float(meta["fps"])
+        self.motion_window = float(motion_window)
+        self._histories = (_load_histories(src, os.stat(src).st_mtime_ns, os.path.getsize(src)) if motion_window
+                           else None)  # fmt: skip
         self.normalisation = Normalisation.from_card(self.card)
         if heading:
             self.normalisation = dataclasses.replace(self.normalisation, heading=True)
@@ -548,7 +599,23 @@ class PackedDataset(Dataset):
         if self._velocity is not None:
             v = self.normalisation.normalise_velocity(self._velocity[r], joints_world)
             item["velocity"] = torch.from_numpy(np.ascontiguousarray(v, np.float32))
+        if self._histories is not None:
+            item["motion"] = self.motion_features(index)
         return item
+
+    def motion_features(self, index: int, joints: np.ndarray | None = None,
+                        rng: np.random.Generator | None = None) -> torch.Tensor:  # fmt: skip
+        """(J, F) frame ``index``'s motion-window features, as
+        :meth:`~pocoloco.data.dataset.PointCloudDataset.motion_features` gives them."""
+        r = self._rows[index]
+        joints = self._joints[r] + self._root[r] if joints is None else joints
+        return window_features(self._histories[self._index[r, 1]], int(self._index[r, 2]), self.motion_window,
+                               self.normalisation, joints, rng)  # fmt: skip
+
+    @property
+    def motion_feature_dim(self) -> int:
+        """F of the frames' motion features (0 without a motion window)."""
+        return motion_feature_dim(window_samples(self.motion_window, DEFAULT_HZ)) if self.motion_window else 0
 
 
 class PackedBodies(PackedDataset):
@@ -582,7 +649,7 @@ class PackedBodies(PackedDataset):
 def open_point_clouds(data: str | os.PathLike, split: str = "train", **kwargs: Any) -> PointCloudDataset | PackedDataset:
     """A split of a dataset folder (:class:`PointCloudDataset`, all of ``kwargs``) or of a training
     pack (:class:`PackedDataset`: ``subjects``, ``with_normals``, ``body_point_ids``, ``heading``,
-    ``velocity``; the pack's points are already a subset, so ``num_points`` must be None)."""
+    ``velocity``, ``motion_window``; the pack's points are already a subset, so ``num_points`` must be None)."""
     if not is_pack(data):
         return PointCloudDataset(data, split, **kwargs)
     if kwargs.pop("num_points", None) is not None:
@@ -597,6 +664,7 @@ def pack_summary(meta: dict[str, Any]) -> str:
     splits = ", ".join(f"{n:,} {sp}" for sp, n in meta["splits"].items())
     size = f", {meta['bytes'] / 1e6:.1f} MB" if "bytes" in meta else ""
     extra = ", with normals and posed bodies" if meta.get("bodies") else ""
+    extra += ", with motion histories" if meta.get("motion") else ""
     return (f"{splits} frames x {meta['points_per_frame']:,} points ({len(meta['subjects'])} subjects, every "
             f"{meta['every']} train frame, {meta['resolution_m'] * 1e3:g} mm{extra}){size}")  # fmt: skip
 

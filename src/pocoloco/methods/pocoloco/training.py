@@ -47,9 +47,6 @@ class PocoLocoTask(TrainingTask):
         self.data = data
         if config.body_points and is_pack(data):
             raise ValueError(f"{data}: a training pack holds no posed bodies: train --body-points on the dataset folder")
-        if config.motion_window and is_pack(data):
-            raise ValueError(f"{data}: a training pack holds no motion histories yet: train --motion-window on the "
-                             "dataset folder")  # fmt: skip
         self.body_point_ids = body_point_ids(data, config) if config.body_points else None
         # a dataset folder or a training pack (pocoloco.data.pack): the same items
         self.dataset = open_point_clouds(data, "train", num_points=None, with_normals=config.denoiser.point_channels == 6,
