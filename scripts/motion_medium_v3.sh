@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# Issue 41 on `medium` v3: fine-tune the shipped PocoLoco and POP with the last 2 s of motion
+# (--motion-window 2.0, from their shipped pose-only weights, on a clock), then score them with each
+# frame's own window, none (rest) and another frame's (shuffled), and compare with the shipped
+# pose-only models on the same frames (benchmarks/motion_gain.py, paired per frame). Every step
+# resumes where a killed run stopped: rerun the script.
+#
+#   bash scripts/motion_medium_v3.sh       # ~2 h on a 2-core CPU (needs scripts/finetune_medium_v3.sh's data
+#                                          # and its quality_finetuned reports of the shipped models)
+#
+# Needs `bash scripts/setup.sh` first.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=.venv/bin/python
+PL=.venv/bin/pocoloco
+RUNS=${RUNS:-$HOME/.cache/pocoloco/runs}
+OUT=$RUNS/v3motion
+DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v3}
+SHIPPED=${SHIPPED:-$RUNS/v3/quality_finetuned}   # the shipped models' bench quality (finetune_medium_v3.sh)
+MIN_POCOLOCO=${MIN_POCOLOCO:-80}
+MIN_POP=${MIN_POP:-35}
+mkdir -p "$OUT"
+
+# 1. every sequence's whole motion (data synth writes it for new datasets)
+$PL data motion-history "$DATA"
+
+# 2. the fine-tunes, side by side, one thread each
+resume() { [ -f "$1/checkpoints/latest" ] && echo --resume || true; }
+nice $PL train --data "$DATA" --init-from default --motion-window 2.0 --out "$OUT/pocoloco" $(resume "$OUT/pocoloco") \
+  --batch-size 32 --lr 3e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POCOLOCO" \
+  --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$OUT/pocoloco.log" 2>&1 &
+POCO=$!
+nice $PL train --model pop --data "$DATA" --init-from default:pop --motion-window 2.0 --out "$OUT/pop" $(resume "$OUT/pop") \
+  --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POP" \
+  --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$OUT/pop.log" 2>&1 &
+POP=$!
+wait $POCO $POP
+
+# 3. both motion-aware models with each kind of window, the standard frames and seeds
+for history in dataset shuffled rest; do
+  for split in test heldout; do
+    [ -f "$OUT/quality_$history/$split/quality.json" ] || $PL bench quality --data "$DATA" --split "$split" \
+      --frames 28 --seeds 0 1 --points 2048 --ckpt-pocoloco "$OUT/pocoloco" --ckpt-pop "$OUT/pop" \
+      --history "$history" --out "$OUT/quality_$history/$split"
+  done
+done
+
+# 4. paired against the shipped pose-only models
+for split in test heldout; do
+  for model in pocoloco pop; do
+    $PY benchmarks/motion_gain.py --reference "$SHIPPED/$split/quality.json:$model" \
+      --dataset "$OUT/quality_dataset/$split/quality.json:$model" --rest "$OUT/quality_rest/$split/quality.json:$model" \
+      --shuffled "$OUT/quality_shuffled/$split/quality.json:$model" --peer "$SHIPPED/$split/quality.json:pop" \
+      --json "$OUT/gain_${split}_$model.json" > "$OUT/gain_${split}_$model.md"
+  done
+done
+echo "motion_medium_v3: done ($OUT)"
