@@ -52,6 +52,9 @@ within 0.05 mm. :class:`PackedDataset` gives the same items as
 so a model trained on a pack is interchangeable with one trained on its dataset);
 :class:`PackedBodies` gives the frames (points, normals, posed body, ``vtransf``) and posed mean
 shapes POP and CloSET train on.
+
+Why this module is long: it is one file format, its writer and its readers (frames, posed bodies,
+motion histories) with the integrity checks they share; the byte codecs live in ``pack_codec``.
 """
 
 from __future__ import annotations

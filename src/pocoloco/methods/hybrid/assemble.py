@@ -72,6 +72,9 @@ def assemble_hybrid(
     gen = PocoLocoMethod.from_checkpoint(load_checkpoint(free, expect_model="pocoloco", training_state=False))
     if gen.needs_body:
         raise ValueError(f"{free}: a free-region model trained with --body-points cannot be assembled yet")
+    if pop.motion_window and gen.motion_window and pop.motion_window != gen.motion_window:
+        raise ValueError(f"{attached} sees {pop.motion_window:g} s of motion and {free} {gen.motion_window:g} s: a hybrid "
+                         "of two motion-aware models needs one window")  # fmt: skip
     names = pop.outfit_names()
     if maps is None:
         region = learn_free_maps(data, names, margin=margin, threshold=threshold, every=every, far=far,

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from pocoloco.body.surface import vertex_normals
-from pocoloco.data.poses import MeanShapeCache, Pose
+from pocoloco.data.poses import MeanShapeCache, Pose, dataset_frame_path, demo_motion, subject_of_spec
 from pocoloco.engine.checkpoint import Checkpoint, load_checkpoint, one_line
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.engine.trainer import TrainingTask
@@ -204,12 +204,24 @@ class HybridMethod(Method):
         return [o["name"] for o in self.outfits]
 
     # -------------------------------------------------------------------------------- poses
+    @property
+    def motion_window(self) -> float:  # type: ignore[override]
+        """The free generator's motion window, else the attached model's (a hybrid of two motion-aware
+        models needs the same window for both: :meth:`assemble_hybrid` checks)."""
+        return self.free.motion_window or self.attached.motion_window
+
     def load_pose(self, spec: str, outfit: int | None = None, frame_id: int | None = None,
                   any_pose: bool = False) -> Pose:  # fmt: skip
-        return self.attached.load_pose(spec, outfit, frame_id, any_pose)
+        pose = self.attached.load_pose(spec, outfit, frame_id, any_pose)
+        if self.motion_window and pose.motion is None:
+            pose.motion = (self.motion_of_frame(dataset_frame_path(str(spec))) if subject_of_spec(str(spec))
+                           else demo_motion(str(spec), self.motion_window))  # fmt: skip
+        return pose
 
     def pose_from_frame(self, path: str | Path, subject: str, frame=None, cache: MeanShapeCache | None = None) -> Pose:
-        return self.attached.pose_from_frame(path, subject, frame=frame, cache=cache)
+        pose = self.attached.pose_from_frame(path, subject, frame=frame, cache=cache)
+        pose.motion = self.motion_of_frame(path)
+        return pose
 
     def pose_from_anny(self, pose: Pose, outfit: int | None) -> Pose:
         return self.attached.pose_from_anny(pose, outfit)
