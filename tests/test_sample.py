@@ -256,20 +256,24 @@ def test_float16_export_loads_as_float32_rounded_weights(run, tmp_path):
 
 
 def test_float16_export_keeps_integer_buffers_and_refuses_overflow(run, tmp_path):
-    """Integer / bool buffers are stored as they are (a model's index buffers); a float beyond fp16's
-    range is a one-line error, not a silent inf."""
+    """Bool buffers are stored as they are, int64 ones that fit as int32 (a body's faces: half the
+    bytes) and loaded back as int64, one that does not fit as int64; a float beyond fp16's range is
+    a one-line error, not a silent inf."""
     from safetensors.torch import load_file
 
     from pocoloco.engine.checkpoint import export_for_sampling, load_checkpoint, save_checkpoint
 
     ck = load_checkpoint(run, training_state=False)
     extra = {"idx": torch.arange(5, dtype=torch.int64), "mask": torch.tensor([True, False]),
-             "bf": torch.tensor([0.1, -2.5], dtype=torch.bfloat16)}  # fmt: skip
+             "bf": torch.tensor([0.1, -2.5], dtype=torch.bfloat16), "wide": torch.tensor([2**40, -3])}  # fmt: skip
     state = {**ck.model_state, **extra}
     src = save_checkpoint(tmp_path / "ck", ck.step, model_kind=ck.model_kind, preset=ck.preset, config=ck.config,
                           normalisation=ck.normalisation, model_state=state)  # fmt: skip
     stored = load_file(str(export_for_sampling(src, tmp_path / "o", dtype="float16") / "model.safetensors"))
-    assert torch.equal(stored["idx"], extra["idx"]) and torch.equal(stored["mask"], extra["mask"])
+    assert stored["idx"].dtype == torch.int32 and torch.equal(stored["idx"].long(), extra["idx"])
+    assert stored["wide"].dtype == torch.int64 and torch.equal(stored["mask"], extra["mask"])
+    back = load_checkpoint(tmp_path / "o", training_state=False).model_state
+    assert back["idx"].dtype == torch.int64 and torch.equal(back["idx"], extra["idx"])
     assert stored["bf"].dtype == torch.float16
     loaded = load_checkpoint(src, training_state=False).model_state  # bf16 in a training checkpoint: float32 too
     assert loaded["bf"].dtype == torch.float32 and torch.equal(loaded["bf"], extra["bf"].float())

@@ -378,6 +378,8 @@ def _load_safetensors(f: Path, device: str | torch.device) -> dict[str, torch.Te
     for k, v in state.items():
         if v.dtype in _HALF_DTYPES:
             state[k] = v = v.float()
+        elif v.dtype == torch.int32:  # an int64 buffer stored narrow (export_for_sampling)
+            state[k] = v = v.long()
         if v.is_floating_point() and not bool(torch.isfinite(v).all()):  # NaN weights: say so here, not later
             bad = int((~torch.isfinite(v)).sum())
             raise CorruptCheckpointError(f"{f}: corrupt weights file ({k!r} holds {bad} non-finite "
@@ -502,7 +504,8 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     This is how the models shipped in ``pocoloco/assets`` were made. Returns ``out``.
 
     dtype: storage dtype of the floating tensors, ``"float32"`` or ``"float16"`` (half the bytes;
-        integer / bool buffers untouched; loading casts back to float32). Recorded in ``meta.json``
+        loading casts back to float32; with ``"float16"``, int64 buffers whose values fit are stored
+        as int32 too, e.g. a body's faces, and loading casts them back). Recorded in ``meta.json``
         as ``weights_dtype``. A value beyond float16's range (65504) is a one-line ValueError.
     keep_float32: tensors stored in float32 whatever ``dtype`` (a model's geometry buffers: a
         template's vertices in metres lose ~0.5 mm to float16, which moves every output point).
@@ -516,6 +519,7 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     if dtype != "float32":
         keep = set(keep_float32)
         state = {k: v if k in keep else _cast_finite(k, v, WEIGHTS_DTYPES[dtype], ck.path) for k, v in state.items()}
+        state = {k: _narrow_int(v) for k, v in state.items()}
     meta = dict(ck.meta)
     meta.update(has_ema=False, has_training_state=False, exported_from=str(ck.path),
                 weights="ema" if (use_ema and ck.ema_state is not None) else "raw", weights_dtype=dtype)  # fmt: skip
@@ -534,6 +538,13 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def _narrow_int(v: torch.Tensor) -> torch.Tensor:
+    """An int64 tensor whose values fit in int32 as int32 (loading casts it back); others as they are."""
+    if v.dtype != torch.int64 or (v.numel() and (int(v.max()) > 2**31 - 1 or int(v.min()) < -(2**31))):
+        return v
+    return v.to(torch.int32)
 
 
 def _cast_finite(name: str, v: torch.Tensor, dtype: torch.dtype, source: Path) -> torch.Tensor:
