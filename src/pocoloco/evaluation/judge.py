@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from pocoloco.data.format import read_card, read_frame
+from pocoloco.data.format import DatasetLayout, read_card, read_frame
 from pocoloco.data.poses import Pose
 from pocoloco.engine.shipped import describe_checkpoint, resolve_ckpt_arg
 from pocoloco.evaluation.distribution import pose_statistics, probe_points, truth_rows
@@ -96,7 +96,9 @@ def bench_distribution(
 
     outfits: subject -> the outfit models with outfits draw it in (default: the subject's own name,
     which a model trained on another dataset may not have). progress: ``callable(done_poses,
-    total_poses)``.
+    total_poses)``. A motion-aware model (``--motion-window W``) is given the frame's own window
+    where the reference set's shared seconds cover W (every true state went through that motion),
+    and none (the body at rest) where they do not; pose-only models draw once for all windows.
     JSON: ``rows[NAME][WINDOW]`` (WINDOW = shared seconds as text, "0", "2") -> statistic ->
     ``{"mean", "lo", "hi"}``; ``per_pose``: every pose's statistics; ``settings``. Returns it."""
     if samples < 2:
@@ -124,24 +126,33 @@ def bench_distribution(
         joints = own.joints
         spec = f"{Path(refs)}:{subject}/{windows[0]['split']}/{windows[0]['sequence']}/{hist['histories']}"
         pose = Pose.load(spec)
-        drawn: dict[str, list[np.ndarray]] = {}
+        drawn: dict[tuple[str, str], list[np.ndarray]] = {}  # (model, window) -> its clouds
         if progress:
             progress(pose_index, len(poses))
+        source_frame = DatasetLayout(hist["source"]).frame_path(subject, hist["split"], key[1], int(key[2]))
         for name, (method, _) in methods.items():
-            t0 = time.perf_counter()
             seeds = [0] if method.deterministic else [seed * 100_003 + pose_index * 1_000 + i for i in range(samples)]
             kwargs = {} if method.deterministic else {"sampler": sampler, "steps": steps}
             outfit = (outfits or {}).get(subject)  # None: the pose's own subject
-            clouds = method.sample(pose, points, seeds, outfit=outfit, **kwargs)
-            seconds[name] += time.perf_counter() - t0
-            drawn[name] = [np.asarray(c, np.float64) for c in clouds.points]
+            for w in windows:
+                # a motion-aware model sees the frame's own motion where every true state shares it
+                # (the window's shared seconds cover the model's), else the body at rest
+                sees = bool(method.motion_window) and w["shared_seconds"] >= method.motion_window
+                pose.motion = method.motion_of_frame(source_frame) if sees else None
+                same = next((c for (n, _), c in drawn.items() if n == name), None) if not method.motion_window else None
+                t0 = time.perf_counter()
+                clouds = same if same is not None else [
+                    np.asarray(c, np.float64) for c in method.sample(pose, points, seeds, outfit=outfit, **kwargs).points]
+                seconds[name] += time.perf_counter() - t0
+                drawn[(name, f"{w['shared_seconds']:g}")] = clouds
         body = [_subsample(own.body_vertices, points, seed)]
         for w in windows:
             members = [*w["refs"], w["own"]]
             truth = [_subsample(read_frame(f, ["points"]).points, points, seed + 7 * i) for i, f in enumerate(members)]
             row: dict[str, Any] = {"subject": subject, "sequence": key[1], "frame": key[2],
                                    "window": f"{w['shared_seconds']:g}", "rows": {}}  # fmt: skip
-            for name, clouds in {**drawn, "posed_body": body}.items():
+            here = {n: c for (n, win), c in drawn.items() if win == row["window"]}
+            for name, clouds in {**here, "posed_body": body}.items():
                 row["rows"][name] = pose_statistics(clouds, truth, joints, probe)
             oracle = truth_rows(truth, joints, probe)
             for stats in oracle.values():  # the true states' spread, as in every other row (not the K - 1's)
@@ -159,6 +170,7 @@ def bench_distribution(
         "samples": samples, "points": points, "probes": probes, "seed": seed, "bootstrap": bootstrap,
         "sampler": sampler, "steps": steps, "outfits": dict(outfits or {}),
         "checkpoints": {n: describe_checkpoint(p) for n, (_, p) in methods.items()},
+        "motion_windows": {n: m.motion_window for n, (m, _) in methods.items() if m.motion_window},
         "seconds_sampling": seconds,
     }  # fmt: skip
     report["per_pose"] = per_pose
