@@ -36,21 +36,23 @@ nice $PL train --model pop --data "$DATA" --init-from default:pop --motion-windo
 POP=$!
 wait $POCO $POP
 
-# 3. both motion-aware models with each kind of window, the standard frames and seeds
-for history in dataset shuffled rest; do
-  for split in test heldout; do
-    [ -f "$OUT/quality_$history/$split/quality.json" ] || $PL bench quality --data "$DATA" --split "$split" \
-      --frames 28 --seeds 0 1 --points 2048 --ckpt-pocoloco "$OUT/pocoloco" --ckpt-pop "$OUT/pop" \
-      --history "$history" --out "$OUT/quality_$history/$split"
+# 3. each motion-aware model with each kind of window, the standard frames and seeds
+for model in pop pocoloco; do
+  for history in dataset shuffled rest; do
+    for split in test heldout; do
+      [ -f "$OUT/quality_${model}_$history/$split/quality.json" ] || $PL bench quality --data "$DATA" --split "$split" \
+        --frames 28 --seeds 0 1 --points 2048 "--ckpt-$model" "$OUT/$model" --history "$history" \
+        --out "$OUT/quality_${model}_$history/$split"
+    done
   done
 done
 
 # 4. paired against the shipped pose-only models
 for split in test heldout; do
   for model in pocoloco pop; do
-    $PY benchmarks/motion_gain.py --reference "$SHIPPED/$split/quality.json:$model" \
-      --dataset "$OUT/quality_dataset/$split/quality.json:$model" --rest "$OUT/quality_rest/$split/quality.json:$model" \
-      --shuffled "$OUT/quality_shuffled/$split/quality.json:$model" --peer "$SHIPPED/$split/quality.json:pop" \
+    q() { echo "$OUT/quality_${model}_$1/$split/quality.json:$model"; }
+    $PY benchmarks/motion_gain.py --reference "$SHIPPED/$split/quality.json:$model" --dataset "$(q dataset)" \
+      --rest "$(q rest)" --shuffled "$(q shuffled)" --peer "$SHIPPED/$split/quality.json:pop" \
       --json "$OUT/gain_${split}_$model.json" > "$OUT/gain_${split}_$model.md"
   done
 done
