@@ -264,6 +264,8 @@ def test_a_motion_file_gives_its_last_frame_and_window(tiny_dataset, tmp_path):
     expected = motion_window(history.joints, len(history.joints) - 1, history.fps)
     np.testing.assert_allclose(pose.motion.joints, expected.joints)
     assert (note is None) == ((len(history.joints) - 1) / history.fps >= 2.0)
+    same = __import__("pocoloco").Pose.from_motion(history.joints, history.fps)  # the library's call
+    np.testing.assert_array_equal(same.motion.joints, pose.motion.joints)
     np.save(tmp_path / "short.npy", history.joints[-5:])
     _, note = load_motion(tmp_path / "short.npy", history.fps, 2.0)
     assert note is not None and "first frame" in note

@@ -54,6 +54,7 @@ __all__ = [
     "load_body_pose",
     "load_joints",
     "load_motion",
+    "motion_pose",
     "motion_path_of",
     "outfit_of_spec",
     "pose_from_anny_file",
@@ -212,9 +213,16 @@ def load_motion(path: str | os.PathLike, fps: float, seconds: float = 2.0,
     src = os.fspath(path)
     if not Path(src).is_file():
         raise ValueError(f"{src}: no such motion file")
+    return motion_pose(_load_array_file(Path(src)), fps, seconds, any_pose=any_pose, src=src)
+
+
+def motion_pose(joints: Any, fps: float, seconds: float = 2.0, any_pose: bool = False,
+                src: str = "motion") -> tuple[Pose, str | None]:  # fmt: skip
+    """A joints sequence (T, 24, 3) in metres, z up, at ``fps`` -> the Pose of its last frame with the
+    ``seconds`` of motion before it, and a note or None (:func:`load_motion`, which reads a file)."""
     if not (np.isfinite(fps) and FPS_RANGE[0] <= fps <= FPS_RANGE[1]):
         raise ValueError(f"--fps {fps}: expected frames per second between {FPS_RANGE[0]:g} and {FPS_RANGE[1]:g}")
-    seq = np.asarray(_load_array_file(Path(src)))
+    seq = np.asarray(joints)
     if seq.dtype.kind not in "fiu" or seq.ndim != 3 or seq.shape[1:] != (NUM_JOINTS, 3) or len(seq) < 1:
         raise ValueError(f"{src}: a motion is a (T, {NUM_JOINTS}, 3) joints array, got shape {seq.shape}")
     if not np.isfinite(seq).all():
@@ -236,7 +244,7 @@ def load_motion(path: str | os.PathLike, fps: float, seconds: float = 2.0,
     covered = (len(seq) - 1) / fps
     note = (f"{src}: {len(seq)} frames cover {covered:.2f} s of the {seconds:g} s window; the earlier part holds "
             "its first frame (a body at rest before it)") if covered + 1e-9 < seconds else None  # fmt: skip
-    return Pose(last, source=f"motion:{src}", motion=window), note
+    return Pose(last, source="motion" if src == "motion" else f"motion:{src}", motion=window), note
 
 
 def dataset_frame_path(spec: str) -> Path:
@@ -349,6 +357,13 @@ class Pose:
         NaN / inf, or (unless ``any_pose``) a skeleton that is not a human body in metres."""
         arr = check_joints("joints", np.asarray(joints, dtype=np.float32), NUM_JOINTS)
         return cls(arr if any_pose else check_skeleton("joints", arr), source="joints")
+
+    @classmethod
+    def from_motion(cls, joints: Any, fps: float, seconds: float = 2.0, any_pose: bool = False) -> Pose:
+        """The last frame of a joints sequence (T, 24, 3), metres, z up, at ``fps``, carrying the
+        ``seconds`` of motion before it (what a ``--motion-window`` model reads; a sequence shorter
+        than that holds its first frame before it); one-line errors as ``sample --motion``."""
+        return motion_pose(joints, fps, seconds, any_pose=any_pose)[0]
 
     @classmethod
     def load(cls, spec: str | os.PathLike, frame_id: int | None = None, any_pose: bool = False) -> Pose:
