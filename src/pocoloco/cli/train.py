@@ -47,6 +47,7 @@ FIELD_OPTIONS = {
     "query_points": "query_points", "subjects": "subjects", "outfit_codes": "outfit_codes",
     "body_shape": "body_shape", "body_points": "body_points", "canonical_heading": "canonical_heading",
     "joint_velocity": "joint_velocity", "motion_window": "motion_window", "history_dropout": "history_dropout",
+    "motion_lr_scale": "motion_lr_scale",
     "lr_schedule": "lr_schedule", "decay_steps": "decay_steps",
 }  # fmt: skip
 
@@ -251,6 +252,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--history-dropout", type=float, metavar="P",
                    help="with --motion-window: share of training frames shown at rest, so the model also samples "
                         "without motion (default 0.15)")  # fmt: skip
+    g.add_argument("--motion-lr-scale", type=float, metavar="X",
+                   help="with --motion-window: the motion encoder's learning rate in multiples of --lr (a fine-tune "
+                        "from a pose-only model; default 1)")  # fmt: skip
     parser.add_argument("--subjects", nargs="+",
                         help="train on these subjects only: one model per subject as the PocoLoco paper, or hold one "
                              "out for `pocoloco fit` (default: all)")  # fmt: skip

@@ -63,7 +63,9 @@ class PocoLocoTrainConfig(Config):
     also condition on the last this-many seconds of the body's motion (issue 41: 8 samples per
     second, :func:`pocoloco.data.motion_window.motion_features`; 0: the pose alone); training
     augments the windows (time-warp, jitter, noise) and replaces a ``history_dropout`` share of them
-    by a body at rest, so the same model also samples without motion.
+    by a body at rest, so the same model also samples without motion. motion_lr_scale: the motion
+    encoder's learning rate in multiples of ``lr`` (a fine-tune from a pose-only model: its
+    zero-initialised encoder has everything to learn, the rest little).
     """
 
     preset: str = "small"
@@ -103,6 +105,7 @@ class PocoLocoTrainConfig(Config):
     joint_velocity: bool = False
     motion_window: float = 0.0
     history_dropout: float = 0.15
+    motion_lr_scale: float = 1.0
 
     def __post_init__(self):
         if self.model != "pocoloco":
@@ -128,6 +131,8 @@ class PocoLocoTrainConfig(Config):
             raise ValueError(f"motion_window must be between 0 and 10 seconds, got {self.motion_window}")
         if not 0 <= self.history_dropout < 1:
             raise ValueError(f"history_dropout must be in [0, 1), got {self.history_dropout}")
+        if not (math.isfinite(self.motion_lr_scale) and self.motion_lr_scale > 0):
+            raise ValueError(f"motion_lr_scale must be > 0, got {self.motion_lr_scale}")
         for name in ("warmup_steps", "ckpt_every", "sample_every", "num_workers", "body_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")

@@ -99,11 +99,12 @@ class PocoLocoTask(TrainingTask):
 
     def make_optimizer(self, model: nn.Module) -> torch.optim.Optimizer:
         c = self.config
-        decay, no_decay = [], []
-        for p in model.parameters():
-            (decay if p.ndim >= 2 else no_decay).append(p)
-        return torch.optim.AdamW([{"params": decay, "weight_decay": c.weight_decay},
-                                  {"params": no_decay, "weight_decay": 0.0}],
+        groups: dict[tuple[bool, bool], list[nn.Parameter]] = {}
+        for name, p in model.named_parameters():  # (motion encoder?, weight decay?) -> parameters
+            groups.setdefault((name.startswith("motion_in.") and c.motion_lr_scale != 1.0, p.ndim >= 2), []).append(p)
+        return torch.optim.AdamW([{"params": ps, "weight_decay": c.weight_decay if decay else 0.0,
+                                   **({"lr": c.lr * c.motion_lr_scale} if motion else {})}
+                                  for (motion, decay), ps in sorted(groups.items())],
                                  lr=c.lr, betas=c.adam_betas, eps=c.adam_eps, **fused_optimizer_options(model))  # fmt: skip
 
     def step_batches(self, model: nn.Module, rank: int, world: int) -> StepBatches:
