@@ -427,3 +427,20 @@ def test_a_pack_carries_the_motion_histories(tiny_dataset, tmp_path):
     assert "\n" not in str(e.value)
     assert cli_main(["train", "--data", str(tmp_path / "m.pack"), "--preset", "latent_tiny", "--motion-window", "2.0",
                      "--steps", "2", "--num-points", "64", "--out", str(tmp_path / "run"), "--no-progress", "--sample-every", "0"]) in (0, None)  # fmt: skip
+
+
+def test_the_motion_encoder_can_learn_faster_than_the_rest(tiny_dataset):
+    """--motion-lr-scale: the encoder's parameters in their own AdamW groups at lr x scale (weight
+    decay as the rest's), every other parameter at lr; POP's in their own Adam group too."""
+    from pocoloco.methods.pocoloco import train_preset
+    from pocoloco.methods.pocoloco.training import PocoLocoTask
+
+    task = PocoLocoTask(train_preset("latent_tiny", motion_window=2.0, motion_lr_scale=10.0), tiny_dataset)
+    model = task.build_model()
+    opt = task.make_optimizer(model)
+    lr_of = {id(p): g["lr"] for g in opt.param_groups for p in g["params"]}
+    for name, p in model.named_parameters():
+        assert lr_of[id(p)] == pytest.approx(task.config.lr * (10.0 if name.startswith("motion_in.") else 1.0)), name
+    assert sum(len(g["params"]) for g in opt.param_groups) == len(list(model.parameters()))
+    with pytest.raises(ValueError, match="motion_lr_scale"):
+        train_preset("latent_tiny", motion_lr_scale=0.0)

@@ -91,7 +91,8 @@ class SkinnedTrainConfig(Config):
     last ``decay_steps``: a cool-down, e.g. of a shipped model with ``--init-from``).
     motion_window / history_dropout: POP only: the code of the last this-many seconds of motion joins
     the pose features (issue 41's ablation; :class:`~pocoloco.models.pop.POPConfig`), a
-    ``history_dropout`` share of training frames shown at rest.
+    ``history_dropout`` share of training frames shown at rest, the encoder's learning rate
+    ``motion_lr_scale`` x ``lr``.
     """
 
     model: str = "pop"
@@ -120,6 +121,7 @@ class SkinnedTrainConfig(Config):
     decay_steps: int = 0
     motion_window: float = 0.0
     history_dropout: float = 0.15
+    motion_lr_scale: float = 1.0
 
     def __post_init__(self):
         if self.model not in SKINNED_KINDS:
@@ -147,6 +149,8 @@ class SkinnedTrainConfig(Config):
             raise ValueError(f"motion_window must be between 0 and 10 seconds, got {self.motion_window}")
         if not 0 <= self.history_dropout < 1:
             raise ValueError(f"history_dropout must be in [0, 1), got {self.history_dropout}")
+        if not (math.isfinite(self.motion_lr_scale) and self.motion_lr_scale > 0):
+            raise ValueError(f"motion_lr_scale must be > 0, got {self.motion_lr_scale}")
         if self.bf16 and self.model == "pop":
             raise ValueError("bf16 is not available for POP: its fused BatchNorm + softplus decoder runs in float32")
         if self.subjects is not None:

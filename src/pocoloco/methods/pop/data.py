@@ -33,10 +33,14 @@ def pop_motion_features(window: MotionWindow, joints: np.ndarray) -> np.ndarray:
     return motion_features(window, heading_of(joints), MOTION_SCALE_M)
 
 
-def make_optimizer(model: POP, lr: float = 3e-4, lr_features: float = 5e-4) -> torch.optim.Adam:
-    """Adam with ``lr`` for the network and ``lr_features`` for G (SupMat A.2's rates by default)."""
-    return torch.optim.Adam([{"params": model.network_parameters(), "lr": lr},
-                             {"params": [model.geom], "lr": lr_features}])  # fmt: skip
+def make_optimizer(model: POP, lr: float = 3e-4, lr_features: float = 5e-4, lr_motion: float | None = None
+                   ) -> torch.optim.Adam:  # fmt: skip
+    """Adam with ``lr`` for the network and ``lr_features`` for G (SupMat A.2's rates by default);
+    ``lr_motion``: the motion encoder's own rate (None: ``lr``)."""
+    motion = [p for n, p in model.named_parameters() if n.startswith("motion_in.")] if lr_motion is not None else []
+    network = [p for p in model.network_parameters() if all(p is not q for q in motion)]
+    groups = [{"params": network, "lr": lr}, {"params": [model.geom], "lr": lr_features}]
+    return torch.optim.Adam(groups + ([{"params": motion, "lr": lr_motion}] if motion else []))
 
 
 def train_step(model: POP, optimizer: torch.optim.Optimizer, batch: POPBatch, step: int,

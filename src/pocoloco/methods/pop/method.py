@@ -189,7 +189,8 @@ class POPTask(SkinnedTask):
         return POP(self.config.net_config(), surface, len(self.assets), int(first.template.shape[0]))
 
     def make_optimizer(self, model: nn.Module) -> torch.optim.Optimizer:
-        return make_optimizer(model, self.config.lr, self.config.lr_codes)
+        c = self.config
+        return make_optimizer(model, c.lr, c.lr_codes, c.lr * c.motion_lr_scale if c.motion_lr_scale != 1.0 else None)
 
     @property
     def needs_mean_shape(self) -> bool:
