@@ -37,7 +37,7 @@ import torch
 from pocoloco.apps.common import denoise_from, subset, to_metres, to_normalised
 from pocoloco.data import format as fmt
 from pocoloco.data.format import read_frame
-from pocoloco.data.motion_window import MotionWindow, heading_of, motion_features, motion_window
+from pocoloco.data.motion_window import MotionWindow
 from pocoloco.data.poses import check_joints, check_skeleton
 from pocoloco.diffusion.samplers import check_sampler
 from pocoloco.evaluation.metrics import chamfer_cm, nearest
@@ -192,8 +192,7 @@ def animate(
     for k in range(F):
         if takes_motion:
             window = None if windows is None else windows[k]
-            prior.denoiser.motion = None if window is None else torch.from_numpy(motion_features(
-                window, heading_of(joints[k]) - float(normalisation.angle(joints[k])), normalisation.std))  # fmt: skip
+            prior.denoiser.motion = None if window is None else torch.from_numpy(normalisation.normalise_motion(window, joints[k]))
         if method != "chain" or k == 0:
             x = denoise_from(prior, joints[k], None, T, sampler, steps, [seeds[k]],
                              num_points=num_points)  # fmt: skip

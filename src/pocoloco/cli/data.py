@@ -292,7 +292,7 @@ def _motion_line(path: Path) -> str:
         return (f"motion windows: none of the {len(seqs)} sequences stores its motion before the first frame; windows "
                 f"reaching before it hold that frame (`pocoloco data motion-history {path}` adds them to a "
                 "synthetic dataset)")  # fmt: skip
-    before = min(read_motion_history(p).first / read_motion_history(p).fps for p in have[:50])
+    before = min(h.first / h.fps for h in map(read_motion_history, have[:50]))
     return (f"motion windows: {len(have)} of {len(seqs)} sequences store their whole motion (motion_history.npz; "
             f"{before:.2f} s or more before the first stored frame, the rest pose before that): any window W, "
             "e.g. `train --motion-window 2.0`")  # fmt: skip

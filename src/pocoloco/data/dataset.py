@@ -51,8 +51,8 @@ from .motion_window import (
     window_samples,
 )
 
-__all__ = ["Normalisation", "OpenedDataset", "PointCloudDataset", "frame_motion_window", "frame_velocity", "rotate_z",
-           "sequence_history", "window_features"]
+__all__ = ["Normalisation", "OpenedDataset", "PointCloudDataset", "frame_history", "frame_motion_window", "frame_velocity",
+           "rotate_z", "sequence_history", "window_features"]
 
 #: frames per second of a dataset whose card does not record it (the synthetic presets' rate)
 DEFAULT_FPS = 25.0
@@ -159,6 +159,12 @@ class Normalisation:
         v = rotate_z(velocity, -self.angle(joints)) if self.heading else velocity
         return v / self.std
 
+    def normalise_motion(self, window: MotionWindow, joints) -> np.ndarray:
+        """A motion window (heading frame of the pose ``joints`` (J, 3), metres) -> its (J, F) network
+        features in the normalised frame of ``joints`` (:func:`~pocoloco.data.motion_window.motion_features`:
+        turned out of the heading frame, less the angle this normalisation turns away, lengths / std)."""
+        return motion_features(window, heading_of(joints) - float(self.angle(np.asarray(joints))), self.std)
+
 
 def frame_velocity(path: str | os.PathLike, joints: np.ndarray, fps: float | None = None) -> np.ndarray:
     """(J, 3) float32 joint velocities (m/s) of the frame file ``path`` with ``joints``: the
@@ -218,26 +224,33 @@ def window_features(history: MotionHistory, frame: int, seconds: float, normalis
     (:func:`~pocoloco.data.motion_window.motion_features`); ``rng``: training's augmentation
     (:func:`~pocoloco.data.motion_window.augmented_window`)."""
     window = history.window(frame, seconds) if rng is None else augmented_window(history, frame, seconds, rng)
-    turn = heading_of(joints) - float(normalisation.angle(joints))
-    return torch.from_numpy(motion_features(window, turn, normalisation.std))
+    return torch.from_numpy(normalisation.normalise_motion(window, joints))
 
 
 _HISTORIES: dict[str, MotionHistory] = {}
+#: sequences whose histories :func:`frame_history` keeps (~20 KB each for `medium`'s 60 rows)
+_HISTORIES_KEPT = 1024
 
 
-def frame_motion_window(path: str | os.PathLike, seconds: float, hz: float = DEFAULT_HZ) -> MotionWindow:
-    """The motion window of the dataset frame file ``path`` (``.../<sequence>/frames/000123.npz``):
-    the last ``seconds`` of its sequence's motion (:func:`sequence_history`, cached per sequence)."""
+def frame_history(path: str | os.PathLike) -> tuple[MotionHistory, int]:
+    """(its sequence's :func:`sequence_history`, its stored frame index) for the dataset frame file
+    ``path`` (``.../<sequence>/frames/000123.npz``); histories cached per sequence folder."""
     path = Path(path)
     folder = str(path.parent.parent)
     if folder not in _HISTORIES:
-        if len(_HISTORIES) > 64:
+        if len(_HISTORIES) >= _HISTORIES_KEPT:
             _HISTORIES.clear()
         _HISTORIES[folder] = sequence_history(folder)
-    history = _HISTORIES[folder]
-    frame = int(path.stem)
+    history, frame = _HISTORIES[folder], int(path.stem)
     if history.first + frame >= len(history.joints):
         raise ValueError(f"{path}: frame {frame} is beyond its sequence's motion ({len(history.joints)} frames)")
+    return history, frame
+
+
+def frame_motion_window(path: str | os.PathLike, seconds: float, hz: float = DEFAULT_HZ) -> MotionWindow:
+    """The motion window of the dataset frame file ``path``: the last ``seconds`` of its sequence's
+    motion (:func:`frame_history`)."""
+    history, frame = frame_history(path)
     return history.window(frame, seconds, hz)
 
 
@@ -438,12 +451,14 @@ class PointCloudDataset(Dataset):
         """(J, F) the motion-window features of frame ``index`` (``motion_window`` seconds at 8 Hz,
         :func:`~pocoloco.data.motion_window.motion_features`), in the frame's normalised point frame.
         ``rng``: training's augmentation (time-warp +-15 %, past samples jittered by up to one
-        frame, 5 mm noise on the past joints). ``joints``: the frame's (J, 3), if already read."""
+        frame, 5 mm noise on the past joints). ``joints``: the frame's (J, 3), if already read (else its
+        history's row, the same skeleton: no file is read again)."""
         subject, sequence, path = self.frames[index]
         frame = int(os.path.basename(path)[:-4])
+        history = self.history(subject, sequence)
         if joints is None:
-            joints = fmt.read_frame(path, ["joints"]).joints
-        return window_features(self.history(subject, sequence), frame, self.motion_window, self.normalisation, joints, rng)
+            joints = history.joints[history.first + frame]
+        return window_features(history, frame, self.motion_window, self.normalisation, joints, rng)
 
     @property
     def motion_feature_dim(self) -> int:

@@ -90,6 +90,16 @@ def motion_window(joints: np.ndarray, t: int, fps: float, seconds: float = DEFAU
     return MotionWindow(local.astype(np.float32), velocity.astype(np.float32), yaw.astype(np.float32))
 
 
+def check_motion_training(motion_window: float, history_dropout: float, motion_lr_scale: float) -> None:
+    """One-line ValueErrors for a training run's motion options (PocoLoco's and POP's configs)."""
+    if not (np.isfinite(motion_window) and 0 <= motion_window <= 10):
+        raise ValueError(f"motion_window must be between 0 and 10 seconds, got {motion_window}")
+    if not 0 <= history_dropout < 1:
+        raise ValueError(f"history_dropout must be in [0, 1), got {history_dropout}")
+    if not (np.isfinite(motion_lr_scale) and motion_lr_scale > 0):
+        raise ValueError(f"motion_lr_scale must be > 0, got {motion_lr_scale}")
+
+
 def motion_features(window: MotionWindow, turn: float, scale: float) -> np.ndarray:
     """(J, F) float32 per-joint features of a window for a network (F = 7 S - 3, 116 for 17 samples):
     joint j's past positions relative to its current one (S - 1 samples x 3), then the root's

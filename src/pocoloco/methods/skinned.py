@@ -41,6 +41,7 @@ from torch import nn
 
 from pocoloco.body.surface import barycentric_interpolate
 from pocoloco.data.dataset import Normalisation, OpenedDataset, PointCloudDataset
+from pocoloco.data.motion_window import check_motion_training
 from pocoloco.data.format import (
     DatasetLayout,
     Frame,
@@ -145,12 +146,7 @@ class SkinnedTrainConfig(Config):
             raise ValueError(f"grad_clip must be > 0 or None, got {self.grad_clip}")
         if self.motion_window and self.model != "pop":
             raise ValueError("--motion-window applies to --model pocoloco (latent presets) and pop")
-        if not (math.isfinite(self.motion_window) and 0 <= self.motion_window <= 10):
-            raise ValueError(f"motion_window must be between 0 and 10 seconds, got {self.motion_window}")
-        if not 0 <= self.history_dropout < 1:
-            raise ValueError(f"history_dropout must be in [0, 1), got {self.history_dropout}")
-        if not (math.isfinite(self.motion_lr_scale) and self.motion_lr_scale > 0):
-            raise ValueError(f"motion_lr_scale must be > 0, got {self.motion_lr_scale}")
+        check_motion_training(self.motion_window, self.history_dropout, self.motion_lr_scale)
         if self.bf16 and self.model == "pop":
             raise ValueError("bf16 is not available for POP: its fused BatchNorm + softplus decoder runs in float32")
         if self.subjects is not None:

@@ -76,6 +76,7 @@ from typing import Any, ClassVar
 import torch
 from torch import nn
 
+from pocoloco.data.motion_window import motion_feature_dim, window_samples
 from pocoloco.models.conditioning import (
     MotionEncoder,
     PoseCondition,
@@ -196,7 +197,7 @@ class LatentDenoiserConfig(Config):
         """F of the motion features the model takes (0: none; 116 for 2 s at 8 Hz)."""
         if not self.motion_window:
             return 0
-        return 7 * (int(round(self.motion_window * self.motion_hz)) + 1) - 3  # data.motion_window.motion_feature_dim
+        return motion_feature_dim(window_samples(self.motion_window, self.motion_hz))
 
     @property
     def num_tokens(self) -> int:

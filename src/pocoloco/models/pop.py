@@ -60,6 +60,7 @@ from pocoloco.body.surface import (
     uv_to_grid,
 )
 from pocoloco.body.skeleton import NUM_JOINTS
+from pocoloco.data.motion_window import motion_feature_dim, window_samples
 from pocoloco.models.conditioning import MotionEncoder
 from pocoloco.models.pop_decoder import ShapeDecoder
 from pocoloco.utils.config import Config
@@ -128,7 +129,7 @@ class POPConfig(Config):
         """F of the motion features the model takes (0: none; 116 for 2 s at 8 Hz)."""
         if not self.motion_window:
             return 0
-        return 7 * (int(round(self.motion_window * self.motion_hz)) + 1) - 3  # data.motion_window.motion_feature_dim
+        return motion_feature_dim(window_samples(self.motion_window, self.motion_hz))
 
     def __post_init__(self):
         def pos_int(name):

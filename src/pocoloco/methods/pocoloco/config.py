@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from pocoloco.data.motion_window import check_motion_training
 from pocoloco.diffusion.schedules import PREDICTION_TYPES
 from pocoloco.engine.trainer import LR_SCHEDULES, LoopSettings, check_lr_schedule
 from pocoloco.models.denoisers import ARCHITECTURES, denoiser_config_from_dict
@@ -127,12 +128,7 @@ class PocoLocoTrainConfig(Config):
             raise ValueError("joint_velocity (--joint-velocity) needs the latent denoiser (e.g. --preset latent_small)")
         if self.motion_window and self.architecture != "latent":
             raise ValueError("motion_window (--motion-window) needs the latent denoiser (e.g. --preset latent_small)")
-        if not (math.isfinite(self.motion_window) and 0 <= self.motion_window <= 10):
-            raise ValueError(f"motion_window must be between 0 and 10 seconds, got {self.motion_window}")
-        if not 0 <= self.history_dropout < 1:
-            raise ValueError(f"history_dropout must be in [0, 1), got {self.history_dropout}")
-        if not (math.isfinite(self.motion_lr_scale) and self.motion_lr_scale > 0):
-            raise ValueError(f"motion_lr_scale must be > 0, got {self.motion_lr_scale}")
+        check_motion_training(self.motion_window, self.history_dropout, self.motion_lr_scale)
         for name in ("warmup_steps", "ckpt_every", "sample_every", "num_workers", "body_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")

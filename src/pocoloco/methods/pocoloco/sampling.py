@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from pocoloco.data.dataset import Normalisation, rotate_z
-from pocoloco.data.motion_window import MotionWindow, heading_of, motion_features
+from pocoloco.data.motion_window import MotionWindow, window_samples
 from pocoloco.data.poses import check_joints
 from pocoloco.diffusion.samplers import (
     SAMPLER_STEPS,
@@ -153,13 +153,12 @@ def sample_clouds(
         velocity_t = torch.as_tensor(normalisation.normalise_velocity(velocity, joints), dtype=dtype, device=device)[None]
     motion_t = None
     if motion is not None:
-        want = int(round(den.motion_window * den.motion_hz)) + 1 if getattr(den, "motion_window", 0) else 0
+        want = window_samples(den.motion_window, den.motion_hz) if getattr(den, "motion_window", 0) else 0
         if not want:
             raise ValueError("this model takes no motion window (trained without --motion-window)")
         if motion.joints.shape != (want, J, 3):
             raise ValueError(f"motion: the model takes {want} samples of {J} joints, got {motion.joints.shape[:2]}")
-        turn = heading_of(joints) - float(normalisation.angle(joints))  # heading frame -> the points' frame
-        motion_t = torch.as_tensor(motion_features(motion, turn, normalisation.std), dtype=dtype, device=device)[None]
+        motion_t = torch.as_tensor(normalisation.normalise_motion(motion, joints), dtype=dtype, device=device)[None]
     root = normalisation.root(joints)  # (3,) metres
     schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
     kwargs: dict[str, Any] = {"prediction_type": config.prediction_type, "clip": clip}

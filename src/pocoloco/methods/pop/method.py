@@ -22,7 +22,7 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 
 from pocoloco.body.surface import BodySurface, largest_component_faces
-from pocoloco.data.dataset import sequence_history
+from pocoloco.data.dataset import frame_history
 from pocoloco.data.motion_window import augmented_window
 from pocoloco.data.poses import Pose, dataset_frame_path, demo_motion, subject_of_spec
 from pocoloco.methods.pop.data import collate_pop, make_optimizer, pop_motion_features, pop_sample_from_frame
@@ -182,7 +182,6 @@ class POPTask(SkinnedTask):
     method = POPMethod
 
     def build_model(self) -> nn.Module:
-        self._histories: dict[str, Any] = {}
         first = self.assets[next(iter(self.assets))]
         faces = np.asarray(first.faces, np.int64)
         surface = BodySurface(faces, first.uv, np.asarray(first.uv_faces, np.int64), largest_component_faces(faces))
@@ -212,10 +211,8 @@ class POPTask(SkinnedTask):
         ``history_dropout`` share of frames; all from (seed, 4, position)."""
         c = self.config
         rng = np.random.default_rng([c.seed, 4, item.position])
-        folder = str(Path(item.path).parent.parent)
-        if folder not in self._histories:
-            self._histories[folder] = sequence_history(folder)
-        window = augmented_window(self._histories[folder], int(item.frame.frame_index), c.motion_window, rng)
+        history, frame = frame_history(item.path)
+        window = augmented_window(history, frame, c.motion_window, rng)
         features = pop_motion_features(window, np.asarray(item.frame.joints))
         return features * 0.0 if rng.random() < c.history_dropout else features
 
