@@ -23,6 +23,7 @@ import torch
 from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.format import read_frame
 from pocoloco.data.published import MAX_CLOUD_EXTENT_M, check_cloud, read_ply
+from pocoloco.diffusion.few_step import student_grid
 from pocoloco.diffusion.chains import chain_timesteps, renoise, repaint_resampling
 from pocoloco.diffusion.samplers import PerSampleRNG, sample
 from pocoloco.methods.base import PointPrior
@@ -72,7 +73,10 @@ def denoise_from(
     """
 
     C, J, T = prior.point_channels, prior.num_joints, prior.schedule.num_timesteps
-    timesteps = chain_timesteps(t, T, sampler, steps)
+    if getattr(prior, "student_calls", 0):
+        sampler, steps, timesteps = student_chain(prior, t, steps, resample)
+    else:
+        timesteps = chain_timesteps(t, T, sampler, steps)
     if resample < 1 or jump < 1:
         raise ValueError(f"resample and jump must be >= 1, got {resample} and {jump}")
     seeds = [int(s) for s in seeds]
@@ -113,6 +117,25 @@ def denoise_from(
     finally:
         model.train(was_training)
     return out.float().cpu().numpy()
+
+
+def student_chain(prior: PointPrior, t: int, steps: int | None, resample: int = 1) -> tuple[str, int, list[int]]:
+    """A distilled student's chain from step t: the few-step sampler over its grid timesteps below t
+    (``steps`` None: all of them; t = 250 / 500 / 750 / 1000 give 1 / 2 / 3 / 4 calls with the
+    4-call grid). One-line errors for a t or steps off the grid, and for RePaint resampling."""
+    T = prior.schedule.num_timesteps
+    grid = student_grid(T, prior.student_calls)
+    if resample > 1:
+        raise ValueError("--resample: a distilled model has no ancestral steps to resample; use its teacher")
+    below = [g for g in grid if g < t]
+    if steps is None:
+        steps = len(below)
+    timesteps = chain_timesteps(t, T, "few-step", steps) if below else []
+    if not below or not set(timesteps) <= set(grid):
+        starts = ", ".join(str(g + 1) for g in sorted(grid))
+        raise ValueError(f"a distilled model denoises from its grid steps only: t in {{{starts}}} with as many calls "
+                         f"as grid steps below t (got t={t}, steps={steps})")  # fmt: skip
+    return "few-step", steps, timesteps
 
 
 def sample_prior(prior: PointPrior, joints: np.ndarray, num_points: int, seeds: Sequence[int],

@@ -273,7 +273,8 @@ def add_animate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", default="chain",
                         help="independent, shared-noise, chain (default) or chain-world (= chain --anchor world, "
                              "the recommended one: least flicker at equal accuracy, BENCHMARKS.md)")  # fmt: skip
-    parser.add_argument("--t", type=int, default=200, help="chain: renoising step of each new frame (default 200)")
+    parser.add_argument("--t", type=int, default=None, help="chain: renoising step of each new frame (default 200; a "
+                        "distilled model: 250, one network call per frame)")  # fmt: skip
     parser.add_argument("--anchor", default=None, help="chain: carry the previous frame root-relative (root, "
                                                        "default) or in world coordinates (world)")  # fmt: skip
     parser.add_argument("--points", type=int, default=2048, help="N points per frame (default 2048)")
@@ -321,7 +322,11 @@ def cmd_animate(args: argparse.Namespace) -> None:
         subject = subject_of_spec(motion.name)
         poses = {k: method.pose_from_frame(motion.frames[i], subject) for k, i in enumerate(chosen)}
         finish = lambda k, points, seed: hook.finish(poses[k], points, seed)  # noqa: E731
-    check_sampler(args.sampler, args.steps, T)
+    student = getattr(prior, "student_calls", 0)  # a distilled model: its few-step sampler, grid steps
+    if args.t is None:
+        args.t = 250 if student else 200
+    if not student:
+        check_sampler(args.sampler, args.steps, T)
     if not 1 <= args.t <= T:
         raise ValueError(f"--t must be in [1, {T}] (the model's training timesteps), got {args.t}")
     joints = motion.joints[chosen]
@@ -339,7 +344,7 @@ def cmd_animate(args: argparse.Namespace) -> None:
     info: dict[str, Any] = {
         "checkpoint": str(ckpt), "step": step, "motion": motion.name, "frames": chosen, "method": args.method,
         "t": args.t if args.method == "chain" else None, "anchor": args.anchor if args.method == "chain" else None,
-        "points": args.points, "sampler": args.sampler, "steps": args.steps, "seeds": anim.seeds,
+        "points": args.points, "sampler": "few-step" if student else args.sampler, "steps": args.steps, "seeds": anim.seeds,
         "seconds_total": seconds, "seconds_per_frame": seconds / len(chosen),
         "motion_window_s": method.motion_window,
     }  # fmt: skip

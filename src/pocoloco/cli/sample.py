@@ -103,7 +103,7 @@ def cmd_sample(args: argparse.Namespace) -> None:
                     seconds_total=seconds, seconds_per_sample=seconds / num)  # fmt: skip
     write_samples(out, clouds, settings, render=not args.no_render, pose=pose)
     what = f"{num} samples" if not method.deterministic else f"1 {method.title} cloud"
-    how = (f"{args.sampler} {settings['steps']} steps" if "steps" in settings
+    how = (f"{settings.get('sampler', args.sampler)} {settings['steps']} steps" if "steps" in settings
            else f"outfit {method.outfit_names()[outfit]}" if outfit is not None else method.title)  # fmt: skip
     for note in notes:
         print(f"note: {note}")

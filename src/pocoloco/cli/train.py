@@ -33,6 +33,7 @@ from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods.hybrid import FreeRegionMaps, assemble_hybrid, learn_free_maps
 from pocoloco.methods.hybrid.training import train_free_generator, write_free_pack
 from pocoloco.methods.pocoloco.config import SCHEDULE_KINDS
+from pocoloco.methods.pocoloco.distill import distill
 from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.methods.registry import config_from_checkpoint
 
@@ -380,6 +381,60 @@ def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
                              "thresholded: a checkpoint of kilobytes (how default:hybrid ships)")  # fmt: skip
 
 
+def cmd_distill(args: argparse.Namespace) -> None:
+    """``pocoloco distill``: teacher pairs, then the few-step student (issue 42)."""
+    if args.time_budget is not None and not args.time_budget > 0:
+        raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")
+    data = OpenedDataset.open(args.data, subjects=[]).ensure_checked(None)
+    device, _ = init_distributed(args.device)
+    if args.threads is None and device.type == "cpu" and "OMP_NUM_THREADS" not in os.environ:
+        torch.set_num_threads(max(1, os.cpu_count() or 1))
+    overrides = {k: v for k, v in {"steps": args.steps, "batch_size": args.batch_size, "lr": args.lr,
+                                   "distill_chamfer": args.chamfer_weight}.items() if v is not None}  # fmt: skip
+    out = output_folder(args.out)
+    with exclusive_lock(out, "pocoloco distill"):
+        check_run_folder(out, args.resume)
+        log = console(stderr=True).print
+        log(f"[bold]pocoloco distill[/] teacher={args.ckpt} calls={args.calls} device={device} "
+            f"threads={torch.get_num_threads()}" + (f" budget={args.time_budget:g} min" if args.time_budget else "")
+            + f" -> {args.out}")  # fmt: skip
+        with progress_bar("teacher pairs", args.pairs) as update:
+            result = distill(resolve_ckpt_arg(args.ckpt), data, out, calls=args.calls, pairs=args.pairs,
+                             pair_points=args.pair_points, teacher_sampler=args.teacher_sampler,
+                             teacher_steps=args.teacher_steps, seed=args.seed, resume=args.resume, device=device,
+                             progress=False, pair_progress=lambda d, n: update(d, n), log=None,
+                             time_budget_s=None if args.time_budget is None else 60.0 * args.time_budget,
+                             **overrides)  # fmt: skip
+        why = " (time budget reached)" if result.stopped_by_budget else ""
+        print(f"distilled to step {result.step}{why} ({result.steps_per_s:.3f} steps/s), loss {result.final_loss:.4f}; "
+              f"model {result.export} (sample with --ckpt {result.export} --steps 1, 2 or {args.calls})")  # fmt: skip
+
+
+def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``pocoloco distill`` options."""
+    parser.add_argument("--ckpt", default="default", help="the teacher: a PocoLoco checkpoint (default: default)")
+    parser.add_argument("--data", required=True, help="the dataset the teacher was trained on (its train split)")
+    parser.add_argument("--out", required=True, help="run folder (teacher pairs in OUT/pairs, the student in OUT/model)")
+    parser.add_argument("--calls", type=int, default=4, help="network calls of the student's grid (default 4; it "
+                        "samples with 1, 2 or 4)")  # fmt: skip
+    parser.add_argument("--pairs", type=int, default=1024, help="teacher pairs (default 1024)")
+    parser.add_argument("--pair-points", type=int, default=512, help="points per pair cloud (default 512)")
+    parser.add_argument("--teacher-sampler", default="dpm++", help="the teacher's deterministic sampler (default "
+                        "dpm++, DPM-Solver++(2M) ODE)")  # fmt: skip
+    parser.add_argument("--teacher-steps", type=int, default=20, help="its steps (a multiple of --calls; default 20)")
+    parser.add_argument("--steps", type=int, default=None, help="student training steps (default 2000)")
+    parser.add_argument("--batch-size", type=int, default=None, help="pairs per step (default 16)")
+    parser.add_argument("--lr", type=float, default=None, help="learning rate (default 5e-5)")
+    parser.add_argument("--chamfer-weight", type=float, default=None, help="weight of the Chamfer term (default 1)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the pairs' frames and noises and of the "
+                        "training batches (default 0)")  # fmt: skip
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out (pairs and training)")
+    parser.add_argument("--time-budget", type=float, default=None, help="stop training after this many minutes "
+                        "(the learning rate cools down on the clock)")  # fmt: skip
+    parser.add_argument("--device", default=None, help="cpu / cuda (default: cuda if available)")
+    add_threads_argument(parser)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("train", help="train a model on a dataset (PocoLoco diffusion, or POP / CloSET)")
     add_train_arguments(s)
@@ -388,3 +443,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                                       "it hangs free (maps learnt from the data)")  # fmt: skip
     add_hybrid_arguments(s)
     s.set_defaults(func=cmd_hybrid)
+    s = sub.add_parser("distill", help="distil a PocoLoco model into a few-step student (1-4 network calls)")
+    add_distill_arguments(s)
+    s.set_defaults(func=cmd_distill)

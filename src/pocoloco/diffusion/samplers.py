@@ -53,6 +53,7 @@ from pocoloco.diffusion.sampler_base import (
     make_timesteps,
     resolve_timesteps,
 )
+from pocoloco.diffusion.few_step import sample_few_step
 from pocoloco.diffusion.schedules import NoiseSchedule, PredictionType
 from pocoloco.diffusion.unipc import sample_unipc
 
@@ -60,7 +61,7 @@ __all__ = ["ALPHA_BAR_MIN", "SAMPLERS", "SAMPLER_STEPS", "Denoiser", "PerSampleR
            "check_sampler", "make_noise", "make_timesteps", "sample", "sample_ddim", "sample_ddpm", "sample_dpmpp",
            "sample_unipc"]  # fmt: skip
 
-SamplerKind = Literal["ddpm", "ddim", "dpm++", "dpm++sde", "dpm++3m", "dpm++3msde", "unipc"]
+SamplerKind = Literal["ddpm", "ddim", "dpm++", "dpm++sde", "dpm++3m", "dpm++3msde", "unipc", "few-step"]
 
 #: sampler names accepted by :func:`sample` (and ``pocoloco sample --sampler``) -> default number of
 #: steps. ddpm is the ancestral sampler strided to 100 steps (``steps=1000`` is the paper's DDPM).
@@ -71,8 +72,9 @@ SamplerKind = Literal["ddpm", "ddim", "dpm++", "dpm++sde", "dpm++3m", "dpm++3msd
 #: deterministic higher-order solvers (unipc: UniPC-2 bh2; dpm++3m) reach their ODE's answer in ~10
 #: steps, but that answer stays ~6-14 % above DDPM-1000; dpm++3msde (SDE-DPM-Solver++ 3M) is no
 #: better than dpm++sde at <= 10 steps (BENCHMARKS.md, "Few-step samplers, <= 10 network calls").
+#: few-step: the sampler of a distilled student (:mod:`~pocoloco.diffusion.few_step`, issue 42), 4 calls.
 SAMPLER_STEPS: dict[str, int] = {"dpm++": 20, "dpm++sde": 25, "ddim": 50, "ddpm": 100, "unipc": 10, "dpm++3m": 15,
-                                 "dpm++3msde": 25}  # fmt: skip
+                                 "dpm++3msde": 25, "few-step": 4}  # fmt: skip
 
 
 def check_sampler(sampler: str, steps: int | None, num_timesteps: int) -> None:
@@ -313,6 +315,7 @@ SAMPLERS: dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]] = {
     "dpm++3m": (sample_dpmpp, {"order": 3}),
     "dpm++3msde": (sample_dpmpp, {"order": 3, "stochastic": True}),
     "unipc": (sample_unipc, {}),
+    "few-step": (sample_few_step, {}),
 }
 
 
@@ -326,7 +329,8 @@ def sample(
 ) -> torch.Tensor:
     """Dispatch to the sampler named ``kind`` (:data:`SAMPLERS`): :func:`sample_ddpm` ("ddpm"),
     :func:`sample_ddim` ("ddim"), :func:`sample_dpmpp` ("dpm++"; "dpm++sde" = ``stochastic=True``;
-    "dpm++3m" / "dpm++3msde" = ``order=3``) or :func:`sample_unipc` ("unipc"); keyword arguments are
+    "dpm++3m" / "dpm++3msde" = ``order=3``), :func:`sample_unipc` ("unipc") or
+    :func:`~pocoloco.diffusion.few_step.sample_few_step` ("few-step", a distilled student's); keyword arguments are
     forwarded and override the kind's presets."""
     if kind not in SAMPLERS:
         raise ValueError(f"unknown sampler kind {kind!r} (expected one of {sorted(SAMPLERS)})")

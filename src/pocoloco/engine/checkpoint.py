@@ -84,8 +84,13 @@ MODEL_FILE = "model.safetensors"
 EMA_FILE = "ema.safetensors"
 STATE_FILE = "training_state.pt"
 LATEST_FILE = "latest"
-#: storage dtypes of :func:`export_for_sampling` (``weights_dtype`` in its ``meta.json``)
-WEIGHTS_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+#: storage dtypes of :func:`export_for_sampling` (``weights_dtype`` in its ``meta.json``); "int8":
+#: matrices as int8 with one float16 scale per row, the rest float16 (:func:`quantise_int8`)
+WEIGHTS_DTYPES = {"float32": torch.float32, "float16": torch.float16, "int8": torch.float16}
+#: suffix of the per-row scales of an int8 tensor in a weights file
+INT8_SCALE = ".int8_scale"
+#: floating tensors with fewer elements stay float16 in an int8 export (biases, norms, small tables)
+INT8_MIN_NUMEL = 1024
 _HALF_DTYPES = (torch.float16, torch.bfloat16)  # cast to float32 when loaded
 _STEP_DIR = re.compile(r"^step_(\d+)$")
 
@@ -375,6 +380,11 @@ def _load_safetensors(f: Path, device: str | torch.device) -> dict[str, torch.Te
         state = load_file(str(f), device=str(device))
     except Exception as e:  # safetensors raises its own error types for truncated / garbage files
         raise CorruptCheckpointError(f"{f}: corrupt weights file ({one_line(e)})") from None
+    scales = {k[: -len(INT8_SCALE)]: state.pop(k) for k in [k for k in state if k.endswith(INT8_SCALE)]}
+    for k, scale in scales.items():  # int8 rows back to float32 (export_for_sampling(dtype="int8"))
+        if k not in state or state[k].dtype != torch.int8 or tuple(scale.shape) != tuple(state[k].shape[:-1]):
+            raise CorruptCheckpointError(f"{f}: corrupt weights file (int8 scales of {k!r} do not match it)")
+        state[k] = dequantise_int8(state[k], scale)
     for k, v in state.items():
         if v.dtype in _HALF_DTYPES:
             state[k] = v = v.float()
@@ -503,9 +513,11 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     optimiser or RNG state, so it cannot be resumed. Written atomically (temporary folder, rename).
     This is how the models shipped in ``pocoloco/assets`` were made. Returns ``out``.
 
-    dtype: storage dtype of the floating tensors, ``"float32"`` or ``"float16"`` (half the bytes;
+    dtype: storage dtype of the floating tensors, ``"float32"``, ``"float16"`` (half the bytes;
         loading casts back to float32; with ``"float16"``, int64 buffers whose values fit are stored
-        as int32 too, e.g. a body's faces, and loading casts them back). Recorded in ``meta.json``
+        as int32 too, e.g. a body's faces, and loading casts them back) or ``"int8"`` (a quarter:
+        matrices of >= 1,024 values as per-row int8, :func:`quantise_int8`, the rest as float16).
+        Recorded in ``meta.json``
         as ``weights_dtype``. A value beyond float16's range (65504) is a one-line ValueError.
     keep_float32: tensors stored in float32 whatever ``dtype`` (a model's geometry buffers: a
         template's vertices in metres lose ~0.5 mm to float16, which moves every output point).
@@ -518,7 +530,10 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
     if dtype != "float32":
         keep = set(keep_float32)
-        state = {k: v if k in keep else _cast_finite(k, v, WEIGHTS_DTYPES[dtype], ck.path) for k, v in state.items()}
+        if dtype == "int8":
+            state = _quantised(state, keep)
+        state = {k: v if k in keep or v.dtype == torch.int8 else _cast_finite(k, v, WEIGHTS_DTYPES[dtype], ck.path)
+                 for k, v in state.items()}  # fmt: skip
         state = {k: _narrow_int(v) for k, v in state.items()}
     meta = dict(ck.meta)
     meta.update(has_ema=False, has_training_state=False, exported_from=str(ck.path),
@@ -537,6 +552,33 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    return out
+
+
+def quantise_int8(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Symmetric per-row int8 of a float tensor (..., D): ``q = round(v / s)``, ``s = max|row| / 127``
+    per row of the last axis (a linear layer's output channel, a vertex's code); returns (q int8
+    (..., D), s float16 (...)). The round-off is at most s / 2 per value (:func:`dequantise_int8`)."""
+    rows = v.float()
+    scale = (rows.abs().amax(-1) / 127.0).half()
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))  # an all-zero row (or one below fp16's range)
+    q = torch.round(rows / scale.float().unsqueeze(-1)).clamp(-127, 127).to(torch.int8)
+    return q, scale
+
+
+def dequantise_int8(q: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """float32 ``q * s`` (the inverse of :func:`quantise_int8` up to its round-off)."""
+    return q.float() * scale.float().unsqueeze(-1)
+
+
+def _quantised(state: dict[str, torch.Tensor], keep: set[str]) -> dict[str, torch.Tensor]:
+    """An int8 export's tensors: floating matrices of >= INT8_MIN_NUMEL elements as int8 + scales."""
+    out = {}
+    for k, v in state.items():
+        if k not in keep and v.is_floating_point() and v.ndim >= 2 and v.numel() >= INT8_MIN_NUMEL:
+            out[k], out[k + INT8_SCALE] = quantise_int8(v)
+        else:
+            out[k] = v
     return out
 
 

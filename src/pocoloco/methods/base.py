@@ -106,6 +106,8 @@ class PointPrior:
     prediction_type: str
     point_channels: int
     num_joints: int
+    #: a distilled student's grid (``pocoloco distill``): its chains visit only those timesteps
+    student_calls: int = 0
 
 
 @dataclass(frozen=True)

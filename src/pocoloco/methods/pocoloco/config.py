@@ -67,6 +67,12 @@ class PocoLocoTrainConfig(Config):
     by a body at rest, so the same model also samples without motion. motion_lr_scale: the motion
     encoder's learning rate in multiples of ``lr`` (a fine-tune from a pose-only model: its
     zero-initialised encoder has everything to learn, the rest little).
+    student_calls: 0 for a diffusion model; N > 0 for a student distilled from one
+    (``pocoloco distill``, issue 42, :mod:`pocoloco.methods.pocoloco.distill`): its x0 estimate at the
+    timesteps of the N-call grid is the teacher's deterministic answer, and it samples with the
+    few-step sampler (:mod:`pocoloco.diffusion.few_step`) in N or fewer calls. distill_chamfer /
+    distill_huber: the student's loss, per-point pseudo-Huber (``distill_huber``: its c, normalised
+    units) plus ``distill_chamfer`` x the Chamfer distance to the teacher's cloud.
     """
 
     preset: str = "small"
@@ -107,6 +113,9 @@ class PocoLocoTrainConfig(Config):
     motion_window: float = 0.0
     history_dropout: float = 0.15
     motion_lr_scale: float = 1.0
+    student_calls: int = 0
+    distill_chamfer: float = 1.0
+    distill_huber: float = 0.01
 
     def __post_init__(self):
         if self.model != "pocoloco":
@@ -129,6 +138,9 @@ class PocoLocoTrainConfig(Config):
         if self.motion_window and self.architecture != "latent":
             raise ValueError("motion_window (--motion-window) needs the latent denoiser (e.g. --preset latent_small)")
         check_motion_training(self.motion_window, self.history_dropout, self.motion_lr_scale)
+        if self.student_calls < 0 or self.distill_chamfer < 0 or not self.distill_huber > 0:
+            raise ValueError(f"student_calls and distill_chamfer must be >= 0 and distill_huber > 0, got "
+                             f"{self.student_calls}, {self.distill_chamfer}, {self.distill_huber}")  # fmt: skip
         for name in ("warmup_steps", "ckpt_every", "sample_every", "num_workers", "body_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")

@@ -23,13 +23,13 @@ from pocoloco.data.poses import (
     subject_of_spec,
 )
 from pocoloco.diffusion.schedules import NoiseSchedule
-from pocoloco.diffusion.samplers import SAMPLER_STEPS, check_sampler
+
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import Method, PointPrior, SampledClouds, SamplerOptions
 from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig, point_bytes
 from pocoloco.methods.pocoloco.fitting import CodeFit, fit_outfit_code
-from pocoloco.methods.pocoloco.sampling import sample_clouds
+from pocoloco.methods.pocoloco.sampling import sample_clouds, sampler_for
 from pocoloco.methods.pocoloco.training import PocoLocoTask
 from pocoloco.models.conditioning import OutfitBound, phenotype_vector
 from pocoloco.models.denoisers import build_denoiser
@@ -134,7 +134,8 @@ class PocoLocoMethod(Method):
         normalisation, schedule and parametrisation."""
         c = self.config
         return PointPrior(self.denoiser_for(outfit), self.normalisation, NoiseSchedule.from_kind(c.schedule, c.num_timesteps),
-                          c.prediction_type, int(c.denoiser.point_channels), int(c.denoiser.num_joints))  # fmt: skip
+                          c.prediction_type, int(c.denoiser.point_channels), int(c.denoiser.num_joints),
+                          int(c.student_calls))  # fmt: skip
 
     def condition(self, outfit: int | None) -> dict[str, Any]:
         """``sample_clouds`` keyword arguments (``outfit``, ``shape``) for outfit id ``outfit``."""
@@ -171,7 +172,7 @@ class PocoLocoMethod(Method):
         return "PocoLoco"
 
     def check_options(self, options: SamplerOptions) -> None:
-        check_sampler(options.sampler, options.steps, self.config.num_timesteps)
+        sampler_for(self.config, options.sampler, options.steps)
 
     def bytes_per_point(self) -> int:
         """The latent denoiser's point stream: ``point_width`` x (``point_mlp_ratio`` + 2) float32
@@ -229,8 +230,8 @@ class PocoLocoMethod(Method):
                              motion=pose.motion if self.config.motion_window else None, **kw)  # fmt: skip
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
-        steps = options.steps if options.steps is not None else SAMPLER_STEPS[options.sampler]
-        return {"preset": self.config.preset, "weights": self.weights, "sampler": options.sampler, "steps": steps,
+        sampler, steps = sampler_for(self.config, options.sampler, options.steps)
+        return {"preset": self.config.preset, "weights": self.weights, "sampler": sampler, "steps": steps,
                 "batch_size": options.batch_size, "clip": options.clip, "bf16": options.bf16,
                 **({"even_candidates": self.even_candidates(num_points)} if options.even else {})}  # fmt: skip
 

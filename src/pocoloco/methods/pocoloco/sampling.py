@@ -26,6 +26,7 @@ import torch
 from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.motion_window import MotionWindow, window_samples
 from pocoloco.data.poses import check_joints
+from pocoloco.diffusion.few_step import check_student_calls
 from pocoloco.diffusion.samplers import (
     SAMPLER_STEPS,
     PerSampleRNG,
@@ -36,7 +37,7 @@ from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.methods.base import SampledClouds
 from pocoloco.models.conditioning import PoseCondition
 
-__all__ = ["DEFAULT_CLIP", "condition_for", "sample_clouds"]
+__all__ = ["DEFAULT_CLIP", "condition_for", "sample_clouds", "sampler_for"]
 
 #: default x0 clamp of the CLI (normalised units); the ``small`` data stay within +-3.52
 DEFAULT_CLIP = 5.0
@@ -60,6 +61,27 @@ def condition_for(joints: torch.Tensor, outfit: int | None = None, shape: Sequen
                          body=None if body is None else body.to(joints.device, joints.dtype).expand(B, -1, -1),
                          velocity=None if velocity is None else velocity.to(joints.device, joints.dtype).expand(B, -1, -1),
                          motion=None if motion is None else motion.to(joints.device, joints.dtype).expand(B, -1, -1))  # fmt: skip
+
+
+def sampler_for(config: Any, sampler: str, steps: int | None) -> tuple[str, int]:
+    """The sampler and number of network calls a model of ``config`` samples with when asked for
+    ``sampler`` / ``steps`` (None: the sampler's default). A distilled student
+    (``config.student_calls`` > 0) samples with the few-step sampler only: the default "dpm++sde"
+    means it, ``steps`` None its trained number of calls, and another sampler or a number of calls
+    off its grid is a one-line error. A diffusion model keeps what was asked."""
+    calls = int(getattr(config, "student_calls", 0) or 0)
+    if not calls:
+        if sampler == "few-step":
+            raise ValueError("--sampler few-step is for a distilled model (pocoloco distill, e.g. --ckpt default:fast); "
+                             "this one is a diffusion model")  # fmt: skip
+        check_sampler(sampler, steps, config.num_timesteps)
+        return sampler, int(steps if steps is not None else SAMPLER_STEPS[sampler])
+    if sampler not in ("dpm++sde", "few-step"):
+        raise ValueError(f"--sampler {sampler}: this distilled model samples with its own few-step sampler only "
+                         f"(--steps 1 .. {calls}); the diffusion samplers are for its teacher")  # fmt: skip
+    steps = calls if steps is None else int(steps)
+    check_student_calls(steps, calls, config.num_timesteps)
+    return "few-step", steps
 
 
 @torch.no_grad()
@@ -95,7 +117,7 @@ def sample_clouds(
         joints: (J, 3) joints in metres, any frame (the samples come out in the same frame).
         num: K clouds. num_points: N points per cloud (any N >= 1).
         sampler: "dpm++" (DPM-Solver++ 2M), "dpm++sde" (its SDE form), "ddim" (eta 0) or "ddpm"
-            (ancestral).
+            (ancestral); a distilled student samples with "few-step" (:func:`sampler_for`).
         steps: sampler steps (None: ``SAMPLER_STEPS[sampler]``: 20 for dpm++, 25 for dpm++sde, 50 for
             ddim, 100 for ddpm).
         seeds: K seeds, one per cloud (None: 0 .. K-1). Cloud k depends only on seeds[k].
@@ -132,7 +154,7 @@ def sample_clouds(
     seeds = list(range(num)) if seeds is None else [int(s) for s in seeds]
     if len(seeds) != num:
         raise ValueError(f"seeds must have num={num} entries, got {len(seeds)}")
-    check_sampler(sampler, steps, config.num_timesteps)
+    sampler, steps = sampler_for(config, sampler, steps)
     joints = check_joints("joints", joints, J)
     param = next(model.parameters())
     device, dtype = param.device, param.dtype
@@ -162,7 +184,7 @@ def sample_clouds(
     root = normalisation.root(joints)  # (3,) metres
     schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
     kwargs: dict[str, Any] = {"prediction_type": config.prediction_type, "clip": clip}
-    kwargs["steps"] = steps if steps is not None else SAMPLER_STEPS[sampler]
+    kwargs["steps"] = steps
 
     was_training = model.training
     model.eval()

@@ -1,0 +1,110 @@
+"""A distilled few-step student against its 25-call teacher (issue 42): quality and speed, one table.
+
+Quality comes from ``pocoloco bench quality`` reports of the same frames, points and seeds (the
+teacher's row and one report per student setting), paired per frame: Chamfer, loose-garment M2S,
+the share of points > 10 cm from the scan, and the spread between a pose's samples (diversity);
+each as the student's mean, its paired difference to the teacher +- standard error, and the ratio.
+
+Speed is measured here, in one process, for every model at each point count: seconds per cloud
+(median of ``--repeats`` runs, one cloud per run, ``--threads`` torch threads), as a ratio to the
+teacher's in the same run; the network's peak memory is the same for the student and its teacher
+(the same network), so the ratio is time only.
+
+    python benchmarks/bench_fast.py --teacher default --student RUN/model --calls 1 2 4 \\
+        --points 2048 10000 50000 --threads 1 \\
+        --quality test=REF/test/quality.json:pocoloco \\
+        --student-quality test:4=FAST4/test/quality.json:pocoloco ... --json fast.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from motion_gain import paired, rows  # noqa: E402
+
+METRICS = (("chamfer_cm", "Chamfer cm"), ("m2s_garment_cm", "garment M2S cm"),
+           ("outlier_10cm_pct", "> 10 cm %"), ("diversity_cm", "spread cm"))  # fmt: skip
+
+
+def speed(teacher: str, student: str, calls: list[int], points: list[int], repeats: int) -> list[dict]:
+    from pocoloco.engine.shipped import resolve_ckpt_arg
+    from pocoloco.methods import load_method
+    from pocoloco.methods.base import SamplerOptions
+
+    out = []
+    models = [("teacher", resolve_ckpt_arg(teacher), [None])] + [("student", resolve_ckpt_arg(student), calls)]
+    for n in points:
+        base = None
+        for name, path, settings in models:
+            m = load_method(path)
+            pose = m.load_pose("demo:skirt")
+            for steps in settings:
+                opts = SamplerOptions(steps=steps)
+                m.predict(pose, 256, seeds=[0], options=opts)  # warm-up
+                times = []
+                for r in range(repeats):
+                    t0 = time.perf_counter()
+                    m.predict(pose, n, seeds=[r + 1], options=opts)
+                    times.append(time.perf_counter() - t0)
+                med = statistics.median(times)
+                base = med if name == "teacher" else base
+                label = "teacher (dpm++sde 25)" if name == "teacher" else f"student, {steps} call(s)"
+                out.append({"points": n, "model": label, "seconds": med, "speedup": base / med})
+                print(f"{n:>6} {label:<24} {med:8.3f} s  {base / med:6.1f}x", flush=True)
+    return out
+
+
+def quality(teacher_specs: dict[str, str], student_specs: dict[tuple[str, str], str]) -> list[dict]:
+    out = []
+    for (split, calls), spec in sorted(student_specs.items()):
+        ref, stu = rows(teacher_specs[split]), rows(spec)
+        keys = sorted(k for k in ref if k in stu)
+        row: dict = {"split": split, "calls": calls, "frames": len(keys)}
+        for metric, _ in METRICS:
+            p = paired(ref, stu, metric, keys)
+            row[metric] = {**p, "ratio": p["model"] / p["reference"] if p["reference"] else float("nan")}
+        out.append(row)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--teacher", default="default")
+    ap.add_argument("--student", required=True)
+    ap.add_argument("--calls", type=int, nargs="+", default=[1, 2, 4])
+    ap.add_argument("--points", type=int, nargs="+", default=[2048, 10000, 50000])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--quality", nargs="*", default=[], help="SPLIT=FILE:ROW, the teacher's report per split")
+    ap.add_argument("--student-quality", nargs="*", default=[], help="SPLIT:CALLS=FILE:ROW")
+    ap.add_argument("--json", required=True)
+    a = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(a.threads)
+    result: dict = {"teacher": a.teacher, "student": a.student, "threads": a.threads, "repeats": a.repeats}
+    teacher_specs = dict(s.split("=", 1) for s in a.quality)
+    student_specs = {tuple(k.split(":", 1)): v for k, v in (s.split("=", 1) for s in a.student_quality)}
+    if student_specs:
+        result["quality"] = quality(teacher_specs, student_specs)
+        print("| split | calls | " + " | ".join(f"{t} (paired diff, ratio)" for _, t in METRICS) + " |")
+        print("|---|---|" + "---|" * len(METRICS))
+        for r in result["quality"]:
+            cells = [f"{r[m]['model']:.2f} ({r[m]['diff']:+.2f} +- {r[m]['se']:.2f}, {r[m]['ratio']:.3f})" for m, _ in METRICS]
+            print(f"| {r['split']} | {r['calls']} | " + " | ".join(cells) + " |")
+    if not a.no_speed:
+        result["speed"] = speed(a.teacher, a.student, a.calls, a.points, a.repeats)
+    Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.json).write_text(json.dumps(result, indent=1))
+    print(f"wrote {a.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Issue 42: distil the shipped default into a few-step student on the quarter `medium` v3 data and
+# score it against its teacher (resumable: every step skips what is done).
+#   DATA=~/.cache/pocoloco/data/medium_v3 RUNS=~/.cache/pocoloco/runs/fast bash scripts/fast_medium_v3.sh
+# Needs the teacher's own report (REF: `bench quality` of the shipped models on the same data,
+# scripts/finetune_medium_v3.sh's quality_finetuned).
+set -euo pipefail
+PL=${PL:-.venv/bin/pocoloco}
+DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v3}
+RUNS=${RUNS:-$HOME/.cache/pocoloco/runs/fast}
+REF=${REF:-$HOME/.cache/pocoloco/runs/v3/quality_finetuned}
+RUN=$RUNS/d4
+resume() { [ -f "$1/checkpoints/latest" ] && echo --resume || true; }
+
+# 1. teacher pairs (512 x 512 points, DPM-Solver++(2M) ODE 20 steps) and the student, 35 CPU minutes
+[ -f "$RUN/model/meta.json" ] || nice $PL distill --ckpt default --data "$DATA" --out "$RUN" --pairs 512 \
+  --steps 1500 --batch-size 16 --lr 1e-4 --time-budget 35 --threads 2 $(resume "$RUN")
+
+# 2. quality, the teacher's standard frames and seeds: the student at 1 / 2 / 4 calls, the teacher's ODE
+for split in test heldout; do
+  for calls in 1 2 4; do
+    out=$RUNS/quality_calls$calls/$split
+    [ -f "$out/quality.json" ] || $PL bench quality --data "$DATA" --split $split --frames 28 --seeds 0 1 \
+      --points 2048 --ckpt-pocoloco "$RUN/model" --steps $calls --threads 2 --out "$out"
+  done
+  out=$RUNS/quality_teacher_ode/$split
+  [ -f "$out/quality.json" ] || $PL bench quality --data "$DATA" --split $split --frames 28 --seeds 0 1 \
+    --points 2048 --ckpt-pocoloco default --sampler dpm++ --steps 20 --threads 2 --out "$out"
+done
+
+# 3. the table: paired with the teacher's 25-call report, and speed at 2K / 10K / 50K points
+S=""; for split in test heldout; do for calls in 1 2 4; do
+  S="$S $split:$calls=$RUNS/quality_calls$calls/$split/quality.json:pocoloco"; done
+  S="$S $split:ode20=$RUNS/quality_teacher_ode/$split/quality.json:pocoloco"; done
+.venv/bin/python benchmarks/bench_fast.py --student "$RUN/model" --threads 1 \
+  --quality test=$REF/test/quality.json:pocoloco heldout=$REF/heldout/quality.json:pocoloco \
+  --student-quality $S --json benchmarks/results/fast_medium_v3/fast.json

@@ -1,0 +1,355 @@
+"""Distilling a PocoLoco model into a few-step student (issue 42, ``pocoloco distill``).
+
+1. **Teacher pairs** (:func:`make_teacher_pairs`): for P training frames (their pose, outfit and
+   body shape, and motion window if the teacher takes one) and P initial noises x_T (N, C), the
+   teacher's *deterministic* sampler (DPM-Solver++(2M) ODE, 20 steps by default: its answer is a
+   function of x_T, which a regression can learn; the SDE's is not) is run once; the states it
+   passes at the student's grid timesteps (4 calls: 999, 749, 499, 249) and its answer x0* are kept
+   (float32, sharded ``pairs/shard_XXXXX.npz``, written atomically: an interrupted run resumes).
+2. **The student** (:class:`DistillTask`, the shared training loop) starts from the teacher's
+   weights (its x0 estimate ``(x - sigma eps) / alpha`` is the skip parametrisation
+   ``c_skip x + c_out F``, with c_skip = 1/alpha, c_out = -sigma/alpha, so it starts at the
+   teacher's one-step answer) and learns, at each grid state x_t of a pair, x0(x_t, t) = x0*:
+   the consistency condition of Song et al. 2023 at the grid times only (consistency distillation
+   with the teacher's whole path instead of one ODE step). Loss per cloud: mean pseudo-Huber
+   distance of corresponding points, ``sqrt(|d|^2 + c^2) - c`` (Song & Dhariwal 2023), plus
+   ``distill_chamfer`` x the Chamfer distance to x0* (PSF, Wu et al. CVPR 2023, distils its one-step
+   point generator with a Chamfer loss). The noisiest time, where the student must do the most, is
+   drawn for 40 % of a batch's clouds (the others evenly).
+3. Sampling: :func:`pocoloco.diffusion.few_step.sample_few_step` with 1, 2 or 4 calls.
+
+Everything random is a pure function of the seed: the pair frames and noises (``seed_of(seed, 11,
+shard)``, per-pair ``PerSampleRNG`` seeds), each step's pairs and times (``seed_of(seed, 12, step,
+rank)``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
+from pocoloco.diffusion.few_step import student_grid
+from pocoloco.diffusion.samplers import StepInfo, make_timesteps
+from pocoloco.diffusion.schedules import pred_to_eps_x0
+from pocoloco.engine.checkpoint import Checkpoint, load_checkpoint
+from pocoloco.engine.trainer import train
+from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
+from pocoloco.methods.pocoloco.method import PocoLocoMethod
+from pocoloco.methods.pocoloco.training import PocoLocoTask
+from pocoloco.ops.chamfer import chamfer_distance
+from pocoloco.utils.atomic import write_json_atomic
+from pocoloco.utils.seeding import seed_of
+
+__all__ = ["DISTILL_SAMPLERS", "DistillTask", "PairSettings", "TeacherPairs", "distill_config", "make_teacher_pairs",
+           "read_teacher_pairs"]  # fmt: skip
+
+#: deterministic samplers a teacher's pairs may come from (an SDE's answer is not a function of x_T)
+DISTILL_SAMPLERS = ("dpm++", "ddim", "unipc", "dpm++3m")
+#: share of each batch's clouds at the noisiest grid time (the others share the rest evenly)
+NOISIEST_SHARE = 0.4
+PAIRS_FILE = "pairs.json"
+
+
+@dataclass(frozen=True)
+class PairSettings:
+    """How the teacher pairs were made: ``pairs`` clouds of ``num_points`` points, ``calls`` student
+    grid timesteps, the teacher's deterministic ``sampler`` with ``steps`` steps, ``seed``,
+    ``shard`` pairs per file, and the teacher (its checkpoint folder and meta SHA-256)."""
+
+    pairs: int
+    num_points: int
+    calls: int
+    sampler: str
+    steps: int
+    seed: int
+    shard: int
+    teacher: str
+    teacher_sha256: str
+    num_timesteps: int = 1000
+
+    def check(self, num_timesteps: int) -> list[int]:
+        """One-line errors for settings no student can learn from; returns the teacher's timesteps."""
+        if self.pairs < 1 or self.num_points < 1 or self.shard < 1:
+            raise ValueError(f"--pairs, --pair-points and the shard size must be >= 1, got {self.pairs}, "
+                             f"{self.num_points}, {self.shard}")  # fmt: skip
+        if self.sampler not in DISTILL_SAMPLERS:
+            raise ValueError(f"--teacher-sampler {self.sampler}: a teacher must sample deterministically; choose one "
+                             f"of {', '.join(DISTILL_SAMPLERS)}")  # fmt: skip
+        if not 1 <= self.calls <= 8:
+            raise ValueError(f"--calls must be in [1, 8], got {self.calls}")
+        ts = make_timesteps(num_timesteps, self.steps, "trailing")
+        grid = student_grid(num_timesteps, self.calls)
+        if not set(grid) <= set(ts):
+            raise ValueError(f"--teacher-steps {self.steps}: the teacher's timesteps must include the student's "
+                             f"{grid}; use a multiple of --calls {self.calls}")  # fmt: skip
+        return ts
+
+
+@dataclass
+class TeacherPairs:
+    """The pairs in memory: ``states`` (P, K, N, C) the teacher's states at the K grid timesteps
+    ``grid`` (state 0 = the initial noise), ``targets`` (P, N, C) its answers, ``joints`` (P, J, 3)
+    normalised, ``subject`` (P,) dataset subject ids, ``motion`` (P, J, F) window features or None."""
+
+    states: np.ndarray
+    targets: np.ndarray
+    joints: np.ndarray
+    subject: np.ndarray
+    motion: np.ndarray | None
+    grid: list[int]
+    settings: PairSettings
+
+
+def teacher_sha(ck: Checkpoint) -> str:
+    """The teacher's identity: its meta's ``meta_sha256`` (exported models) or the SHA-256 of its meta."""
+    return str(ck.meta.get("meta_sha256") or hashlib.sha256(json.dumps(ck.meta, sort_keys=True, default=str)
+                                                            .encode()).hexdigest())  # fmt: skip
+
+
+def distill_config(teacher: PocoLocoTrainConfig, calls: int, **overrides: Any) -> PocoLocoTrainConfig:
+    """The student's train config: the teacher's network and conditioning, ``student_calls=calls``,
+    and the distillation run's loop settings (a fine-tune: small lr, short warm-up, EMA 0.995, wsd
+    cool-down over the last fifth; checkpoints every 100 steps; no previews)."""
+    if teacher.student_calls:
+        raise ValueError("the teacher is already a distilled student; distil the diffusion model it came from")
+    if teacher.architecture != "latent":
+        raise ValueError("pocoloco distill: only the latent denoiser (latent_* presets) is supported")
+    steps = int(overrides.pop("steps", 2000))
+    base: dict[str, Any] = {"student_calls": calls, "steps": steps, "batch_size": 16, "lr": 5e-5, "warmup_steps": 20,
+                            "lr_schedule": "wsd", "decay_steps": max(1, steps // 5), "ema_decay": 0.995,
+                            "ckpt_every": 100, "sample_every": 0, "log_every": 10, "keep_checkpoints": 2}  # fmt: skip
+    return teacher.replace(**{**base, **overrides})
+
+
+def _shard_path(out: Path, k: int) -> Path:
+    return out / f"shard_{k:05d}.npz"
+
+
+def _write_npz_atomic(path: Path, **arrays: np.ndarray) -> None:
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(path)
+
+
+@torch.no_grad()
+def make_teacher_pairs(task: DistillTask, teacher: nn.Module, settings: PairSettings, out: str | Path,
+                       progress: Callable[[int, int], None] | None = None) -> TeacherPairs:  # fmt: skip
+    """Make (or finish) the teacher pairs of ``settings`` in ``out`` (see the module docstring) for
+    the training frames of ``task``'s dataset; returns them. A folder made with other settings is a
+    one-line error; shards already written are kept."""
+    c = task.config
+    if settings.num_timesteps != c.num_timesteps:
+        raise ValueError(f"pair settings say {settings.num_timesteps} timesteps, the teacher has {c.num_timesteps}")
+    ts = settings.check(c.num_timesteps)
+    grid = student_grid(c.num_timesteps, settings.calls)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    meta_path = out / PAIRS_FILE
+    want = dict(settings.__dict__)
+    if meta_path.is_file():
+        have = json.loads(meta_path.read_text())
+        if have != want:
+            diff = [k for k in want if have.get(k) != want[k]]
+            raise ValueError(f"{out}: teacher pairs made with other settings ({', '.join(diff)}); choose another --out")
+    else:
+        write_json_atomic(meta_path, want)
+    schedule = NoiseSchedule.from_kind(c.schedule, c.num_timesteps)
+    capture = {ts.index(g) - 1: k for k, g in enumerate(grid) if k > 0}  # sampler step -> grid slot of its result
+    device = next(teacher.parameters()).device
+    C = int(c.denoiser.point_channels)
+    ds = task.dataset
+    shards = -(-settings.pairs // settings.shard)
+    done = 0
+    teacher.eval()
+    for k in range(shards):
+        n = min(settings.shard, settings.pairs - k * settings.shard)
+        path = _shard_path(out, k)
+        if path.is_file():
+            done += n
+            if progress is not None:
+                progress(done, settings.pairs)
+            continue
+        rng = np.random.default_rng(seed_of(settings.seed, 11, k))
+        frames = rng.choice(len(ds), n, replace=len(ds) < n)
+        items = [ds[int(i)] for i in frames]
+        joints = torch.stack([torch.as_tensor(it["joints"]) for it in items]).float()  # (n, J, 3) normalised
+        subject = torch.tensor([int(it["subject"]) for it in items])
+        motion = (torch.stack([torch.as_tensor(it["motion"]) for it in items]).float()
+                  if c.motion_window else None)  # fmt: skip
+        seeds = [settings.seed * 1_000_003 + k * settings.shard + j for j in range(n)]
+        prng = PerSampleRNG(seeds, device=device)
+        noise = prng.randn((settings.num_points, C), device=device)  # (n, N, C)
+        states = torch.empty(n, len(grid), settings.num_points, C)
+        states[:, 0] = noise.float().cpu()
+
+        def keep(info: StepInfo) -> None:
+            if info.index in capture:
+                states[:, capture[info.index]] = info.x.float().cpu()
+
+        cond = task.condition(joints.to(device), subject.to(device), motion=None if motion is None else motion.to(device))
+        x0 = sample(settings.sampler, teacher, schedule, noise, cond, prediction_type=c.prediction_type,
+                    steps=settings.steps, rng=prng, progress=keep)  # fmt: skip
+        arrays = {"states": states.numpy(), "targets": x0.float().cpu().numpy(), "joints": joints.numpy(),
+                  "subject": subject.numpy(), "frames": np.asarray(frames, np.int64), "seeds": np.asarray(seeds)}  # fmt: skip
+        if motion is not None:
+            arrays["motion"] = motion.numpy()
+        _write_npz_atomic(path, **arrays)
+        done += n
+        if progress is not None:
+            progress(done, settings.pairs)
+    return read_teacher_pairs(out)
+
+
+def read_teacher_pairs(folder: str | Path) -> TeacherPairs:
+    """The pairs of a folder :func:`make_teacher_pairs` completed; one-line errors for a missing,
+    incomplete or damaged one."""
+    folder = Path(folder)
+    try:
+        settings = PairSettings(**json.loads((folder / PAIRS_FILE).read_text()))
+    except FileNotFoundError:
+        raise ValueError(f"{folder}: no teacher pairs ({PAIRS_FILE} missing)") from None
+    except (TypeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{folder / PAIRS_FILE}: damaged ({e})") from None
+    shards = -(-settings.pairs // settings.shard)
+    parts: dict[str, list[np.ndarray]] = {}
+    for k in range(shards):
+        path = _shard_path(folder, k)
+        if not path.is_file():
+            raise ValueError(f"{folder}: teacher pairs incomplete ({path.name} missing; rerun to finish them)")
+        try:
+            with np.load(path) as z:
+                for key in z.files:
+                    parts.setdefault(key, []).append(z[key])
+        except (OSError, ValueError, EOFError) as e:
+            raise ValueError(f"{path}: damaged shard ({e}); delete it and rerun") from None
+    cat = {k: np.concatenate(v) for k, v in parts.items()}
+    grid = student_grid(settings.num_timesteps, settings.calls)
+    return TeacherPairs(cat["states"], cat["targets"], cat["joints"], cat["subject"], cat.get("motion"), grid, settings)
+
+
+class PairBatches(torch.utils.data.Dataset):
+    """Step s -> a batch of B (pair, grid time) draws: ``x`` (B, N, C) the teacher's state, ``t`` (B,),
+    ``target`` (B, N, C), ``joints`` (B, J, 3), ``subject`` (B,) [, ``motion`` (B, J, F)]."""
+
+    def __init__(self, pairs: TeacherPairs, batch_size: int, seed: int, steps: int, rank: int = 0):
+        self.pairs, self.batch_size, self.seed, self.steps, self.rank = pairs, batch_size, seed, steps, rank
+        K = len(pairs.grid)
+        self.time_p = np.full(K, (1.0 - NOISIEST_SHARE) / max(K - 1, 1))
+        self.time_p[0] = NOISIEST_SHARE if K > 1 else 1.0
+
+    def __len__(self) -> int:
+        return self.steps
+
+    def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
+        p = self.pairs
+        rng = np.random.default_rng(seed_of(self.seed, 12, int(step), self.rank))
+        idx = rng.choice(len(p.targets), self.batch_size, replace=len(p.targets) < self.batch_size)
+        k = rng.choice(len(p.grid), self.batch_size, p=self.time_p)
+        batch = {"x": torch.from_numpy(p.states[idx, k]), "t": torch.as_tensor(np.asarray(p.grid)[k]),
+                 "target": torch.from_numpy(p.targets[idx]), "joints": torch.from_numpy(p.joints[idx]),
+                 "subject": torch.from_numpy(p.subject[idx])}  # fmt: skip
+        if p.motion is not None:
+            batch["motion"] = torch.from_numpy(p.motion[idx])
+        return batch
+
+
+class DistillTask(PocoLocoTask):
+    """Train a few-step student of a PocoLoco teacher on teacher pairs (module docstring). The
+    dataset, outfits and conditioning are PocoLoco's (:class:`PocoLocoTask`); ``pairs`` must be set
+    (:func:`make_teacher_pairs`) before the loop asks for batches."""
+
+    def __init__(self, config: PocoLocoTrainConfig, data: str | Path, teacher: str | None = None,
+                 teacher_sha256: str | None = None):  # fmt: skip
+        if not config.student_calls:
+            raise ValueError("a distillation run needs student_calls >= 1")
+        super().__init__(config, data)
+        self.pairs: TeacherPairs | None = None
+        self.teacher, self.teacher_sha256 = teacher, teacher_sha256
+
+    def step_bytes(self) -> int | None:
+        per = super().step_bytes()
+        return None if per is None else 2 * per  # the student's forward and the Chamfer terms
+
+    def step_batches(self, model: nn.Module, rank: int, world: int) -> PairBatches:
+        if self.pairs is None:
+            raise RuntimeError("DistillTask: make or read the teacher pairs first")
+        return PairBatches(self.pairs, self.config.batch_size, self.config.seed, self.config.steps, rank)
+
+    def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
+        c = self.config
+        x, t, target = batch["x"], batch["t"], batch["target"]
+        cond = self.condition(batch["joints"], batch["subject"], motion=batch.get("motion"))
+        out = net(x, t, cond)
+        ab = self.schedule.alphas_cumprod.to(x.device, torch.float32)[t].clamp_min(1e-8)
+        a, s = ab.sqrt().view(-1, 1, 1), (1.0 - ab).sqrt().view(-1, 1, 1)
+        _, x0 = pred_to_eps_x0(out.float(), x.float(), a, s, c.prediction_type)  # (B, N, C)
+        d2 = (x0 - target).square().sum(-1)  # (B, N)
+        huber = ((d2 + c.distill_huber**2).sqrt() - c.distill_huber).mean()
+        loss = huber
+        logs = {"huber": huber.detach()}
+        if c.distill_chamfer > 0:
+            cham = chamfer_distance(x0[..., :3], target[..., :3]).chamfer.mean()
+            loss = loss + c.distill_chamfer * cham
+            logs["chamfer"] = cham.detach()
+        logs["loss"] = loss.detach()
+        as_tensors = x.device.type != "cpu"
+        return loss, {k: v if as_tensors else float(v) for k, v in logs.items()}
+
+    def check_resume(self, ck: Checkpoint) -> None:
+        super().check_resume(ck)
+        stored = ck.meta.get("distilled_from", {}).get("teacher_sha256")
+        if self.teacher_sha256 is not None and stored not in (None, self.teacher_sha256):
+            raise ValueError(f"{ck.path}: this run distils another teacher ({stored[:12]}...); choose another --out")
+
+    def checkpoint_extra(self, model: nn.Module) -> dict[str, Any]:
+        extra = super().checkpoint_extra(model)
+        s = self.pairs.settings if self.pairs is not None else None
+        extra["distilled_from"] = {"teacher": self.teacher, "teacher_sha256": self.teacher_sha256,
+                                   **({"pairs": s.pairs, "pair_points": s.num_points, "teacher_sampler": s.sampler,
+                                       "teacher_steps": s.steps} if s is not None else {})}  # fmt: skip
+        return extra
+
+    def preview(self, model: nn.Module, step: int, out: Path, device: torch.device) -> Path | None:
+        return None
+
+
+def distill(teacher: str | Path, data: str | Path, out: str | Path, *, calls: int = 4, pairs: int = 1024,
+            pair_points: int = 512, teacher_sampler: str = "dpm++", teacher_steps: int = 20, seed: int = 0,
+            resume: bool = False, device: str | torch.device = "cpu", progress: bool = True,
+            pair_progress: Callable[[int, int], None] | None = None, time_budget_s: float | None = None,
+            log: Callable[[str], None] | None = None, **overrides: Any):  # fmt: skip
+    """``pocoloco distill``: the teacher pairs (made or finished in ``out/pairs``), then the student
+    trained from the teacher's weights by the shared loop into the run folder ``out`` (``resume``:
+    from its newest checkpoint), its sampling-only export in ``out/model``. ``overrides``: train
+    config fields (steps, batch_size, lr, ...; :func:`distill_config`). Returns the loop's
+    :class:`~pocoloco.engine.trainer.TrainResult`."""
+    if not 1 <= calls <= 8:
+        raise ValueError(f"--calls must be in [1, 8], got {calls}")
+    ck = load_checkpoint(teacher, expect_model="pocoloco", training_state=False)
+    method = PocoLocoMethod.from_checkpoint(ck, device=str(device))
+    config = distill_config(method.config, calls, seed=seed, num_points=pair_points, **overrides)
+    sha = teacher_sha(ck)
+    task = DistillTask(config, data, teacher=str(ck.path), teacher_sha256=sha)
+    if task.normalisation != ck.normalisation:
+        raise ValueError(f"--data {data}: its normalisation differs from the teacher's; distil on the data the teacher "
+                         "was trained on")  # fmt: skip
+    settings = PairSettings(pairs=pairs, num_points=pair_points, calls=calls, sampler=teacher_sampler,
+                            steps=teacher_steps, seed=seed, shard=16, teacher=str(ck.path), teacher_sha256=sha,
+                            num_timesteps=config.num_timesteps)  # fmt: skip
+    settings.check(config.num_timesteps)
+    if log is not None:
+        log(f"teacher pairs: {pairs} x {pair_points} points from {teacher_sampler} {teacher_steps} steps -> "
+            f"{Path(out) / 'pairs'}")  # fmt: skip
+    task.pairs = make_teacher_pairs(task, method.model, settings, Path(out) / "pairs", progress=pair_progress)
+    del method
+    return train(task, out, device=device, resume=resume, progress=progress, time_budget_s=time_budget_s,
+                 export_to=Path(out) / "model", init_from=None if resume else ck.path)

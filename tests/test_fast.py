@@ -1,0 +1,217 @@
+"""Issue 42: the few-step sampler, the teacher pairs, the distillation run and sampling a student."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
+from pocoloco.diffusion.few_step import check_student_calls, sample_few_step, student_grid
+
+
+@pytest.fixture(scope="module")
+def four():
+    return NoiseSchedule.from_kind("four", 1000)
+
+
+class LinearDenoiser(torch.nn.Module):
+    """eps = tanh(W x + t / 1000): a fixed nonlinear denoiser for the step-by-step reference."""
+
+    def __init__(self):
+        super().__init__()
+        g = torch.Generator().manual_seed(0)
+        self.w = torch.nn.Parameter(torch.randn(3, 3, generator=g) * 0.3)
+
+    def forward(self, x, t, cond=None):
+        return torch.tanh(x @ self.w + t.view(-1, 1, 1).float() / 1000)
+
+
+def _reference(den, schedule, noise, ts, renoise, gen):
+    """The few-step sampler written out as a plain loop over the grid, in float64."""
+    x = noise.double()
+    for i, t in enumerate(ts):
+        ab = schedule.alpha_bar(t)
+        eps = den(x.float(), torch.full((x.shape[0],), t), None).double()
+        x0 = (x - (1 - ab) ** 0.5 * eps) / ab**0.5
+        if i + 1 < len(ts):
+            s = schedule.alpha_bar(ts[i + 1])
+            z = torch.randn(x.shape, generator=gen).double() if renoise else 0.0
+            x = s**0.5 * x0 + (1 - s) ** 0.5 * ((1 - renoise**2) ** 0.5 * eps + renoise * z)
+        else:
+            x = x0
+    return x.float()
+
+
+def test_student_grid_and_sub_grids():
+    assert student_grid(1000, 4) == [999, 749, 499, 249]
+    assert student_grid(1000, 2) == [999, 499] and student_grid(1000, 1) == [999]
+    check_student_calls(2, 4)
+    for bad in (3, 5, 0):
+        with pytest.raises(ValueError, match="samples with 1, 2, 4") as e:
+            check_student_calls(bad, 4)
+        assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("renoise", [0.0, 1.0, 0.5])
+def test_few_step_sampler_matches_the_plain_loop(four, renoise):
+    den = LinearDenoiser()
+    noise = torch.randn(2, 64, 3, generator=torch.Generator().manual_seed(1))
+    gen = torch.Generator().manual_seed(7)
+    out = sample_few_step(den, four, noise, steps=4, renoise=renoise, rng=torch.Generator().manual_seed(7))
+    ref = _reference(den, four, noise, student_grid(1000, 4), renoise, gen)
+    assert torch.allclose(out, ref, atol=1e-5), (out - ref).abs().max()
+    # the dispatcher's "few-step" is this sampler; deterministic without re-noising
+    again = sample("few-step", den, four, noise, steps=4, renoise=renoise, rng=torch.Generator().manual_seed(7))
+    assert torch.equal(out, again)
+
+
+def test_few_step_with_one_call_is_the_one_step_x0(four):
+    den = LinearDenoiser()
+    noise = torch.randn(1, 32, 3, generator=torch.Generator().manual_seed(2))
+    out = sample_few_step(den, four, noise, steps=1)
+    ab = four.alpha_bar(999)
+    eps = den(noise, torch.tensor([999]))
+    assert torch.allclose(out, (noise - (1 - ab) ** 0.5 * eps) / ab**0.5, atol=1e-5)
+    with pytest.raises(ValueError, match="renoise"):
+        sample_few_step(den, four, noise, renoise=1.5)
+
+
+def test_sampler_for_routes_students_and_refuses_mixups():
+    from pocoloco.methods.pocoloco import train_preset
+    from pocoloco.methods.pocoloco.sampling import sampler_for
+
+    teacher = train_preset("latent_tiny")
+    student = teacher.replace(student_calls=4)
+    assert sampler_for(teacher, "dpm++sde", None) == ("dpm++sde", 25)
+    assert sampler_for(student, "dpm++sde", None) == ("few-step", 4)
+    assert sampler_for(student, "few-step", 2) == ("few-step", 2)
+    for config, sampler, steps, match in [(student, "ddim", None, "few-step sampler only"),
+                                          (student, "dpm++sde", 3, "samples with 1, 2, 4"),
+                                          (teacher, "few-step", None, "is for a distilled model")]:  # fmt: skip
+        with pytest.raises(ValueError, match=match) as e:
+            sampler_for(config, sampler, steps)
+        assert "\n" not in str(e.value)
+
+
+@pytest.fixture(scope="module")
+def latent_teacher(tiny_dataset, tmp_path_factory):
+    from pocoloco.methods import train
+    from pocoloco.methods.pocoloco import train_preset
+
+    out = tmp_path_factory.mktemp("teacher") / "run"
+    cfg = train_preset("latent_tiny", steps=2, num_points=64, ckpt_every=0, sample_every=0, log_every=1,
+                       outfit_codes=True, body_shape=True)  # fmt: skip
+    train(cfg, tiny_dataset, out, progress=False)
+    return out
+
+
+def test_distill_end_to_end_resumes_and_samples(latent_teacher, tiny_dataset, tmp_path, torch_single_thread):
+    """Pairs are the teacher's deterministic answers at the grid; the student starts at the teacher,
+    its loss falls on its pairs, the run resumes, and the export samples with 1 / 2 / 4 calls."""
+    from pocoloco.methods import load_method
+    from pocoloco.methods.pocoloco.distill import distill, read_teacher_pairs
+    from pocoloco.methods.pocoloco.sampling import sample_clouds
+
+    out = tmp_path / "d"
+    kw = dict(calls=4, pairs=6, pair_points=32, teacher_steps=8, batch_size=4, lr=1e-3, log_every=1, lr_schedule="constant", progress=False)
+    r = distill(latent_teacher, tiny_dataset, out, steps=30, **kw)
+    pairs = read_teacher_pairs(out / "pairs")
+    assert pairs.states.shape == (6, 4, 32, 3) and pairs.targets.shape == (6, 32, 3)
+    assert pairs.grid == [999, 749, 499, 249]
+    # state 0 is the initial noise of the pair's seed; the target the teacher's ODE answer from it
+    teacher = load_method(latent_teacher)
+    rng = PerSampleRNG([int(s) for s in np.load(out / "pairs" / "shard_00000.npz")["seeds"][:1]])
+    noise = rng.randn((32, 3))
+    assert torch.allclose(torch.from_numpy(pairs.states[0, 0]), noise)
+    z = np.load(out / "pairs" / "shard_00000.npz")
+    from pocoloco.methods.pocoloco.distill import DistillTask, distill_config
+
+    task = DistillTask(distill_config(teacher.config, 4), tiny_dataset)
+    cond = task.condition(torch.from_numpy(z["joints"][:1]), torch.from_numpy(z["subject"][:1]))
+    ans = sample("dpm++", teacher.model, NoiseSchedule.from_kind("four", 1000), noise, cond, steps=8)
+    assert torch.allclose(ans, torch.from_numpy(pairs.targets[:1]), atol=1e-4)
+
+    losses = [json.loads(line)["loss"] for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert np.mean(losses[-5:]) < np.mean(losses[:5]), losses
+    meta = json.loads((out / "model" / "meta.json").read_text())
+    assert meta["config"]["student_calls"] == 4 and meta["distilled_from"]["teacher_sampler"] == "dpm++"
+
+    # resume: more steps, the same pairs (made once)
+    stamp = (out / "pairs" / "shard_00000.npz").stat().st_mtime_ns
+    r2 = distill(latent_teacher, tiny_dataset, out, steps=34, resume=True, **kw)
+    assert r2.step == 34 and r.step == 30
+    assert (out / "pairs" / "shard_00000.npz").stat().st_mtime_ns == stamp
+    with pytest.raises(ValueError, match="other settings"):
+        distill(latent_teacher, tiny_dataset, out, steps=40, resume=True, **{**kw, "pairs": 7})
+
+    student = load_method(out / "model")
+    joints = np.asarray(student.load_pose("demo:skirt").joints)
+    for calls in (1, 2, 4):
+        a = sample_clouds(student.model, student.normalisation, student.config, joints, 2, 48, steps=calls,
+                          **student.condition(0))  # fmt: skip
+        b = sample_clouds(student.model, student.normalisation, student.config, joints, 2, 48, steps=calls,
+                          **student.condition(0))  # fmt: skip
+        assert a.points.shape == (2, 48, 3) and np.isfinite(a.points).all()
+        np.testing.assert_array_equal(a.points, b.points)  # deterministic per seed
+        assert not np.allclose(a.points[0], a.points[1])  # two seeds, two clouds
+
+
+def test_distill_refuses_bad_teachers_and_settings(latent_teacher, tiny_run, tiny_dataset, tmp_path):
+    from pocoloco.methods.pocoloco.distill import PairSettings, distill
+
+    for kwargs, match in [({"teacher_sampler": "dpm++sde"}, "must sample deterministically"),
+                          ({"teacher_steps": 10}, "multiple of --calls"),
+                          ({"calls": 0}, "--calls must be")]:  # fmt: skip
+        with pytest.raises(ValueError, match=match) as e:
+            distill(latent_teacher, tiny_dataset, tmp_path / "x", pairs=2, pair_points=16, steps=1, progress=False,
+                    **kwargs)  # fmt: skip
+        assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="only the latent denoiser"):
+        distill(tiny_run, tiny_dataset, tmp_path / "y", pairs=2, pair_points=16, steps=1, progress=False)
+    assert PairSettings(2, 16, 4, "dpm++", 20, 0, 16, "t", "s").check(1000)[:2] == [999, 949]
+
+
+def test_int8_rows_round_off_within_half_a_step():
+    from pocoloco.engine.checkpoint import dequantise_int8, quantise_int8
+
+    v = torch.randn(7, 3, 40, generator=torch.Generator().manual_seed(3))
+    v[0, 0] = 0.0  # an all-zero row
+    q, s = quantise_int8(v)
+    assert q.dtype == torch.int8 and s.shape == (7, 3)
+    back = dequantise_int8(q, s)
+    for idx in np.ndindex(7, 3):  # the slow reference: row by row
+        row = v[idx]
+        step = float(row.abs().max()) / 127 or 1.0
+        assert float((back[idx] - row).abs().max()) <= 0.5 * step * 1.002 + 1e-7
+    assert torch.equal(back[0, 0], torch.zeros(40))
+
+
+def test_int8_export_loads_close_to_float32_and_says_when_damaged(tiny_run, tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    from pocoloco.engine.checkpoint import export_for_sampling, load_checkpoint
+
+    f32 = export_for_sampling(tiny_run, tmp_path / "f32", dtype="float32")
+    i8 = export_for_sampling(tiny_run, tmp_path / "i8", dtype="int8")
+    assert (i8 / "model.safetensors").stat().st_size < 0.4 * (f32 / "model.safetensors").stat().st_size
+    a, b = load_checkpoint(f32).model_state, load_checkpoint(i8).model_state
+    assert set(a) == set(b)
+    for k in a:
+        assert b[k].dtype == a[k].dtype, k
+        if a[k].is_floating_point():
+            assert float((a[k] - b[k]).abs().max()) <= 0.01 * float(a[k].abs().max()) + 1e-3, k
+    raw = load_file(str(i8 / "model.safetensors"))
+    key = next(k for k in raw if k.endswith(".int8_scale"))
+    raw[key] = raw[key][:-1]
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    save_file(raw, str(bad / "model.safetensors"))
+    import shutil
+
+    shutil.copy(i8 / "meta.json", bad / "meta.json")
+    with pytest.raises(ValueError) as e:
+        load_checkpoint(bad)
+    assert "\n" not in str(e.value)
