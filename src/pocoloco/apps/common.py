@@ -112,6 +112,8 @@ def denoise_from(
             out = repaint_resampling(model, prior.schedule, noise, cond, timesteps, rng, prior.prediction_type,
                                      kw.get("known"), resample, jump)  # fmt: skip
         else:
+            if sampler == "few-step":
+                kw["renoise"] = prior.student_renoise
             out = sample(sampler, model, prior.schedule, noise, cond, timesteps=timesteps, rng=rng,
                          prediction_type=prior.prediction_type, **kw)  # fmt: skip
     finally:

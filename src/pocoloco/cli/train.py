@@ -390,7 +390,8 @@ def cmd_distill(args: argparse.Namespace) -> None:
     if args.threads is None and device.type == "cpu" and "OMP_NUM_THREADS" not in os.environ:
         torch.set_num_threads(max(1, os.cpu_count() or 1))
     overrides = {k: v for k, v in {"steps": args.steps, "batch_size": args.batch_size, "lr": args.lr,
-                                   "distill_chamfer": args.chamfer_weight}.items() if v is not None}  # fmt: skip
+                                   "distill_chamfer": args.chamfer_weight, "distill_renoised": args.renoised_share,
+                                   "student_renoise": args.renoise}.items() if v is not None}  # fmt: skip
     out = output_folder(args.out)
     with exclusive_lock(out, "pocoloco distill"):
         check_run_folder(out, args.resume)
@@ -426,6 +427,11 @@ def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=None, help="pairs per step (default 16)")
     parser.add_argument("--lr", type=float, default=None, help="learning rate (default 5e-5)")
     parser.add_argument("--chamfer-weight", type=float, default=None, help="weight of the Chamfer term (default 1)")
+    parser.add_argument("--renoised-share", type=float, default=None, help="share of the later-grid draws made as "
+                        "the re-noising sampler makes them: the teacher's answer noised afresh, scored by Chamfer "
+                        "(default 0)")  # fmt: skip
+    parser.add_argument("--renoise", type=float, default=None, help="the student's sampler: share of fresh noise "
+                        "when re-noising, 0 (deterministic) .. 1 (default 1)")  # fmt: skip
     parser.add_argument("--seed", type=int, default=0, help="seed of the pairs' frames and noises and of the "
                         "training batches (default 0)")  # fmt: skip
     parser.add_argument("--resume", action="store_true", help="continue the run in --out (pairs and training)")

@@ -2,7 +2,7 @@
 ``default:closet``): where each lives under ``assets/`` and how to name it in reports.
 
 Each folder holds a sampling-only checkpoint (``meta.json`` + ``model.safetensors``, the weights
-stored as fp16 and loaded as float32, their SHA-256 in the meta). ``assets/pocoloco_medium/`` is
+stored as fp16 (CloSET's as per-row int8) and loaded as float32, their SHA-256 in the meta). ``assets/pocoloco_medium/`` is
 PocoLoco's ``latent_small`` preset (the linear-in-N latent denoiser, outfit codes + body shape)
 trained on the ``medium`` synthetic dataset (14 outfits, 7 garment kinds) on one GPU for 5.5 min
 (EMA weights); ``assets/pop_medium`` POP (``small`` preset) trained on ``medium``, 10,000 steps on

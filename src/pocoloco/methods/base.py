@@ -108,6 +108,7 @@ class PointPrior:
     num_joints: int
     #: a distilled student's grid (``pocoloco distill``): its chains visit only those timesteps
     student_calls: int = 0
+    student_renoise: float = 1.0
 
 
 @dataclass(frozen=True)

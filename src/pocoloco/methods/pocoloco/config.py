@@ -72,7 +72,11 @@ class PocoLocoTrainConfig(Config):
     timesteps of the N-call grid is the teacher's deterministic answer, and it samples with the
     few-step sampler (:mod:`pocoloco.diffusion.few_step`) in N or fewer calls. distill_chamfer /
     distill_huber: the student's loss, per-point pseudo-Huber (``distill_huber``: its c, normalised
-    units) plus ``distill_chamfer`` x the Chamfer distance to the teacher's cloud.
+    units) plus ``distill_chamfer`` x the Chamfer distance to the teacher's cloud. distill_renoised:
+    the share of a batch's later-grid draws made as the re-noising sampler makes them (the
+    teacher's answer noised afresh to the grid time, scored by Chamfer alone).
+    student_renoise: the few-step sampler's share of fresh noise when re-noising (1: the
+    consistency models' multistep sampler, 0: deterministic; :mod:`pocoloco.diffusion.few_step`).
     """
 
     preset: str = "small"
@@ -116,6 +120,8 @@ class PocoLocoTrainConfig(Config):
     student_calls: int = 0
     distill_chamfer: float = 1.0
     distill_huber: float = 0.01
+    distill_renoised: float = 0.0
+    student_renoise: float = 1.0
 
     def __post_init__(self):
         if self.model != "pocoloco":
@@ -138,6 +144,9 @@ class PocoLocoTrainConfig(Config):
         if self.motion_window and self.architecture != "latent":
             raise ValueError("motion_window (--motion-window) needs the latent denoiser (e.g. --preset latent_small)")
         check_motion_training(self.motion_window, self.history_dropout, self.motion_lr_scale)
+        if not (0 <= self.distill_renoised <= 1 and 0 <= self.student_renoise <= 1):
+            raise ValueError(f"distill_renoised and student_renoise must be in [0, 1], got {self.distill_renoised}, "
+                             f"{self.student_renoise}")  # fmt: skip
         if self.student_calls < 0 or self.distill_chamfer < 0 or not self.distill_huber > 0:
             raise ValueError(f"student_calls and distill_chamfer must be >= 0 and distill_huber > 0, got "
                              f"{self.student_calls}, {self.distill_chamfer}, {self.distill_huber}")  # fmt: skip

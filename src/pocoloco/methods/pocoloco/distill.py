@@ -240,8 +240,12 @@ class PairBatches(torch.utils.data.Dataset):
     """Step s -> a batch of B (pair, grid time) draws: ``x`` (B, N, C) the teacher's state, ``t`` (B,),
     ``target`` (B, N, C), ``joints`` (B, J, 3), ``subject`` (B,) [, ``motion`` (B, J, F)]."""
 
-    def __init__(self, pairs: TeacherPairs, batch_size: int, seed: int, steps: int, rank: int = 0):
+    def __init__(self, pairs: TeacherPairs, batch_size: int, seed: int, steps: int, rank: int = 0,
+                 renoised: float = 0.0, alpha_bar: np.ndarray | None = None):  # fmt: skip
         self.pairs, self.batch_size, self.seed, self.steps, self.rank = pairs, batch_size, seed, steps, rank
+        self.renoised, self.alpha_bar = renoised, alpha_bar
+        if renoised and alpha_bar is None:
+            raise ValueError("re-noised draws need the schedule's alpha_bar")
         K = len(pairs.grid)
         self.time_p = np.full(K, (1.0 - NOISIEST_SHARE) / max(K - 1, 1))
         self.time_p[0] = NOISIEST_SHARE if K > 1 else 1.0
@@ -254,9 +258,17 @@ class PairBatches(torch.utils.data.Dataset):
         rng = np.random.default_rng(seed_of(self.seed, 12, int(step), self.rank))
         idx = rng.choice(len(p.targets), self.batch_size, replace=len(p.targets) < self.batch_size)
         k = rng.choice(len(p.grid), self.batch_size, p=self.time_p)
-        batch = {"x": torch.from_numpy(p.states[idx, k]), "t": torch.as_tensor(np.asarray(p.grid)[k]),
+        x = p.states[idx, k]  # (B, N, C) the teacher's states
+        # re-noised draws (a later grid time): the teacher's answer noised afresh, as the sampler does
+        renoised = (k > 0) & (rng.random(self.batch_size) < self.renoised)
+        if renoised.any():
+            ab = self.alpha_bar[np.asarray(p.grid)[k[renoised]]].reshape(-1, 1, 1)
+            z = rng.standard_normal(x[renoised].shape).astype(np.float32)
+            x = x.copy()
+            x[renoised] = (np.sqrt(ab) * p.targets[idx[renoised]] + np.sqrt(1 - ab) * z).astype(np.float32)
+        batch = {"x": torch.from_numpy(x), "t": torch.as_tensor(np.asarray(p.grid)[k]),
                  "target": torch.from_numpy(p.targets[idx]), "joints": torch.from_numpy(p.joints[idx]),
-                 "subject": torch.from_numpy(p.subject[idx])}  # fmt: skip
+                 "subject": torch.from_numpy(p.subject[idx]), "trajectory": torch.from_numpy(~renoised)}  # fmt: skip
         if p.motion is not None:
             batch["motion"] = torch.from_numpy(p.motion[idx])
         return batch
@@ -282,7 +294,8 @@ class DistillTask(PocoLocoTask):
     def step_batches(self, model: nn.Module, rank: int, world: int) -> PairBatches:
         if self.pairs is None:
             raise RuntimeError("DistillTask: make or read the teacher pairs first")
-        return PairBatches(self.pairs, self.config.batch_size, self.config.seed, self.config.steps, rank)
+        return PairBatches(self.pairs, self.config.batch_size, self.config.seed, self.config.steps, rank,
+                           self.config.distill_renoised, self.schedule.alphas_cumprod.double().numpy())  # fmt: skip
 
     def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
         c = self.config
@@ -293,7 +306,9 @@ class DistillTask(PocoLocoTask):
         a, s = ab.sqrt().view(-1, 1, 1), (1.0 - ab).sqrt().view(-1, 1, 1)
         _, x0 = pred_to_eps_x0(out.float(), x.float(), a, s, c.prediction_type)  # (B, N, C)
         d2 = (x0 - target).square().sum(-1)  # (B, N)
-        huber = ((d2 + c.distill_huber**2).sqrt() - c.distill_huber).mean()
+        per_point = batch.get("trajectory", torch.ones(len(x), dtype=torch.bool, device=x.device))
+        # points correspond only along the teacher's path; a re-noised draw is scored by Chamfer alone
+        huber = (((d2 + c.distill_huber**2).sqrt() - c.distill_huber).mean(-1) * per_point).sum() / len(x)
         loss = huber
         logs = {"huber": huber.detach()}
         if c.distill_chamfer > 0:

@@ -135,7 +135,7 @@ class PocoLocoMethod(Method):
         c = self.config
         return PointPrior(self.denoiser_for(outfit), self.normalisation, NoiseSchedule.from_kind(c.schedule, c.num_timesteps),
                           c.prediction_type, int(c.denoiser.point_channels), int(c.denoiser.num_joints),
-                          int(c.student_calls))  # fmt: skip
+                          int(c.student_calls), float(c.student_renoise))  # fmt: skip
 
     def condition(self, outfit: int | None) -> dict[str, Any]:
         """``sample_clouds`` keyword arguments (``outfit``, ``shape``) for outfit id ``outfit``."""

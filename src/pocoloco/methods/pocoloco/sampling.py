@@ -185,6 +185,8 @@ def sample_clouds(
     schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
     kwargs: dict[str, Any] = {"prediction_type": config.prediction_type, "clip": clip}
     kwargs["steps"] = steps
+    if sampler == "few-step":
+        kwargs["renoise"] = float(getattr(config, "student_renoise", 1.0))
 
     was_training = model.training
     model.eval()
