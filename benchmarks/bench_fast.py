@@ -60,6 +60,30 @@ def speed(teacher: str, student: str, calls: list[int], points: list[int], repea
     return out
 
 
+def animation(teacher: str, student: str, motion: str, frames: int, threads: int, points: int = 2048) -> list[dict]:
+    """``pocoloco animate`` (chain, its defaults: the teacher renoises each frame to t = 200 and runs
+    25 SDE steps; the student to t = 250, one call) of ``frames`` frames: frames per second of the
+    animation itself (no rendering), flicker and Chamfer to the scans."""
+    import subprocess
+    import tempfile
+
+    out = []
+    for name, ckpt in (("teacher", teacher), ("student", student)):
+        with tempfile.TemporaryDirectory() as tmp:
+            cmd = [sys.executable, "-m", "pocoloco", "animate", "--ckpt", ckpt, "--motion", motion, "--frames",
+                   f"0:{frames}", "--points", str(points), "--threads", str(threads), "--no-render", "--out", tmp]  # fmt: skip
+            subprocess.run(cmd, check=True, capture_output=True)
+            info = json.loads((Path(tmp) / "animation.json").read_text())
+        m = info["metrics"]
+        out.append({"model": name, "frames": frames, "points": points, "threads": threads,
+                    "frames_per_s": frames / info["seconds_total"], "flicker_cm": m["flicker_mean_cm"],
+                    "gt_flicker_cm": m["gt_flicker_mean_cm"], "chamfer_to_gt_cm": m["chamfer_to_gt_mean_cm"]})  # fmt: skip
+        r = out[-1]
+        print(f"animate {name:<8} {r['frames_per_s']:6.2f} frames/s  flicker {r['flicker_cm']:.2f} cm "
+              f"(scans {r['gt_flicker_cm']:.2f})  Chamfer to scans {r['chamfer_to_gt_cm']:.2f} cm", flush=True)
+    return out
+
+
 def quality(teacher_specs: dict[str, str], student_specs: dict[tuple[str, str], str]) -> list[dict]:
     out = []
     for (split, calls), spec in sorted(student_specs.items()):
@@ -84,6 +108,9 @@ def main() -> None:
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--quality", nargs="*", default=[], help="SPLIT=FILE:ROW, the teacher's report per split")
     ap.add_argument("--student-quality", nargs="*", default=[], help="SPLIT:CALLS=FILE:ROW")
+    ap.add_argument("--animate", default=None, help="a DATASET:subject/split/sequence to animate with both models")
+    ap.add_argument("--animate-frames", type=int, default=40)
+    ap.add_argument("--animate-threads", type=int, default=2)
     ap.add_argument("--json", required=True)
     a = ap.parse_args()
     import torch
@@ -101,6 +128,8 @@ def main() -> None:
             print(f"| {r['split']} | {r['calls']} | " + " | ".join(cells) + " |")
     if not a.no_speed:
         result["speed"] = speed(a.teacher, a.student, a.calls, a.points, a.repeats)
+    if a.animate:
+        result["animation"] = animation(a.teacher, a.student, a.animate, a.animate_frames, a.animate_threads)
     Path(a.json).parent.mkdir(parents=True, exist_ok=True)
     Path(a.json).write_text(json.dumps(result, indent=1))
     print(f"wrote {a.json}")

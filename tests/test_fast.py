@@ -215,3 +215,61 @@ def test_int8_export_loads_close_to_float32_and_says_when_damaged(tiny_run, tmp_
     with pytest.raises(ValueError) as e:
         load_checkpoint(bad)
     assert "\n" not in str(e.value)
+
+
+def test_pair_batches_mix_teacher_states_and_renoised_answers(four):
+    """A re-noised draw is the teacher's answer noised to its grid time (never at the noisiest time);
+    the others are the teacher's stored states; the same step gives the same batch."""
+    from pocoloco.methods.pocoloco.distill import PairBatches, PairSettings, TeacherPairs
+
+    rng = np.random.default_rng(0)
+    P, K, N = 5, 4, 16
+    pairs = TeacherPairs(rng.standard_normal((P, K, N, 3)).astype(np.float32),
+                         rng.standard_normal((P, N, 3)).astype(np.float32), np.zeros((P, 24, 3), np.float32),
+                         np.zeros(P, np.int64), None, student_grid(1000, 4),
+                         PairSettings(P, N, 4, "dpm++", 20, 0, 16, "t", "s"))  # fmt: skip
+    ab = four.alphas_cumprod.double().numpy()
+    batches = PairBatches(pairs, 64, 0, 10, renoised=0.5, alpha_bar=ab)
+    b = batches[3]
+    assert torch.equal(b["x"], batches[3]["x"])
+    traj, t = b["trajectory"].numpy(), b["t"].numpy()
+    assert (t[~traj] != 999).all() and 0 < (~traj).sum() < 64 and (t == 999).sum() > 10
+    for i in range(64):
+        target = b["target"][i].numpy()
+        if traj[i]:
+            k = pairs.grid.index(int(t[i]))
+            assert any(np.array_equal(b["x"][i].numpy(), pairs.states[p, k]) for p in range(P))
+        else:  # x = sqrt(abar) target + sqrt(1 - abar) z with z ~ N(0, 1)
+            z = (b["x"][i].numpy() - np.sqrt(ab[t[i]]) * target) / np.sqrt(1 - ab[t[i]])
+            assert abs(z.std() - 1) < 0.35 and not any(np.allclose(b["x"][i].numpy(), pairs.states[p, k])
+                                                       for p in range(P) for k in range(K))  # fmt: skip
+    with pytest.raises(ValueError, match="alpha_bar"):
+        PairBatches(pairs, 4, 0, 10, renoised=0.5)
+
+
+def test_shipped_fast_model_samples_with_its_own_sampler(tmp_path):
+    """``--ckpt default:fast``: a student of the shipped default (its teacher named by SHA-256), int8
+    weights, 4 calls by default; a clothed body near the demo pose's joints; a diffusion sampler or
+    3 calls is a one-line error."""
+    from pocoloco.cli import main
+    from pocoloco.engine.shipped import default_checkpoint, describe_checkpoint
+
+    path = default_checkpoint("fast")
+    meta = json.loads((path / "meta.json").read_text())
+    teacher = json.loads((default_checkpoint() / "meta.json").read_text())
+    assert meta["weights_dtype"] == "int8" and meta["config"]["student_calls"] == 4
+    assert meta["distilled_from"]["teacher_sha256"] == teacher["meta_sha256"]
+    assert describe_checkpoint(path) == "default:fast"
+    out = tmp_path / "s"
+    assert main(["sample", "--ckpt", "default:fast", "--points", "400", "--num", "2", "--no-render", "--threads", "1",
+                 "--out", str(out)]) == 0  # fmt: skip
+    info = json.loads((out / "sample.json").read_text())
+    assert info["sampler"] == "few-step" and info["steps"] == 4
+    from pocoloco.data.published import read_ply
+    from pocoloco.methods import load_method
+
+    pts = read_ply(out / "sample_000.ply").points
+    joints = np.asarray(load_method(path).load_pose("demo:skirt").joints)
+    assert np.isfinite(pts).all() and np.linalg.norm(pts.mean(0) - joints.mean(0)) < 0.3
+    for extra in (["--sampler", "ddim"], ["--steps", "3"]):
+        assert main(["sample", "--ckpt", "default:fast", "--points", "64", "--out", str(tmp_path / "x"), *extra]) == 2
