@@ -84,6 +84,31 @@ def animation(teacher: str, student: str, motion: str, frames: int, threads: int
     return out
 
 
+def distribution(teacher: str, student: str) -> list[dict]:
+    """Paired per pose, per shared window: the student's energy score (the judge's proper score) and
+    spread between samples against the teacher's, from two ``bench distribution`` reports of the same
+    reference set (``FILE:ROW`` each)."""
+    def load(spec):
+        path, _, row = spec.rpartition(":")
+        return {(p["subject"], p["sequence"], p["frame"], p["window"]): p["rows"][row]
+                for p in json.loads(Path(path).read_text())["per_pose"] if row in p["rows"]}  # fmt: skip
+
+    ref, stu = load(teacher), load(student)
+    out = []
+    for window in sorted({k[3] for k in ref}):
+        keys = sorted(k for k in ref if k[3] == window and k in stu)
+        row: dict = {"window": window, "poses": len(keys)}
+        for metric in ("energy_score", "spread_samples"):
+            p = paired({k: ref[k] for k in keys}, {k: stu[k] for k in keys}, metric, keys)
+            row[metric] = {**p, "ratio": p["model"] / p["reference"] if p["reference"] else float("nan")}
+        out.append(row)
+        es, sp = row["energy_score"], row["spread_samples"]
+        print(f"judge, {window} s shared, {len(keys)} poses: energy score x{es['ratio']:.3f} the teacher's (paired "
+              f"{100 * es['diff'] / es['reference']:+.1f} +- {100 * es['se'] / es['reference']:.1f} %); spread between "
+              f"samples x{sp['ratio']:.3f}")  # fmt: skip
+    return out
+
+
 def quality(teacher_specs: dict[str, str], student_specs: dict[tuple[str, str], str]) -> list[dict]:
     out = []
     for (split, calls), spec in sorted(student_specs.items()):
@@ -111,6 +136,8 @@ def main() -> None:
     ap.add_argument("--animate", default=None, help="a DATASET:subject/split/sequence to animate with both models")
     ap.add_argument("--animate-frames", type=int, default=40)
     ap.add_argument("--animate-threads", type=int, default=2)
+    ap.add_argument("--distribution", nargs="*", default=[], help="SPLIT=TEACHER_FILE:ROW,STUDENT_FILE:ROW "
+                    "(bench distribution reports of one reference set)")  # fmt: skip
     ap.add_argument("--json", required=True)
     a = ap.parse_args()
     import torch
@@ -128,6 +155,12 @@ def main() -> None:
             print(f"| {r['split']} | {r['calls']} | " + " | ".join(cells) + " |")
     if not a.no_speed:
         result["speed"] = speed(a.teacher, a.student, a.calls, a.points, a.repeats)
+    if a.distribution:
+        result["distribution"] = {}
+        for spec in a.distribution:
+            split, pair = spec.split("=", 1)
+            print(f"[{split}]")
+            result["distribution"][split] = distribution(*pair.split(",", 1))
     if a.animate:
         result["animation"] = animation(a.teacher, a.student, a.animate, a.animate_frames, a.animate_threads)
     Path(a.json).parent.mkdir(parents=True, exist_ok=True)
