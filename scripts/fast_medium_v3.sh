@@ -9,12 +9,13 @@ PL=${PL:-.venv/bin/pocoloco}
 DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v3}
 RUNS=${RUNS:-$HOME/.cache/pocoloco/runs/fast}
 REF=${REF:-$HOME/.cache/pocoloco/runs/v3/quality_finetuned}
-RUN=$RUNS/d4
+RUN=$RUNS/d4r
 resume() { [ -f "$1/checkpoints/latest" ] && echo --resume || true; }
 
 # 1. teacher pairs (512 x 512 points, DPM-Solver++(2M) ODE 20 steps) and the student, 35 CPU minutes
+#    (what ships as default:fast: `pocoloco export-model --ckpt $RUN/checkpoints --dtype int8`)
 [ -f "$RUN/model/meta.json" ] || nice $PL distill --ckpt default --data "$DATA" --out "$RUN" --pairs 512 \
-  --steps 1500 --batch-size 16 --lr 1e-4 --time-budget 35 --threads 2 $(resume "$RUN")
+  --steps 1500 --batch-size 16 --lr 1e-4 --renoised-share 0.5 --time-budget 35 --threads 2 $(resume "$RUN")
 
 # 2. quality, the teacher's standard frames and seeds: the student at 1 / 2 / 4 calls, the teacher's ODE
 for split in test heldout; do
@@ -28,10 +29,19 @@ for split in test heldout; do
     --points 2048 --ckpt-pocoloco default --sampler dpm++ --steps 20 --threads 2 --out "$out"
 done
 
-# 3. the table: paired with the teacher's 25-call report, and speed at 2K / 10K / 50K points
+# 3. the judge on the reference sets of `pocoloco data histories` (REFS_test, REFS_heldout), then the table:
+#    paired with the teacher's 25-call reports, speed at 2K / 10K / 50K points, animate frames/s
+REFS=${REFS:-$HOME/.cache/pocoloco/refs/medium_v3}
+for split in test heldout; do
+  [ -f "$RUNS/dist_fast/$split/distribution.json" ] || $PL bench distribution --refs "${REFS}_$split" \
+    --ckpt-pocoloco "$RUN/model" --out "$RUNS/dist_fast/$split"
+done
 S=""; for split in test heldout; do for calls in 1 2 4; do
   S="$S $split:$calls=$RUNS/quality_calls$calls/$split/quality.json:pocoloco"; done
   S="$S $split:ode20=$RUNS/quality_teacher_ode/$split/quality.json:pocoloco"; done
 .venv/bin/python benchmarks/bench_fast.py --student "$RUN/model" --threads 1 \
   --quality test=$REF/test/quality.json:pocoloco heldout=$REF/heldout/quality.json:pocoloco \
-  --student-quality $S --json benchmarks/results/fast_medium_v3/fast.json
+  --student-quality $S --animate "$DATA:skirt_a/test/test_0000" \
+  --distribution test=benchmarks/results/distribution_medium_v3/test/distribution.json:pocoloco,$RUNS/dist_fast/test/distribution.json:pocoloco \
+  heldout=benchmarks/results/distribution_medium_v3/heldout/distribution.json:pocoloco,$RUNS/dist_fast/heldout/distribution.json:pocoloco \
+  --json benchmarks/results/fast_medium_v3/fast.json
