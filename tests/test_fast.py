@@ -273,3 +273,14 @@ def test_shipped_fast_model_samples_with_its_own_sampler(tmp_path):
     assert np.isfinite(pts).all() and np.linalg.norm(pts.mean(0) - joints.mean(0)) < 0.3
     for extra in (["--sampler", "ddim"], ["--steps", "3"]):
         assert main(["sample", "--ckpt", "default:fast", "--points", "64", "--out", str(tmp_path / "x"), *extra]) == 2
+
+
+def test_a_student_refuses_to_fit_an_outfit():
+    from pocoloco.apps.fitting import fit_outfit
+    from pocoloco.engine.shipped import default_checkpoint
+    from pocoloco.methods import load_method
+
+    assert not load_method(default_checkpoint("fast")).fits_outfits and load_method(default_checkpoint()).fits_outfits
+    with pytest.raises(ValueError, match="a distilled model cannot") as e:
+        fit_outfit(default_checkpoint("fast"), [], "/tmp/never")
+    assert "\n" not in str(e.value)

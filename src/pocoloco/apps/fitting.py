@@ -91,7 +91,7 @@ def fit_outfit(ckpt: str | os.PathLike, scans: Sequence[tuple[str | os.PathLike,
     loaded = load_method(ckpt)
     if not loaded.fits_outfits:
         raise ValueError(f"{loaded.path}: this {loaded.title} checkpoint cannot fit a new outfit (POP can, and PocoLoco "
-                         "trained with --outfit-codes)")  # fmt: skip
+                         "trained with --outfit-codes; a distilled model cannot: fit with its teacher)")  # fmt: skip
     if isinstance(steps, bool) or steps < 1:
         raise ValueError(f"--steps must be >= 1, got {steps}")
     if not scans:

@@ -79,7 +79,9 @@ class PocoLocoMethod(Method):
     # ------------------------------------------------------------------- unseen outfits
     @property
     def fits_outfits(self) -> bool:  # type: ignore[override]
-        return bool(self.config.outfit_codes)
+        """Outfit codes, and a diffusion model: a fit uses the diffusion loss, which a distilled
+        student (``student_calls``) was not trained on."""
+        return bool(self.config.outfit_codes) and not self.config.student_calls
 
     def fit_points(self) -> int:
         """Scan points per cloud the fit uses by default: the training N."""
