@@ -284,3 +284,23 @@ def test_a_student_refuses_to_fit_an_outfit():
     with pytest.raises(ValueError, match="a distilled model cannot") as e:
         fit_outfit(default_checkpoint("fast"), [], "/tmp/never")
     assert "\n" not in str(e.value)
+
+
+def test_edit_and_complete_with_the_fast_model_start_on_its_grid(tmp_path):
+    """``edit`` / ``complete`` with ``default:fast`` and no ``--t``: the chain starts at t = 250 (one
+    call); a t off the grid is a one-line error naming the grid."""
+    from pocoloco.cli import main
+    from pocoloco.data.published import read_ply
+
+    assert main(["sample", "--ckpt", "default:fast", "--points", "300", "--num", "1", "--no-render",
+                 "--out", str(tmp_path / "src")]) == 0  # fmt: skip
+    src = tmp_path / "src" / "sample_000.ply"
+    assert main(["edit", "--ckpt", "default:fast", "--source", str(src), "--joints", "demo:skirt", "--no-render",
+                 "--out", str(tmp_path / "ed")]) == 0  # fmt: skip
+    assert json.loads((tmp_path / "ed" / "edit.json").read_text())["t"] == 250
+    part = read_ply(src).points
+    np.save(tmp_path / "part.npy", part[part[:, 2] > np.median(part[:, 2])])
+    assert main(["complete", "--ckpt", "default:fast", "--partial", str(tmp_path / "part.npy"), "--joints",
+                 "demo:skirt", "--points", "400", "--no-render", "--out", str(tmp_path / "cp")]) == 0  # fmt: skip
+    assert main(["edit", "--ckpt", "default:fast", "--source", str(src), "--joints", "demo:skirt", "--t", "100",
+                 "--no-render", "--out", str(tmp_path / "bad")]) == 2  # fmt: skip

@@ -47,6 +47,10 @@ from pocoloco.viz.render import render_gif, render_grid
 
 __all__ = ["register"]
 
+#: a distilled model's chains (edit --mode renoise, complete's harmonising chain, animate) start at
+#: t = 250: the last step of its 4-call grid, one network call
+STUDENT_CHAIN_T = 250
+
 #: ``--method`` names that stand for a method with an anchor
 METHOD_ALIASES = {"chain-world": ("chain", "world"), "chain-root": ("chain", "root")}
 
@@ -112,6 +116,8 @@ def cmd_complete(args: argparse.Namespace) -> None:
     ckpt, step, T = method.path, method.step, prior.schedule.num_timesteps
     joints = load_joints(args.joints, args.frame_id, prior.num_joints, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, T)
+    if args.t is None and getattr(prior, "student_calls", 0):  # a distilled model: one call of its grid
+        args.t = STUDENT_CHAIN_T
     if args.t is not None and not 0 <= args.t <= T:
         raise ValueError(f"--t must be in [0, {T}] (0: no harmonising chain), got {args.t}")
     seeds = [args.seed + k for k in range(args.num)]
@@ -202,6 +208,8 @@ def cmd_edit(args: argparse.Namespace) -> None:
     target = load_joints(args.joints, None, J, any_pose=args.any_pose)
     src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, T)
+    if args.t is None and getattr(prior, "student_calls", 0) and args.mode in (None, "renoise"):  # its grid
+        args.t = STUDENT_CHAIN_T
     if args.t is not None and not 1 <= args.t <= T:
         raise ValueError(f"--t must be in [1, {T}] (the model's training timesteps), got {args.t}")
     seeds = [args.seed + k for k in range(args.num)]
@@ -324,7 +332,7 @@ def cmd_animate(args: argparse.Namespace) -> None:
         finish = lambda k, points, seed: hook.finish(poses[k], points, seed)  # noqa: E731
     student = getattr(prior, "student_calls", 0)  # a distilled model: its few-step sampler, grid steps
     if args.t is None:
-        args.t = 250 if student else 200
+        args.t = STUDENT_CHAIN_T if student else 200
     if not student:
         check_sampler(args.sampler, args.steps, T)
     if not 1 <= args.t <= T:
