@@ -121,6 +121,13 @@ def denoise_from(
     return out.float().cpu().numpy()
 
 
+def student_chain_start(prior: PointPrior) -> int:
+    """Where a distilled model's chains start unless told (editing, completion's harmonising chain,
+    each new animation frame): its least noisy grid step, one network call (t = 250 for the 4-call
+    grid)."""
+    return student_grid(prior.schedule.num_timesteps, prior.student_calls)[-1] + 1
+
+
 def student_chain(prior: PointPrior, t: int, steps: int | None, resample: int = 1) -> tuple[str, int, list[int]]:
     """A distilled student's chain from step t: the few-step sampler over its grid timesteps below t
     (``steps`` None: all of them; t = 250 / 500 / 750 / 1000 give 1 / 2 / 3 / 4 calls with the

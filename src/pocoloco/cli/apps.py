@@ -17,7 +17,7 @@ from pocoloco.apps.animation import (
     evaluate_animation,
     load_motion,
 )
-from pocoloco.apps.common import read_cloud, save_npy, subset, write_folder
+from pocoloco.apps.common import read_cloud, save_npy, student_chain_start, subset, write_folder
 from pocoloco.apps.completion import (
     DEFAULT_CANDIDATES,
     DEFAULT_MAX_COS,
@@ -46,10 +46,6 @@ from pocoloco.utils.atomic import jsonable, no_file_reason, write_json_atomic
 from pocoloco.viz.render import render_gif, render_grid
 
 __all__ = ["register"]
-
-#: a distilled model's chains (edit --mode renoise, complete's harmonising chain, animate) start at
-#: t = 250: the last step of its 4-call grid, one network call
-STUDENT_CHAIN_T = 250
 
 #: ``--method`` names that stand for a method with an anchor
 METHOD_ALIASES = {"chain-world": ("chain", "world"), "chain-root": ("chain", "root")}
@@ -117,7 +113,7 @@ def cmd_complete(args: argparse.Namespace) -> None:
     joints = load_joints(args.joints, args.frame_id, prior.num_joints, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, T)
     if args.t is None and getattr(prior, "student_calls", 0):  # a distilled model: one call of its grid
-        args.t = STUDENT_CHAIN_T
+        args.t = student_chain_start(prior)
     if args.t is not None and not 0 <= args.t <= T:
         raise ValueError(f"--t must be in [0, {T}] (0: no harmonising chain), got {args.t}")
     seeds = [args.seed + k for k in range(args.num)]
@@ -209,7 +205,7 @@ def cmd_edit(args: argparse.Namespace) -> None:
     src_joints = None if args.source_joints is None else load_joints(args.source_joints, None, J, any_pose=args.any_pose)
     check_sampler(args.sampler, args.steps, T)
     if args.t is None and getattr(prior, "student_calls", 0) and args.mode in (None, "renoise"):  # its grid
-        args.t = STUDENT_CHAIN_T
+        args.t = student_chain_start(prior)
     if args.t is not None and not 1 <= args.t <= T:
         raise ValueError(f"--t must be in [1, {T}] (the model's training timesteps), got {args.t}")
     seeds = [args.seed + k for k in range(args.num)]
@@ -332,7 +328,7 @@ def cmd_animate(args: argparse.Namespace) -> None:
         finish = lambda k, points, seed: hook.finish(poses[k], points, seed)  # noqa: E731
     student = getattr(prior, "student_calls", 0)  # a distilled model: its few-step sampler, grid steps
     if args.t is None:
-        args.t = STUDENT_CHAIN_T if student else 200
+        args.t = student_chain_start(prior) if student else 200
     if not student:
         check_sampler(args.sampler, args.steps, T)
     if not 1 <= args.t <= T:

@@ -19,13 +19,13 @@ calls are sub-grids of 4's (999; 999, 499), so one student trained on the 4-call
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import torch
 
-from pocoloco.diffusion.sampler_base import Denoiser, PerSampleRNG, ProgressFn, SamplerRun, make_timesteps
-from pocoloco.diffusion.schedules import NoiseSchedule, PredictionType
+from pocoloco.diffusion.sampler_base import Denoiser, make_timesteps
+from pocoloco.diffusion.samplers import sample_ddim
+from pocoloco.diffusion.schedules import NoiseSchedule
 
 __all__ = ["check_student_calls", "sample_few_step", "student_grid"]
 
@@ -46,46 +46,19 @@ def check_student_calls(calls: int, trained_calls: int, num_timesteps: int = 100
                          f"with {', '.join(map(str, ok))} (its timesteps {trained})")  # fmt: skip
 
 
-@torch.no_grad()
 def sample_few_step(
     denoiser: Denoiser,
     schedule: NoiseSchedule,
     noise: torch.Tensor,
     cond: Any = None,
     *,
-    prediction_type: PredictionType | None = None,
     steps: int = 4,
     renoise: float = 0.0,
-    timesteps: Sequence[int] | None = None,
-    clip: float | None = None,
-    rng: PerSampleRNG | torch.Generator | None = None,
-    known: tuple[torch.Tensor, torch.Tensor] | None = None,
-    progress: ProgressFn | None = None,
+    **kwargs: Any,
 ) -> torch.Tensor:
-    """Few-step sampling with a distilled student (see the module docstring).
-
-    Args:
-        denoiser / schedule / noise (B, N, C) / cond / prediction_type / clip / rng / known /
-            progress: as in :func:`pocoloco.diffusion.samplers.sample_ddim`.
-        steps: network calls (the trailing grid, :func:`student_grid`); ``timesteps`` overrides it.
-        renoise: r in [0, 1], the share of fresh noise in each re-noised state (0: deterministic).
-    Returns:
-        (B, N, C) samples in ``noise.dtype``.
-    """
-    if not 0.0 <= renoise <= 1.0:
-        raise ValueError(f"renoise must be in [0, 1], got {renoise}")
-    ts = list(timesteps) if timesteps is not None else student_grid(schedule.num_timesteps, steps)
-    run = SamplerRun(denoiser, schedule, noise, cond, prediction_type, ts, clip, rng, known, progress)
-    x = run.start(noise)
-    for i in range(len(run.timesteps)):
-        eps, x0 = run.model_eps_x0(x, i)
-        ab_s = run.ab_prev[i]
-        if ab_s < 1.0:
-            if renoise > 0:
-                eps = (1.0 - renoise**2) ** 0.5 * eps + renoise * run.randn_like(x)
-            x = ab_s**0.5 * x0 + (1.0 - ab_s) ** 0.5 * eps
-        else:
-            x = x0
-        x = run.impose_known(x, ab_s)
-        run.report(i, x, x0)
-    return x.to(run.dtype)
+    """Few-step sampling with a distilled student (see the module docstring): DDIM's update
+    (:func:`~pocoloco.diffusion.samplers.sample_ddim`) over the ``steps``-call trailing grid
+    (:func:`student_grid`) with ``renoise`` r in [0, 1] of fresh noise in each re-noised state
+    (0: deterministic). ``kwargs``: ``sample_ddim``'s (prediction_type, timesteps, clip, rng, known,
+    progress). Returns (B, N, C) samples in ``noise.dtype``."""
+    return sample_ddim(denoiser, schedule, noise, cond, steps=steps, renoise=renoise, **kwargs)

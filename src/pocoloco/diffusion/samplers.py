@@ -53,7 +53,6 @@ from pocoloco.diffusion.sampler_base import (
     make_timesteps,
     resolve_timesteps,
 )
-from pocoloco.diffusion.few_step import sample_few_step
 from pocoloco.diffusion.schedules import NoiseSchedule, PredictionType
 from pocoloco.diffusion.unipc import sample_unipc
 
@@ -146,6 +145,7 @@ def sample_ddim(
     prediction_type: PredictionType | None = None,
     steps: int = 50,
     eta: float = 0.0,
+    renoise: float | None = None,
     spacing: Spacing = "trailing",
     timesteps: Sequence[int] | None = None,
     clip: float | None = None,
@@ -157,19 +157,28 @@ def sample_ddim(
 
     x_s = sqrt(abar_s) x0_hat + sqrt(1 - abar_s - sigma^2) eps_hat + sigma z,
     sigma = eta sqrt((1 - abar_s) / (1 - abar_t)) sqrt(1 - abar_t / abar_s).
-    eta = 0 is deterministic; eta = 1 equals strided ancestral DDPM. With ``clip``, eps_hat is
-    re-derived from the clipped x0_hat (GLIDE; diffusers' ``use_clipped_model_output=True``).
-    Other arguments as in :func:`sample_ddpm`.
+    eta = 0 is deterministic; eta = 1 equals strided ancestral DDPM. ``renoise`` r in [0, 1] sets
+    sigma = r sqrt(1 - abar_s) instead (eta must stay 0): the share of fresh noise in the re-noised
+    state, r = 1 the consistency models' multistep sampler (:mod:`~pocoloco.diffusion.few_step`).
+    With ``clip``, eps_hat is re-derived from the clipped x0_hat (GLIDE; diffusers'
+    ``use_clipped_model_output=True``). Other arguments as in :func:`sample_ddpm`.
     """
     if eta < 0:
         raise ValueError(f"eta must be >= 0, got {eta}")
+    if renoise is not None and not 0.0 <= renoise <= 1.0:
+        raise ValueError(f"renoise must be in [0, 1], got {renoise}")
+    if renoise is not None and eta:
+        raise ValueError("give eta or renoise, not both")
     run = SamplerRun(denoiser, schedule, noise, cond, prediction_type,
                resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
     x = run.start(noise)
     for i in range(len(run.timesteps)):
         ab_t, ab_s = run.ab[i], run.ab_prev[i]
         eps, x0 = run.model_eps_x0(x, i)
-        sigma = eta * ((1.0 - ab_s) / (1.0 - ab_t) * (1.0 - ab_t / ab_s)) ** 0.5
+        if renoise is None:
+            sigma = eta * ((1.0 - ab_s) / (1.0 - ab_t) * (1.0 - ab_t / ab_s)) ** 0.5
+        else:
+            sigma = renoise * (1.0 - ab_s) ** 0.5
         x = ab_s**0.5 * x0 + max(1.0 - ab_s - sigma**2, 0.0) ** 0.5 * eps
         if sigma > 0:
             x = x + sigma * run.randn_like(x)
@@ -315,7 +324,7 @@ SAMPLERS: dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]] = {
     "dpm++3m": (sample_dpmpp, {"order": 3}),
     "dpm++3msde": (sample_dpmpp, {"order": 3, "stochastic": True}),
     "unipc": (sample_unipc, {}),
-    "few-step": (sample_few_step, {}),
+    "few-step": (sample_ddim, {"steps": 4, "renoise": 0.0}),  # a distilled student's (diffusion.few_step)
 }
 
 
@@ -330,7 +339,7 @@ def sample(
     """Dispatch to the sampler named ``kind`` (:data:`SAMPLERS`): :func:`sample_ddpm` ("ddpm"),
     :func:`sample_ddim` ("ddim"), :func:`sample_dpmpp` ("dpm++"; "dpm++sde" = ``stochastic=True``;
     "dpm++3m" / "dpm++3msde" = ``order=3``), :func:`sample_unipc` ("unipc") or
-    :func:`~pocoloco.diffusion.few_step.sample_few_step` ("few-step", a distilled student's); keyword arguments are
+    :func:`sample_ddim` on a student's grid with ``renoise`` ("few-step", :mod:`~pocoloco.diffusion.few_step`); keyword arguments are
     forwarded and override the kind's presets."""
     if kind not in SAMPLERS:
         raise ValueError(f"unknown sampler kind {kind!r} (expected one of {sorted(SAMPLERS)})")

@@ -70,6 +70,7 @@ __all__ = [
     "checkpoint_candidates",
     "export_for_sampling",
     "load_checkpoint",
+    "meta_digest",
     "one_line",
     "read_meta",
     "resolve_checkpoint",
@@ -113,7 +114,8 @@ def _file_digest(path: Path) -> list:
     return [path.stat().st_size, h.hexdigest()]
 
 
-def _meta_digest(meta: dict[str, Any]) -> str:
+def meta_digest(meta: dict[str, Any]) -> str:
+    """SHA-256 of a checkpoint meta's canonical JSON without its own ``meta_sha256`` (what that key holds)."""
     body = {k: v for k, v in meta.items() if k != "meta_sha256"}
     return hashlib.sha256(json.dumps(body, sort_keys=True, allow_nan=False).encode()).hexdigest()
 
@@ -122,7 +124,7 @@ def _write_meta(folder: Path, meta: dict[str, Any], files: list[str]) -> None:
     """``meta.json`` with the digests of ``files`` (already written in ``folder``) and its own."""
     meta = {k: v for k, v in meta.items() if k not in ("files", "meta_sha256")}
     meta["files"] = {name: _file_digest(folder / name) for name in files}
-    meta["meta_sha256"] = _meta_digest(meta)
+    meta["meta_sha256"] = meta_digest(meta)
     with open(folder / META_FILE, "w", encoding="utf-8") as f:
         f.write(json.dumps(meta, indent=2, allow_nan=False) + "\n")
         f.flush()
@@ -357,7 +359,7 @@ def read_meta(path: str | os.PathLike) -> dict[str, Any]:
     for key in ("model_kind", "preset", "step", "config", "normalisation"):
         if key not in meta:
             raise CorruptCheckpointError(f"{f}: corrupt checkpoint metadata (no {key!r})")
-    if "meta_sha256" in meta and _meta_digest(meta) != meta["meta_sha256"]:
+    if "meta_sha256" in meta and meta_digest(meta) != meta["meta_sha256"]:
         raise CorruptCheckpointError(f"{f}: checksum mismatch (the metadata was damaged after it was written)")
     return meta
 

@@ -25,7 +25,6 @@ rank)``).
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,14 +38,13 @@ from torch import nn
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
 from pocoloco.diffusion.few_step import student_grid
 from pocoloco.diffusion.samplers import StepInfo, make_timesteps
-from pocoloco.diffusion.schedules import pred_to_eps_x0
-from pocoloco.engine.checkpoint import Checkpoint, load_checkpoint
+from pocoloco.engine.checkpoint import Checkpoint, load_checkpoint, meta_digest
 from pocoloco.engine.trainer import train
 from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
 from pocoloco.methods.pocoloco.training import PocoLocoTask
 from pocoloco.ops.chamfer import chamfer_distance
-from pocoloco.utils.atomic import write_json_atomic
+from pocoloco.utils.atomic import save_npz_atomic, write_json_atomic
 from pocoloco.utils.seeding import seed_of
 
 __all__ = ["DISTILL_SAMPLERS", "DistillTask", "PairSettings", "TeacherPairs", "distill_config", "make_teacher_pairs",
@@ -110,9 +108,9 @@ class TeacherPairs:
 
 
 def teacher_sha(ck: Checkpoint) -> str:
-    """The teacher's identity: its meta's ``meta_sha256`` (exported models) or the SHA-256 of its meta."""
-    return str(ck.meta.get("meta_sha256") or hashlib.sha256(json.dumps(ck.meta, sort_keys=True, default=str)
-                                                            .encode()).hexdigest())  # fmt: skip
+    """The teacher's identity: its meta's ``meta_sha256`` (checkpoints written with checksums) or
+    the same digest computed (:func:`~pocoloco.engine.checkpoint.meta_digest`)."""
+    return str(ck.meta.get("meta_sha256") or meta_digest(ck.meta))
 
 
 def distill_config(teacher: PocoLocoTrainConfig, calls: int, **overrides: Any) -> PocoLocoTrainConfig:
@@ -132,12 +130,6 @@ def distill_config(teacher: PocoLocoTrainConfig, calls: int, **overrides: Any) -
 
 def _shard_path(out: Path, k: int) -> Path:
     return out / f"shard_{k:05d}.npz"
-
-
-def _write_npz_atomic(path: Path, **arrays: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(path)
 
 
 @torch.no_grad()
@@ -202,7 +194,7 @@ def make_teacher_pairs(task: DistillTask, teacher: nn.Module, settings: PairSett
                   "subject": subject.numpy(), "frames": np.asarray(frames, np.int64), "seeds": np.asarray(seeds)}  # fmt: skip
         if motion is not None:
             arrays["motion"] = motion.numpy()
-        _write_npz_atomic(path, **arrays)
+        save_npz_atomic(path, **arrays)
         done += n
         if progress is not None:
             progress(done, settings.pairs)
@@ -302,9 +294,7 @@ class DistillTask(PocoLocoTask):
         x, t, target = batch["x"], batch["t"], batch["target"]
         cond = self.condition(batch["joints"], batch["subject"], motion=batch.get("motion"))
         out = net(x, t, cond)
-        ab = self.schedule.alphas_cumprod.to(x.device, torch.float32)[t].clamp_min(1e-8)
-        a, s = ab.sqrt().view(-1, 1, 1), (1.0 - ab).sqrt().view(-1, 1, 1)
-        _, x0 = pred_to_eps_x0(out.float(), x.float(), a, s, c.prediction_type)  # (B, N, C)
+        _, x0 = self.schedule.pred_to_eps_x0(out.float(), x.float(), t, c.prediction_type)  # (B, N, C)
         d2 = (x0 - target).square().sum(-1)  # (B, N)
         per_point = batch.get("trajectory", torch.ones(len(x), dtype=torch.bool, device=x.device))
         # points correspond only along the teacher's path; a re-noised draw is scored by Chamfer alone
