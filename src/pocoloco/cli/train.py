@@ -33,7 +33,7 @@ from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods.hybrid import FreeRegionMaps, assemble_hybrid, learn_free_maps
 from pocoloco.methods.hybrid.training import train_free_generator, write_free_pack
 from pocoloco.methods.pocoloco.config import SCHEDULE_KINDS
-from pocoloco.methods.pocoloco.distill import distill
+from pocoloco.methods.pocoloco.distill import prepare_distillation
 from pocoloco.utils.atomic import exclusive_lock, output_folder
 from pocoloco.methods.registry import config_from_checkpoint
 
@@ -399,13 +399,14 @@ def cmd_distill(args: argparse.Namespace) -> None:
         log(f"[bold]pocoloco distill[/] teacher={args.ckpt} calls={args.calls} device={device} "
             f"threads={torch.get_num_threads()}" + (f" budget={args.time_budget:g} min" if args.time_budget else "")
             + f" -> {args.out}")  # fmt: skip
-        with progress_bar("teacher pairs", args.pairs) as update:
-            result = distill(resolve_ckpt_arg(args.ckpt), data, out, calls=args.calls, pairs=args.pairs,
-                             pair_points=args.pair_points, teacher_sampler=args.teacher_sampler,
-                             teacher_steps=args.teacher_steps, seed=args.seed, resume=args.resume, device=device,
-                             progress=False, pair_progress=lambda d, n: update(d, n), log=None,
-                             time_budget_s=None if args.time_budget is None else 60.0 * args.time_budget,
-                             **overrides)  # fmt: skip
+        with progress_bar("teacher pairs", args.pairs) as update:  # closed before the training loop's bar
+            task = prepare_distillation(resolve_ckpt_arg(args.ckpt), data, out, calls=args.calls, pairs=args.pairs,
+                                        pair_points=args.pair_points, teacher_sampler=args.teacher_sampler,
+                                        teacher_steps=args.teacher_steps, seed=args.seed, device=device,
+                                        pair_progress=lambda d, n: update(d, n), **overrides)  # fmt: skip
+        result = run_training(task, out, device=device, resume=args.resume, progress=True,
+                              time_budget_s=None if args.time_budget is None else 60.0 * args.time_budget,
+                              export_to=Path(out) / "model", init_from=None if args.resume else task.teacher)  # fmt: skip
         why = " (time budget reached)" if result.stopped_by_budget else ""
         print(f"distilled to step {result.step}{why} ({result.steps_per_s:.3f} steps/s), loss {result.final_loss:.4f}; "
               f"model {result.export} (sample with --ckpt {result.export} --steps 1, 2 or {args.calls})")  # fmt: skip

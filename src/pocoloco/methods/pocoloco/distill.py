@@ -47,8 +47,8 @@ from pocoloco.ops.chamfer import chamfer_distance
 from pocoloco.utils.atomic import save_npz_atomic, write_json_atomic
 from pocoloco.utils.seeding import seed_of
 
-__all__ = ["DISTILL_SAMPLERS", "DistillTask", "PairSettings", "TeacherPairs", "distill_config", "make_teacher_pairs",
-           "read_teacher_pairs"]  # fmt: skip
+__all__ = ["DISTILL_SAMPLERS", "DistillTask", "PairSettings", "TeacherPairs", "distill", "distill_config",
+           "make_teacher_pairs", "prepare_distillation", "read_teacher_pairs"]  # fmt: skip
 
 #: deterministic samplers a teacher's pairs may come from (an SDE's answer is not a function of x_T)
 DISTILL_SAMPLERS = ("dpm++", "ddim", "unipc", "dpm++3m")
@@ -327,16 +327,14 @@ class DistillTask(PocoLocoTask):
         return None
 
 
-def distill(teacher: str | Path, data: str | Path, out: str | Path, *, calls: int = 4, pairs: int = 1024,
-            pair_points: int = 512, teacher_sampler: str = "dpm++", teacher_steps: int = 20, seed: int = 0,
-            resume: bool = False, device: str | torch.device = "cpu", progress: bool = True,
-            pair_progress: Callable[[int, int], None] | None = None, time_budget_s: float | None = None,
-            log: Callable[[str], None] | None = None, **overrides: Any):  # fmt: skip
-    """``pocoloco distill``: the teacher pairs (made or finished in ``out/pairs``), then the student
-    trained from the teacher's weights by the shared loop into the run folder ``out`` (``resume``:
-    from its newest checkpoint), its sampling-only export in ``out/model``. ``overrides``: train
-    config fields (steps, batch_size, lr, ...; :func:`distill_config`). Returns the loop's
-    :class:`~pocoloco.engine.trainer.TrainResult`."""
+def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path, *, calls: int = 4,
+                         pairs: int = 1024, pair_points: int = 512, teacher_sampler: str = "dpm++",
+                         teacher_steps: int = 20, seed: int = 0, device: str | torch.device = "cpu",
+                         pair_progress: Callable[[int, int], None] | None = None, **overrides: Any) -> DistillTask:  # fmt: skip
+    """The first half of ``pocoloco distill``: the student's task (:func:`distill_config` with
+    ``overrides``: steps, batch_size, lr, ...) with its teacher pairs made or finished in
+    ``out/pairs`` (``pair_progress(done, total)`` after each shard); one-line errors for a bad
+    teacher, data or settings before any work. ``task.teacher`` is the teacher's checkpoint folder."""
     if not 1 <= calls <= 8:
         raise ValueError(f"--calls must be in [1, 8], got {calls}")
     ck = load_checkpoint(teacher, expect_model="pocoloco", training_state=False)
@@ -351,10 +349,17 @@ def distill(teacher: str | Path, data: str | Path, out: str | Path, *, calls: in
                             steps=teacher_steps, seed=seed, shard=16, teacher=str(ck.path), teacher_sha256=sha,
                             num_timesteps=config.num_timesteps)  # fmt: skip
     settings.check(config.num_timesteps)
-    if log is not None:
-        log(f"teacher pairs: {pairs} x {pair_points} points from {teacher_sampler} {teacher_steps} steps -> "
-            f"{Path(out) / 'pairs'}")  # fmt: skip
     task.pairs = make_teacher_pairs(task, method.model, settings, Path(out) / "pairs", progress=pair_progress)
-    del method
+    return task
+
+
+def distill(teacher: str | Path, data: str | Path, out: str | Path, *, resume: bool = False,
+            device: str | torch.device = "cpu", progress: bool = True, time_budget_s: float | None = None,
+            **kwargs: Any):  # fmt: skip
+    """``pocoloco distill``: :func:`prepare_distillation` (``kwargs``: its options and train config
+    fields), then the student trained from the teacher's weights by the shared loop into the run
+    folder ``out`` (``resume``: from its newest checkpoint), its sampling-only export in
+    ``out/model``. Returns the loop's :class:`~pocoloco.engine.trainer.TrainResult`."""
+    task = prepare_distillation(teacher, data, out, device=device, **kwargs)
     return train(task, out, device=device, resume=resume, progress=progress, time_budget_s=time_budget_s,
-                 export_to=Path(out) / "model", init_from=None if resume else ck.path)
+                 export_to=Path(out) / "model", init_from=None if resume else task.teacher)
