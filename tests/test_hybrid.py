@@ -282,6 +282,34 @@ def test_an_inside_tolerance_draws_again_the_generated_points_inside_the_body(hy
             ck.config.replace(inside_tolerance=bad)
 
 
+def test_the_generator_is_asked_for_the_free_region_at_its_share_then_only_for_what_is_missing(hybrid, tiny_dataset):
+    """A generator that puts every other point on an attached vertex keeps half its draw: the first
+    draw is sized by the free region's share of a scan, a second one (if any) only for the points
+    still missing, and the cloud still has exactly its free-region points, all in the region."""
+    m = load_method(hybrid)
+    _, _, path = _frame(tiny_dataset, "skirt")
+    fr = read_frame(path, allow_missing=True)
+    pose = m.pose_from_frame(path, "skirt", frame=fr)
+    o = m.outfit_id("skirt")
+    free = m.maps.free(o)
+    ids_free, ids_att = np.flatnonzero(free), np.flatnonzero(~free)
+    asked = []
+
+    def fake_predict(pose, n, seeds, outfit, options, code=None):
+        asked.append(n)
+        rng = np.random.default_rng(seeds[0])
+        pick = np.where(np.arange(n) % 2 == 0, rng.choice(ids_free, n), rng.choice(ids_att, n))
+        return SampledClouds(np.repeat(fr.body_vertices[pick][None], len(seeds), 0).astype(np.float32), None)
+
+    m.free.predict = fake_predict
+    n_att, n_free = m.split(o, 400)
+    n_gen = round(m.config.generator_share * n_free)
+    cloud = m.predict(pose, 400, seeds=(0,), outfit=o).points[0]
+    assert cloud.shape == (400, 3) and point_regions(cloud[400 - n_gen :], fr.body_vertices, free).all()
+    assert asked[0] == int(np.ceil(1.3 * n_gen / (n_free / 400)))
+    assert len(asked) <= 2 and all(a < asked[0] for a in asked[1:])  # the missing points, not n_gen again
+
+
 def test_the_hybrid_animates_a_dataset_sequence_and_refuses_bare_joints(hybrid, tiny_dataset, tmp_path, capsys):
     """animate: the free region's generator runs the chain, each frame gets POP's points for its body."""
     s, seq, _ = _frame(tiny_dataset, "skirt")

@@ -356,7 +356,8 @@ class HybridMethod(Method):
         if n_gen:
             region = self._free_points(pose, outfit, self._free_mask(outfit, code), n_gen, seeds, options,
                                        None if code is None else code.free,
-                                       None if code is None else code.attached, pop=pop)  # fmt: skip
+                                       None if code is None else code.attached, pop=pop,
+                                       expected_rate=self.split(outfit, num_points, code)[1] / num_points)  # fmt: skip
             clouds = [np.concatenate([skinned, r]) for r in region]
         return SampledClouds(np.stack(clouds).astype(np.float32), None)
 
@@ -485,21 +486,26 @@ class HybridMethod(Method):
 
     def _free_points(self, pose: Pose, outfit: int, free: np.ndarray, n: int, seeds: Sequence[int],
                      options: SamplerOptions, code: torch.Tensor | None = None,
-                     attached_code: torch.Tensor | None = None, pop: dict[int, np.ndarray] | None = None) -> list[np.ndarray]:  # fmt: skip
+                     attached_code: torch.Tensor | None = None, pop: dict[int, np.ndarray] | None = None,
+                     expected_rate: float = 1.0) -> list[np.ndarray]:  # fmt: skip
         """Per seed, (n, 3) generated points whose nearest posed body vertex is free (and, with an
         ``inside_tolerance``, that lie no deeper inside the body): the generator's clouds are
-        filtered and drawn again (new seeds derived from the seed) until n."""
+        filtered and drawn again (new seeds derived from the seed) until n. Each draw is sized for
+        the points still missing at the keep rate expected: first ``expected_rate`` (the free
+        region's share of a scan's points, what a generator that draws the whole outfit leaves
+        there), then the rate seen so far, so that one draw usually suffices."""
         fo = self._free_outfit(outfit)
         normals = self._normals(pose)
         reference = self._reference(pose, outfit, free, attached_code, pop)
         found: list[list[np.ndarray]] = [[] for _ in seeds]
         last: list[np.ndarray] = [np.zeros((0, 3), np.float32)] * len(seeds)
-        m, rate = n, 1.0
+        rate = min(max(float(expected_rate), 0.05), 1.0)
         for attempt in range(FREE_DRAWS):
-            todo = [k for k in range(len(seeds)) if sum(len(x) for x in found[k]) < n]
+            missing = [n - sum(len(x) for x in found[k]) for k in range(len(seeds))]
+            todo = [k for k in range(len(seeds)) if missing[k] > 0]
             if not todo:
                 break
-            m = math.ceil(1.15 * n / max(rate, 0.05))
+            m = math.ceil(1.3 * max(missing[k] for k in todo) / max(rate, 0.05))
             draw = [int(seeds[k]) if attempt == 0 else int(seeds[k]) * 1000 + attempt for k in todo]
             clouds = self.free.predict(pose, m, seeds=draw, outfit=fo, options=options, code=code).points
             kept = 0
