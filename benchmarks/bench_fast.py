@@ -6,9 +6,11 @@ the share of points > 10 cm from the scan, and the spread between a pose's sampl
 each as the student's mean, its paired difference to the teacher +- standard error, and the ratio.
 
 Speed is measured here, in one process, for every model at each point count: seconds per cloud
-(median of ``--repeats`` runs, one cloud per run, ``--threads`` torch threads), as a ratio to the
-teacher's in the same run; the network's peak memory is the same for the student and its teacher
-(the same network), so the ratio is time only.
+(median of ``--repeats`` rounds, every setting drawing one cloud per round in turn, ``--threads``
+torch threads), as a ratio to the teacher's in the same run; the network's peak memory is the same
+for the student and its teacher (the same network), so the ratio is time only. ``--hybrids A B``
+times hybrids the same way on the seven demo poses (e.g. ``default:hybrid`` and one assembled with
+the fast generator).
 
     python benchmarks/bench_fast.py --teacher default --student RUN/model --calls 1 2 4 \\
         --points 2048 10000 50000 --threads 1 \\
@@ -32,31 +34,66 @@ METRICS = (("chamfer_cm", "Chamfer cm"), ("m2s_garment_cm", "garment M2S cm"),
            ("outlier_10cm_pct", "> 10 cm %"), ("diversity_cm", "spread cm"))  # fmt: skip
 
 
-def speed(teacher: str, student: str, calls: list[int], points: list[int], repeats: int) -> list[dict]:
+def speed(teacher: str, student: str, calls: list[int], points: list[int], repeats: int,
+          pose_spec: str = "demo:skirt") -> list[dict]:  # fmt: skip
+    """Seconds per cloud of the teacher (its default sampler) and the student at each call count:
+    all models loaded once, one warm-up each, then ``repeats`` rounds in which every setting draws
+    one cloud in turn (interleaved, so that a busy machine slows them alike); the median per setting."""
     from pocoloco.engine.shipped import resolve_ckpt_arg
     from pocoloco.methods import load_method
     from pocoloco.methods.base import SamplerOptions
 
+    settings = [("teacher (dpm++sde 25)", load_method(resolve_ckpt_arg(teacher)), None)]
+    fast = load_method(resolve_ckpt_arg(student))
+    settings += [(f"student, {c} call(s)", fast, c) for c in calls]
     out = []
-    models = [("teacher", resolve_ckpt_arg(teacher), [None])] + [("student", resolve_ckpt_arg(student), calls)]
     for n in points:
-        base = None
-        for name, path, settings in models:
-            m = load_method(path)
-            pose = m.load_pose("demo:skirt")
-            for steps in settings:
-                opts = SamplerOptions(steps=steps)
-                m.predict(pose, 256, seeds=[0], options=opts)  # warm-up
-                times = []
-                for r in range(repeats):
-                    t0 = time.perf_counter()
-                    m.predict(pose, n, seeds=[r + 1], options=opts)
-                    times.append(time.perf_counter() - t0)
-                med = statistics.median(times)
-                base = med if name == "teacher" else base
-                label = "teacher (dpm++sde 25)" if name == "teacher" else f"student, {steps} call(s)"
-                out.append({"points": n, "model": label, "seconds": med, "speedup": base / med})
-                print(f"{n:>6} {label:<24} {med:8.3f} s  {base / med:6.1f}x", flush=True)
+        times: dict[str, list[float]] = {label: [] for label, _, _ in settings}
+        for label, m, steps in settings:
+            m.predict(m.load_pose(pose_spec), 256, seeds=[0], options=SamplerOptions(steps=steps))  # warm-up
+        for r in range(repeats):
+            for label, m, steps in settings:
+                pose = m.load_pose(pose_spec)
+                t0 = time.perf_counter()
+                m.predict(pose, n, seeds=[r + 1], options=SamplerOptions(steps=steps))
+                times[label].append(time.perf_counter() - t0)
+        base = statistics.median(times[settings[0][0]])
+        for label, _, _ in settings:
+            med = statistics.median(times[label])
+            out.append({"points": n, "model": label, "seconds": med, "speedup": base / med})
+            print(f"{n:>6} {label:<24} {med:8.3f} s  {base / med:6.1f}x", flush=True)
+    return out
+
+
+def hybrid_speed(hybrids: list[str], repeats: int, n: int = 2048) -> list[dict]:
+    """Seconds per cloud of each hybrid (e.g. ``default:hybrid`` and one assembled with the fast
+    generator) over the seven garment kinds' demo poses, interleaved like :func:`speed`: the median
+    per pose, then their mean."""
+    from pocoloco.engine.shipped import resolve_ckpt_arg
+    from pocoloco.methods import load_method
+
+    models = [(h, load_method(resolve_ckpt_arg(h))) for h in hybrids]
+    out = []
+    per_pose: dict[str, dict[str, float]] = {h: {} for h in hybrids}
+    for demo in ("skirt", "dress", "maxi", "shirt", "sleeves", "trousers", "tight"):
+        times: dict[str, list[float]] = {h: [] for h in hybrids}
+        for h, m in models:
+            m.predict(m.load_pose(f"demo:{demo}"), 256, seeds=[0])  # warm-up
+        for r in range(repeats):
+            for h, m in models:
+                pose = m.load_pose(f"demo:{demo}")
+                t0 = time.perf_counter()
+                m.predict(pose, n, seeds=[r + 1])
+                times[h].append(time.perf_counter() - t0)
+        for h in hybrids:
+            per_pose[h][demo] = statistics.median(times[h])
+    base = statistics.mean(per_pose[hybrids[0]].values())
+    for h in hybrids:
+        mean = statistics.mean(per_pose[h].values())
+        out.append({"points": n, "model": h, "seconds_mean": mean, "seconds_per_pose": per_pose[h],
+                    "speedup": base / mean})  # fmt: skip
+        print(f"{n:>6} {h:<40} {mean:8.3f} s  {base / mean:6.1f}x  " +
+              " ".join(f"{k} {v:.2f}" for k, v in per_pose[h].items()), flush=True)  # fmt: skip
     return out
 
 
@@ -131,6 +168,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--hybrids", nargs="*", default=[], help="hybrid checkpoints to time on the demo poses "
+                    "(the first is the baseline), e.g. default:hybrid RUN/hybrid_fast")  # fmt: skip
     ap.add_argument("--quality", nargs="*", default=[], help="SPLIT=FILE:ROW, the teacher's report per split")
     ap.add_argument("--student-quality", nargs="*", default=[], help="SPLIT:CALLS=FILE:ROW")
     ap.add_argument("--animate", default=None, help="a DATASET:subject/split/sequence to animate with both models")
@@ -155,6 +194,8 @@ def main() -> None:
             print(f"| {r['split']} | {r['calls']} | " + " | ".join(cells) + " |")
     if not a.no_speed:
         result["speed"] = speed(a.teacher, a.student, a.calls, a.points, a.repeats)
+    if a.hybrids:
+        result["hybrid_speed"] = hybrid_speed(a.hybrids, a.repeats)
     if a.distribution:
         result["distribution"] = {}
         for spec in a.distribution:

@@ -275,6 +275,27 @@ def test_shipped_fast_model_samples_with_its_own_sampler(tmp_path):
         assert main(["sample", "--ckpt", "default:fast", "--points", "64", "--out", str(tmp_path / "x"), *extra]) == 2
 
 
+def test_shipped_fast_hybrid_links_pop_and_the_student_with_the_hybrids_maps(tmp_path):
+    """``--ckpt default:hybrid-fast``: ``default:hybrid`` with ``default:fast`` as its free-region
+    generator (linked by name, the same maps); it samples, and the student's call counts apply."""
+    from pocoloco.cli import main
+    from pocoloco.engine.shipped import default_checkpoint, describe_checkpoint
+    from pocoloco.methods import load_method
+
+    path = default_checkpoint("hybrid-fast")
+    assert describe_checkpoint(path) == "default:hybrid-fast"
+    m, ref = load_method(path), load_method(default_checkpoint("hybrid"))
+    assert m.config.sources == {"attached": "default:pop", "free": "default:fast"}
+    assert m.free.config.student_calls == 4 and ref.free.config.student_calls == 0
+    o = m.outfit_id("skirt_a")
+    assert (m.maps.free(o) == ref.maps.free(o)).all()
+    out = tmp_path / "s"
+    assert main(["sample", "--ckpt", "default:hybrid-fast", "--points", "300", "--num", "2", "--no-render",
+                 "--threads", "1", "--out", str(out)]) == 0  # fmt: skip
+    assert main(["sample", "--ckpt", "default:hybrid-fast", "--points", "64", "--steps", "3",
+                 "--out", str(tmp_path / "x")]) == 2  # fmt: skip
+
+
 def test_a_student_refuses_to_fit_an_outfit():
     from pocoloco.apps.fitting import fit_outfit
     from pocoloco.engine.shipped import default_checkpoint

@@ -13,7 +13,9 @@ minutes). ``assets/hybrid_medium`` the hybrid of
 the two (``default:pop`` + ``default``): its free-region maps and a link to each, no weights of its own
 (``pocoloco hybrid --link``). ``assets/pocoloco_fast_medium`` (``default:fast``, issue 42) a
 student distilled from ``default`` (``pocoloco distill``, ``scripts/fast_medium_v3.sh``) that samples
-in 1, 2 or 4 network calls (its default 4), stored as per-row int8. How each was trained and its evaluation are in README.md ("The default
+in 1, 2 or 4 network calls (its default 4), stored as per-row int8; ``assets/hybrid_fast_medium``
+(``default:hybrid-fast``) the hybrid with that student as its free-region generator (``default:pop``
++ ``default:fast``, ``default:hybrid``'s maps, linked like it). How each was trained and its evaluation are in README.md ("The default
 model", "POP and CloSET"). Written by :func:`pocoloco.engine.checkpoint.export_for_sampling`
 (``pocoloco export-model``).
 """
@@ -30,7 +32,7 @@ ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
 DEFAULT_MODEL_DIR = ASSETS_DIR / "pocoloco_medium"
 #: ``--ckpt default:NAME`` -> folder under assets/ (``default`` alone is PocoLoco's)
 SHIPPED_MODELS = {"pocoloco": "pocoloco_medium", "pop": "pop_medium", "closet": "closet_medium",
-                  "hybrid": "hybrid_medium", "fast": "pocoloco_fast_medium"}
+                  "hybrid": "hybrid_medium", "fast": "pocoloco_fast_medium", "hybrid-fast": "hybrid_fast_medium"}
 
 
 def default_checkpoint(kind: str = "pocoloco") -> Path:
