@@ -8,9 +8,9 @@ each as the student's mean, its paired difference to the teacher +- standard err
 Speed is measured here, in one process, for every model at each point count: seconds per cloud
 (median of ``--repeats`` rounds, every setting drawing one cloud per round in turn, ``--threads``
 torch threads), as a ratio to the teacher's in the same run; the network's peak memory is the same
-for the student and its teacher (the same network), so the ratio is time only. ``--hybrids A B``
-times hybrids the same way on the seven demo poses (e.g. ``default:hybrid`` and one assembled with
-the fast generator).
+for the student and its teacher (the same network), so the ratio is time only. ``--models A B ...``
+times checkpoints of any kind the same way on the seven demo poses (e.g. ``default:hybrid`` and
+``default:hybrid-fast``), each with its default sampler.
 
     python benchmarks/bench_fast.py --teacher default --student RUN/model --calls 1 2 4 \\
         --points 2048 10000 50000 --threads 1 \\
@@ -65,30 +65,36 @@ def speed(teacher: str, student: str, calls: list[int], points: list[int], repea
     return out
 
 
-def hybrid_speed(hybrids: list[str], repeats: int, n: int = 2048) -> list[dict]:
-    """Seconds per cloud of each hybrid (e.g. ``default:hybrid`` and one assembled with the fast
-    generator) over the seven garment kinds' demo poses, interleaved like :func:`speed`: the median
-    per pose, then their mean."""
+def models_speed(names: list[str], repeats: int, n: int = 2048) -> list[dict]:
+    """Seconds per cloud of each model (any kind, its default sampler: e.g. ``default:hybrid`` and
+    ``default:hybrid-fast``; ``NAME@STEPS`` with that many steps or calls) over the seven garment
+    kinds' demo poses, interleaved like
+    :func:`speed`: the median per pose, then their mean; the ratio to the first model's."""
     from pocoloco.engine.shipped import resolve_ckpt_arg
     from pocoloco.methods import load_method
 
-    models = [(h, load_method(resolve_ckpt_arg(h))) for h in hybrids]
+    from pocoloco.methods.base import SamplerOptions
+
+    def options(name: str) -> SamplerOptions:  # NAME@STEPS: that many steps (a student: calls)
+        return SamplerOptions(steps=int(name.rsplit("@", 1)[1])) if "@" in name else SamplerOptions()
+
+    models = [(h, load_method(resolve_ckpt_arg(h.rsplit("@", 1)[0]))) for h in names]
     out = []
-    per_pose: dict[str, dict[str, float]] = {h: {} for h in hybrids}
+    per_pose: dict[str, dict[str, float]] = {h: {} for h in names}
     for demo in ("skirt", "dress", "maxi", "shirt", "sleeves", "trousers", "tight"):
-        times: dict[str, list[float]] = {h: [] for h in hybrids}
+        times: dict[str, list[float]] = {h: [] for h in names}
         for h, m in models:
-            m.predict(m.load_pose(f"demo:{demo}"), 256, seeds=[0])  # warm-up
+            m.predict(m.load_pose(f"demo:{demo}"), 256, seeds=[0], options=options(h))  # warm-up
         for r in range(repeats):
             for h, m in models:
                 pose = m.load_pose(f"demo:{demo}")
                 t0 = time.perf_counter()
-                m.predict(pose, n, seeds=[r + 1])
+                m.predict(pose, n, seeds=[r + 1], options=options(h))
                 times[h].append(time.perf_counter() - t0)
-        for h in hybrids:
+        for h in names:
             per_pose[h][demo] = statistics.median(times[h])
-    base = statistics.mean(per_pose[hybrids[0]].values())
-    for h in hybrids:
+    base = statistics.mean(per_pose[names[0]].values())
+    for h in names:
         mean = statistics.mean(per_pose[h].values())
         out.append({"points": n, "model": h, "seconds_mean": mean, "seconds_per_pose": per_pose[h],
                     "speedup": base / mean})  # fmt: skip
@@ -168,8 +174,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-speed", action="store_true")
-    ap.add_argument("--hybrids", nargs="*", default=[], help="hybrid checkpoints to time on the demo poses "
-                    "(the first is the baseline), e.g. default:hybrid RUN/hybrid_fast")  # fmt: skip
+    ap.add_argument("--models", nargs="*", default=[], help="checkpoints of any kind to time on the seven demo "
+                    "poses (the first is the baseline), e.g. default:hybrid default:hybrid-fast")  # fmt: skip
     ap.add_argument("--quality", nargs="*", default=[], help="SPLIT=FILE:ROW, the teacher's report per split")
     ap.add_argument("--student-quality", nargs="*", default=[], help="SPLIT:CALLS=FILE:ROW")
     ap.add_argument("--animate", default=None, help="a DATASET:subject/split/sequence to animate with both models")
@@ -194,8 +200,8 @@ def main() -> None:
             print(f"| {r['split']} | {r['calls']} | " + " | ".join(cells) + " |")
     if not a.no_speed:
         result["speed"] = speed(a.teacher, a.student, a.calls, a.points, a.repeats)
-    if a.hybrids:
-        result["hybrid_speed"] = hybrid_speed(a.hybrids, a.repeats)
+    if a.models:
+        result["models_speed"] = models_speed(a.models, a.repeats)
     if a.distribution:
         result["distribution"] = {}
         for spec in a.distribution:
