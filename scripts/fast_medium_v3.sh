@@ -45,3 +45,26 @@ S=""; for split in test heldout; do for calls in 1 2 4; do
   --distribution test=benchmarks/results/distribution_medium_v3/test/distribution.json:pocoloco,$RUNS/dist_fast/test/distribution.json:pocoloco \
   heldout=benchmarks/results/distribution_medium_v3/heldout/distribution.json:pocoloco,$RUNS/dist_fast/heldout/distribution.json:pocoloco \
   --json benchmarks/results/fast_medium_v3/fast.json
+
+# 4. the hybrid with the fast generator (what ships as default:hybrid-fast: `pocoloco export-model --ckpt
+#    $RUNS/hybrid_fast --out src/pocoloco/assets/hybrid_fast_medium`), both hybrids scored on the standard
+#    frames, paired, and timed with every shipped model on the demo poses (interleaved)
+[ -d "$RUNS/hybrid_fast/checkpoints" ] || $PL hybrid --attached default:pop --free default:fast --maps default:hybrid \
+  --inside-tolerance 0.01 --trust 0.03 --link --data "$DATA" --out "$RUNS/hybrid_fast"
+for split in test heldout; do
+  for h in hybrid hybrid-fast; do
+    out=$RUNS/quality_$h/$split
+    [ -f "$out/quality.json" ] || $PL bench quality --data "$DATA" --split $split --frames 28 --seeds 0 1 \
+      --points 2048 --ckpt-hybrid default:$h --threads 1 --out "$out"
+  done
+  out=$RUNS/quality_hybrid-fast_2calls/$split
+  [ -f "$out/quality.json" ] || $PL bench quality --data "$DATA" --split $split --frames 28 --seeds 0 1 \
+    --points 2048 --ckpt-hybrid default:hybrid-fast --steps 2 --threads 1 --out "$out"
+  .venv/bin/python benchmarks/compare_quality.py "$RUNS/quality_hybrid/$split/quality.json:hybrid" \
+    "$RUNS/quality_hybrid-fast/$split/quality.json:hybrid" --json benchmarks/results/fast_medium_v3/hybrid/$split/hybrid_vs_hybrid_fast.json
+done
+.venv/bin/python benchmarks/bench_fast.py --student default:fast --calls 1 2 4 --points 2048 10000 50000 --repeats 5 \
+  --threads 1 --models default:hybrid default:hybrid-fast --json benchmarks/results/fast_medium_v3/speed.json
+.venv/bin/python benchmarks/bench_fast.py --student default:fast --no-speed --repeats 3 --threads 1 \
+  --models default default:fast default:pop default:closet default:hybrid default:hybrid-fast default:hybrid-fast@2 \
+  --json benchmarks/results/fast_medium_v3/models_speed.json
