@@ -37,7 +37,8 @@ _LAZY = {
 
 def load(name_or_path: str | os.PathLike = "default", device: str = "cpu", use_ema: bool = True) -> "Method":  # noqa: F821
     """A trained model, ready to sample: ``"default"`` (the shipped PocoLoco), ``"default:pop"``,
-    ``"default:closet"``, ``"default:hybrid"``, or the path of a checkpoint, checkpoints or run
+    ``"default:closet"``, ``"default:hybrid"``, ``"default:fast"`` / ``"default:hybrid-fast"`` (4 network
+    calls), or the path of a checkpoint, checkpoints or run
     folder (any method). ``device``: ``"cpu"``, ``"cuda"``, ...; ``use_ema``: the averaged weights
     (as trained models are evaluated) or the raw ones. A one-line ``ValueError`` for an unknown
     name, a missing or damaged checkpoint."""

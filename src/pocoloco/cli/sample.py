@@ -115,7 +115,8 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ckpt", default="default",
                         help="checkpoint folder, checkpoints folder or run folder of any model; 'default' (the "
                              "default) = the PocoLoco model shipped with pocoloco (latent denoiser, trained on medium), "
-                             "default:pop / default:closet its shipped peers, default:hybrid the hybrid of POP and it")  # fmt: skip
+                             "default:pop / default:closet its shipped peers, default:hybrid the hybrid of POP and it, "
+                             "default:fast / default:hybrid-fast the same in 4 network calls (a distilled student)")  # fmt: skip
     parser.add_argument("--joints", default=None,
                         help="pose: .npy/.npz (24, 3) joints, a LOOSE-style joints .txt, a dataset frame .npz, "
                              "DATASET:subject/split/sequence/index, or demo:OUTFIT (a shipped pose, one per outfit: "
