@@ -10,7 +10,7 @@ Speed is measured here, in one process, for every model at each point count: sec
 torch threads), as a ratio to the teacher's in the same run; the network's peak memory is the same
 for the student and its teacher (the same network), so the ratio is time only. ``--models A B ...``
 times checkpoints of any kind the same way on the seven demo poses (e.g. ``default:hybrid`` and
-``default:hybrid-fast``), each with its default sampler.
+``default:hybrid-fast``), each with its default sampler (``NAME@STEPS``: that many steps).
 
     python benchmarks/bench_fast.py --teacher default --student RUN/model --calls 1 2 4 \\
         --points 2048 10000 50000 --threads 1 \\
@@ -34,72 +34,68 @@ METRICS = (("chamfer_cm", "Chamfer cm"), ("m2s_garment_cm", "garment M2S cm"),
            ("outlier_10cm_pct", "> 10 cm %"), ("diversity_cm", "spread cm"))  # fmt: skip
 
 
+def interleaved_medians(settings: list[tuple], pose_spec: str, n: int, repeats: int) -> dict[str, float]:
+    """Median seconds per cloud of n points at ``pose_spec`` for each ``(label, method, options)``
+    of ``settings``: one warm-up each, then ``repeats`` rounds in which every setting draws one cloud
+    in turn (interleaved, so that a busy machine slows them alike)."""
+    times: dict[str, list[float]] = {label: [] for label, _, _ in settings}
+    for _, m, opts in settings:
+        m.predict(m.load_pose(pose_spec), 256, seeds=[0], options=opts)  # warm-up
+    for r in range(repeats):
+        for label, m, opts in settings:
+            pose = m.load_pose(pose_spec)
+            t0 = time.perf_counter()
+            m.predict(pose, n, seeds=[r + 1], options=opts)
+            times[label].append(time.perf_counter() - t0)
+    return {label: statistics.median(t) for label, t in times.items()}
+
+
 def speed(teacher: str, student: str, calls: list[int], points: list[int], repeats: int,
           pose_spec: str = "demo:skirt") -> list[dict]:  # fmt: skip
-    """Seconds per cloud of the teacher (its default sampler) and the student at each call count:
-    all models loaded once, one warm-up each, then ``repeats`` rounds in which every setting draws
-    one cloud in turn (interleaved, so that a busy machine slows them alike); the median per setting."""
+    """Seconds per cloud of the teacher (its default sampler) and the student at each call count,
+    all models loaded once and timed by :func:`interleaved_medians`; the ratio to the teacher's."""
     from pocoloco.engine.shipped import resolve_ckpt_arg
     from pocoloco.methods import load_method
     from pocoloco.methods.base import SamplerOptions
 
-    settings = [("teacher (dpm++sde 25)", load_method(resolve_ckpt_arg(teacher)), None)]
+    settings = [("teacher (dpm++sde 25)", load_method(resolve_ckpt_arg(teacher)), SamplerOptions())]
     fast = load_method(resolve_ckpt_arg(student))
-    settings += [(f"student, {c} call(s)", fast, c) for c in calls]
+    settings += [(f"student, {c} call(s)", fast, SamplerOptions(steps=c)) for c in calls]
     out = []
     for n in points:
-        times: dict[str, list[float]] = {label: [] for label, _, _ in settings}
-        for label, m, steps in settings:
-            m.predict(m.load_pose(pose_spec), 256, seeds=[0], options=SamplerOptions(steps=steps))  # warm-up
-        for r in range(repeats):
-            for label, m, steps in settings:
-                pose = m.load_pose(pose_spec)
-                t0 = time.perf_counter()
-                m.predict(pose, n, seeds=[r + 1], options=SamplerOptions(steps=steps))
-                times[label].append(time.perf_counter() - t0)
-        base = statistics.median(times[settings[0][0]])
+        med = interleaved_medians(settings, pose_spec, n, repeats)
+        base = med[settings[0][0]]
         for label, _, _ in settings:
-            med = statistics.median(times[label])
-            out.append({"points": n, "model": label, "seconds": med, "speedup": base / med})
-            print(f"{n:>6} {label:<24} {med:8.3f} s  {base / med:6.1f}x", flush=True)
+            out.append({"points": n, "model": label, "seconds": med[label], "speedup": base / med[label]})
+            print(f"{n:>6} {label:<24} {med[label]:8.3f} s  {base / med[label]:6.1f}x", flush=True)
     return out
 
 
 def models_speed(names: list[str], repeats: int, n: int = 2048) -> list[dict]:
     """Seconds per cloud of each model (any kind, its default sampler: e.g. ``default:hybrid`` and
     ``default:hybrid-fast``; ``NAME@STEPS`` with that many steps or calls) over the seven garment
-    kinds' demo poses, interleaved like
-    :func:`speed`: the median per pose, then their mean; the ratio to the first model's."""
+    kinds' demo poses, each pose timed by :func:`interleaved_medians`: their mean, and the ratio to
+    the first model's."""
     from pocoloco.engine.shipped import resolve_ckpt_arg
     from pocoloco.methods import load_method
-
     from pocoloco.methods.base import SamplerOptions
 
-    def options(name: str) -> SamplerOptions:  # NAME@STEPS: that many steps (a student: calls)
-        return SamplerOptions(steps=int(name.rsplit("@", 1)[1])) if "@" in name else SamplerOptions()
-
-    models = [(h, load_method(resolve_ckpt_arg(h.rsplit("@", 1)[0]))) for h in names]
-    out = []
-    per_pose: dict[str, dict[str, float]] = {h: {} for h in names}
+    settings = []
+    for name in names:
+        ckpt, _, steps = name.partition("@")
+        settings.append((name, load_method(resolve_ckpt_arg(ckpt)), SamplerOptions(steps=int(steps) if steps else None)))
+    per_pose: dict[str, dict[str, float]] = {name: {} for name in names}
     for demo in ("skirt", "dress", "maxi", "shirt", "sleeves", "trousers", "tight"):
-        times: dict[str, list[float]] = {h: [] for h in names}
-        for h, m in models:
-            m.predict(m.load_pose(f"demo:{demo}"), 256, seeds=[0], options=options(h))  # warm-up
-        for r in range(repeats):
-            for h, m in models:
-                pose = m.load_pose(f"demo:{demo}")
-                t0 = time.perf_counter()
-                m.predict(pose, n, seeds=[r + 1], options=options(h))
-                times[h].append(time.perf_counter() - t0)
-        for h in names:
-            per_pose[h][demo] = statistics.median(times[h])
+        for name, seconds in interleaved_medians(settings, f"demo:{demo}", n, repeats).items():
+            per_pose[name][demo] = seconds
     base = statistics.mean(per_pose[names[0]].values())
-    for h in names:
-        mean = statistics.mean(per_pose[h].values())
-        out.append({"points": n, "model": h, "seconds_mean": mean, "seconds_per_pose": per_pose[h],
+    out = []
+    for name in names:
+        mean = statistics.mean(per_pose[name].values())
+        out.append({"points": n, "model": name, "seconds_mean": mean, "seconds_per_pose": per_pose[name],
                     "speedup": base / mean})  # fmt: skip
-        print(f"{n:>6} {h:<40} {mean:8.3f} s  {base / mean:6.1f}x  " +
-              " ".join(f"{k} {v:.2f}" for k, v in per_pose[h].items()), flush=True)  # fmt: skip
+        print(f"{n:>6} {name:<40} {mean:8.3f} s  {base / mean:6.1f}x  " +
+              " ".join(f"{k} {v:.2f}" for k, v in per_pose[name].items()), flush=True)  # fmt: skip
     return out
 
 

@@ -60,8 +60,12 @@ for split in test heldout; do
   out=$RUNS/quality_hybrid-fast_2calls/$split
   [ -f "$out/quality.json" ] || $PL bench quality --data "$DATA" --split $split --frames 28 --seeds 0 1 \
     --points 2048 --ckpt-hybrid default:hybrid-fast --steps 2 --threads 1 --out "$out"
-  .venv/bin/python benchmarks/compare_quality.py "$RUNS/quality_hybrid/$split/quality.json:hybrid" \
-    "$RUNS/quality_hybrid-fast/$split/quality.json:hybrid" --json benchmarks/results/fast_medium_v3/hybrid/$split/hybrid_vs_hybrid_fast.json
+  for fast in hybrid-fast hybrid-fast_2calls; do
+    .venv/bin/python benchmarks/compare_quality.py "$RUNS/quality_hybrid/$split/quality.json:hybrid" \
+      "$RUNS/quality_$fast/$split/quality.json:hybrid" --metrics chamfer_cm s2m_garment_cm m2s_garment_cm \
+      loose_pred_pct outlier_10cm_pct energy_score_adj_cm \
+      --json "benchmarks/results/fast_medium_v3/hybrid/$split/hybrid_vs_${fast//-/_}.json"
+  done
 done
 .venv/bin/python benchmarks/bench_fast.py --student default:fast --calls 1 2 4 --points 2048 10000 50000 --repeats 5 \
   --threads 1 --models default:hybrid default:hybrid-fast --json benchmarks/results/fast_medium_v3/speed.json

@@ -302,7 +302,7 @@ def test_the_generator_is_asked_for_the_free_region_at_its_share_then_only_for_w
         return SampledClouds(np.repeat(fr.body_vertices[pick][None], len(seeds), 0).astype(np.float32), None)
 
     m.free.predict = fake_predict
-    n_att, n_free = m.split(o, 400)
+    n_free = m.split(o, 400)[1]
     n_gen = round(m.config.generator_share * n_free)
     cloud = m.predict(pose, 400, seeds=(0,), outfit=o).points[0]
     assert cloud.shape == (400, 3) and point_regions(cloud[400 - n_gen :], fr.body_vertices, free).all()
