@@ -444,3 +444,45 @@ def test_the_motion_encoder_can_learn_faster_than_the_rest(tiny_dataset):
     assert sum(len(g["params"]) for g in opt.param_groups) == len(list(model.parameters()))
     with pytest.raises(ValueError, match="motion_lr_scale"):
         train_preset("latent_tiny", motion_lr_scale=0.0)
+
+
+def test_a_frozen_trunk_trains_the_motion_encoder_alone(tiny_dataset, tmp_path, capsys):
+    """--freeze-trunk: only the motion encoder is in the optimiser and changes; every other weight
+    of the fine-tune is the checkpoint's, bit for bit; without --motion-window or --init-from it is a
+    one-line error, and a fine-tune *from* such a run trains everything again."""
+    import torch
+    from safetensors.torch import load_file
+
+    from pocoloco.cli import main as cli_main
+    from pocoloco.methods.pocoloco import train_preset
+    from pocoloco.methods.pocoloco.training import PocoLocoTask
+
+    task = PocoLocoTask(train_preset("latent_tiny", motion_window=2.0, freeze_trunk=True), tiny_dataset)
+    model = task.build_model()
+    opt = task.make_optimizer(model)
+    trained = {id(p) for g in opt.param_groups for p in g["params"]}
+    for name, p in model.named_parameters():
+        assert (id(p) in trained) == p.requires_grad == name.startswith("motion_in."), name
+    with pytest.raises(ValueError, match="needs --motion-window"):
+        train_preset("latent_tiny", freeze_trunk=True)
+
+    base, run, again = tmp_path / "base", tmp_path / "run", tmp_path / "again"
+    common = ["--data", str(tiny_dataset), "--no-progress", "--device", "cpu", "--sample-every", "0", "--threads", "1"]
+    assert cli_main(["train", "--out", str(base), "--preset", "latent_tiny", "--steps", "2", *common]) in (0, None)
+    capsys.readouterr()
+    assert cli_main(["train", "--out", str(tmp_path / "x"), "--preset", "latent_tiny", "--motion-window", "2.0",
+                     "--freeze-trunk", "--steps", "2", *common]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert "--init-from" in err and "\n" not in err
+    assert cli_main(["train", "--out", str(run), "--init-from", str(base), "--motion-window", "2.0", "--freeze-trunk",
+                     "--steps", "3", "--lr", "1e-2", "--lr-schedule", "constant", *common]) in (0, None)  # fmt: skip
+    before, after = load_file(base / "model" / "model.safetensors"), load_file(run / "model" / "model.safetensors")
+    assert set(after) - set(before) and all(k.startswith("motion_in.") for k in set(after) - set(before))
+    for k, v in before.items():
+        assert torch.equal(v, after[k]), k
+    assert any(not torch.equal(v, torch.zeros_like(v)) for k, v in after.items() if k.endswith("out.weight")
+               and k.startswith("motion_in."))  # the zero-initialised projection has learnt
+    assert cli_main(["train", "--out", str(again), "--init-from", str(run), "--steps", "2", "--lr", "1e-2",
+                     "--lr-schedule", "constant", *common]) in (0, None)  # fmt: skip
+    last = load_file(again / "model" / "model.safetensors")
+    assert any(not torch.equal(v, last[k]) for k, v in before.items())

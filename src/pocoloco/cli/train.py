@@ -48,7 +48,7 @@ FIELD_OPTIONS = {
     "query_points": "query_points", "subjects": "subjects", "outfit_codes": "outfit_codes",
     "body_shape": "body_shape", "body_points": "body_points", "canonical_heading": "canonical_heading",
     "joint_velocity": "joint_velocity", "motion_window": "motion_window", "history_dropout": "history_dropout",
-    "motion_lr_scale": "motion_lr_scale",
+    "motion_lr_scale": "motion_lr_scale", "freeze_trunk": "freeze_trunk",
     "lr_schedule": "lr_schedule", "decay_steps": "decay_steps",
 }  # fmt: skip
 
@@ -103,7 +103,9 @@ def _config_from_args(args: argparse.Namespace):
         # the machine's settings do not travel with the weights: a fine-tune of a GPU-trained model on
         # a CPU without native bf16 would otherwise run its forward pass emulated (~10x slower here)
         # and start a GPU run's loader processes
-        for field, value in (("bf16", resolve_bf16(None, choose_device(args.device))), ("num_workers", 0)):
+        # nor does a frozen trunk: a fine-tune of a --freeze-trunk model trains every weight unless told
+        for field, value in (("bf16", resolve_bf16(None, choose_device(args.device))), ("num_workers", 0),
+                             ("freeze_trunk", False)):
             if field in have and field not in overrides:
                 overrides[field] = value
         return config_from_checkpoint(args.init_from, args.model, **overrides)
@@ -129,6 +131,9 @@ def cmd_train(args: argparse.Namespace) -> None:
                          "pack does not hold: make it with `pocoloco data pack --bodies`, or train on the dataset folder")  # fmt: skip
     if not packed:
         data = data.ensure_checked(config.subjects)
+    if getattr(config, "freeze_trunk", False) and args.init_from is None and not args.resume:
+        raise ValueError("--freeze-trunk keeps every weight but the motion encoder's as initialised: give --init-from "
+                         "CKPT (a trained model), or a frozen random network learns nothing")  # fmt: skip
     task = method_class(config.model).training_task(config, data)
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")
@@ -256,6 +261,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--motion-lr-scale", type=float, metavar="X",
                    help="with --motion-window: the motion encoder's learning rate in multiples of --lr (a fine-tune "
                         "from a pose-only model; default 1)")  # fmt: skip
+    g.add_argument("--freeze-trunk", action="store_true", default=None,
+                   help="with --motion-window and --init-from: train the motion encoder alone, every other weight "
+                        "kept as the checkpoint's (what the run gains is the window's; default off)")  # fmt: skip
     parser.add_argument("--subjects", nargs="+",
                         help="train on these subjects only: one model per subject as the PocoLoco paper, or hold one "
                              "out for `pocoloco fit` (default: all)")  # fmt: skip

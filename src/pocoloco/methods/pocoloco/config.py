@@ -66,7 +66,10 @@ class PocoLocoTrainConfig(Config):
     augments the windows (time-warp, jitter, noise) and replaces a ``history_dropout`` share of them
     by a body at rest, so the same model also samples without motion. motion_lr_scale: the motion
     encoder's learning rate in multiples of ``lr`` (a fine-tune from a pose-only model: its
-    zero-initialised encoder has everything to learn, the rest little).
+    zero-initialised encoder has everything to learn, the rest little). freeze_trunk: with
+    ``motion_window``, train the motion encoder alone and keep every other weight as initialised (a
+    fine-tune from a pose-only model that cannot over-fit its trunk: what it gains over that model
+    is the window's alone).
     student_calls: 0 for a diffusion model; N > 0 for a student distilled from one
     (``pocoloco distill``, issue 42, :mod:`pocoloco.methods.pocoloco.distill`): its x0 estimate at the
     timesteps of the N-call grid is the teacher's deterministic answer, and it samples with the
@@ -117,6 +120,7 @@ class PocoLocoTrainConfig(Config):
     motion_window: float = 0.0
     history_dropout: float = 0.15
     motion_lr_scale: float = 1.0
+    freeze_trunk: bool = False
     student_calls: int = 0
     distill_chamfer: float = 1.0
     distill_huber: float = 0.01
@@ -144,6 +148,8 @@ class PocoLocoTrainConfig(Config):
         if self.motion_window and self.architecture != "latent":
             raise ValueError("motion_window (--motion-window) needs the latent denoiser (e.g. --preset latent_small)")
         check_motion_training(self.motion_window, self.history_dropout, self.motion_lr_scale)
+        if self.freeze_trunk and not self.motion_window:
+            raise ValueError("freeze_trunk (--freeze-trunk) trains the motion encoder alone: it needs --motion-window")
         if not (0 <= self.distill_renoised <= 1 and 0 <= self.student_renoise <= 1):
             raise ValueError(f"distill_renoised and student_renoise must be in [0, 1], got {self.distill_renoised}, "
                              f"{self.student_renoise}")  # fmt: skip

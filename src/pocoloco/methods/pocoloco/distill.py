@@ -124,7 +124,8 @@ def distill_config(teacher: PocoLocoTrainConfig, calls: int, **overrides: Any) -
     steps = int(overrides.pop("steps", 2000))
     base: dict[str, Any] = {"student_calls": calls, "steps": steps, "batch_size": 16, "lr": 5e-5, "warmup_steps": 20,
                             "lr_schedule": "wsd", "decay_steps": max(1, steps // 5), "ema_decay": 0.995,
-                            "ckpt_every": 100, "sample_every": 0, "log_every": 10, "keep_checkpoints": 2}  # fmt: skip
+                            "ckpt_every": 100, "sample_every": 0, "log_every": 10, "keep_checkpoints": 2,
+                            "freeze_trunk": False}  # fmt: skip
     return teacher.replace(**{**base, **overrides})
 
 

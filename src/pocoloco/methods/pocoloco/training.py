@@ -98,9 +98,14 @@ class PocoLocoTask(TrainingTask):
         return build_denoiser(self.config.architecture, self.config.denoiser)
 
     def make_optimizer(self, model: nn.Module) -> torch.optim.Optimizer:
+        """AdamW; the motion encoder's parameters in their own groups at ``lr x motion_lr_scale``;
+        with ``freeze_trunk`` only they are trained (every other parameter's ``requires_grad`` off)."""
         c = self.config
         groups: dict[tuple[bool, bool], list[nn.Parameter]] = {}
         for name, p in model.named_parameters():  # (motion encoder?, weight decay?) -> parameters
+            if c.freeze_trunk and not name.startswith("motion_in."):
+                p.requires_grad_(False)  # before any DDP wrap: the trunk keeps its initial weights
+                continue
             groups.setdefault((name.startswith("motion_in.") and c.motion_lr_scale != 1.0, p.ndim >= 2), []).append(p)
         return torch.optim.AdamW([{"params": ps, "weight_decay": c.weight_decay if decay else 0.0,
                                    **({"lr": c.lr * c.motion_lr_scale} if motion else {})}
