@@ -100,7 +100,10 @@ def bench_distribution(
     where the reference set's shared seconds cover W (every true state went through that motion),
     and none (the body at rest) where they do not; pose-only models draw once for all windows.
     JSON: ``rows[NAME][WINDOW]`` (WINDOW = shared seconds as text, "0", "2") -> statistic ->
-    ``{"mean", "lo", "hi"}``; ``per_pose``: every pose's statistics; ``settings``. Returns it."""
+    ``{"mean", "lo", "hi"}``, embedding statistics in cm per probe; ``per_pose``: every pose's
+    statistics, its embedding ones (``_EMBEDDING_KEYS``) as raw Euclidean distances in metres over
+    the P probes (x 100 / sqrt(P) gives the rows' cm per probe), Chamfer ones in cm; ``settings``.
+    Returns it."""
     if samples < 2:
         raise ValueError(f"--samples must be >= 2 (a generative model's spread needs two), got {samples}")
     if points < 16 or probes < 8:
