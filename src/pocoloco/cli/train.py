@@ -126,14 +126,14 @@ def cmd_train(args: argparse.Namespace) -> None:
     else:
         data = OpenedDataset.open(args.data, subjects=[])
     config = _config_from_args(args)
+    if getattr(config, "freeze_trunk", False) and args.init_from is None and not args.resume:
+        raise ValueError("--freeze-trunk keeps every weight but the motion encoder's as initialised: give --init-from "
+                         "CKPT (a trained model), or a frozen random network learns nothing")  # fmt: skip
     if packed and config.model != "pocoloco" and not read_pack_meta(args.data).get("bodies"):
         raise ValueError(f"--data {args.data}: --model {config.model} trains on posed bodies and normals, which this "
                          "pack does not hold: make it with `pocoloco data pack --bodies`, or train on the dataset folder")  # fmt: skip
     if not packed:
         data = data.ensure_checked(config.subjects)
-    if getattr(config, "freeze_trunk", False) and args.init_from is None and not args.resume:
-        raise ValueError("--freeze-trunk keeps every weight but the motion encoder's as initialised: give --init-from "
-                         "CKPT (a trained model), or a frozen random network learns nothing")  # fmt: skip
     task = method_class(config.model).training_task(config, data)
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")

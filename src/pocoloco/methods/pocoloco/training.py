@@ -103,10 +103,11 @@ class PocoLocoTask(TrainingTask):
         c = self.config
         groups: dict[tuple[bool, bool], list[nn.Parameter]] = {}
         for name, p in model.named_parameters():  # (motion encoder?, weight decay?) -> parameters
-            if c.freeze_trunk and not name.startswith("motion_in."):
+            motion = name.startswith("motion_in.")
+            if c.freeze_trunk and not motion:
                 p.requires_grad_(False)  # before any DDP wrap: the trunk keeps its initial weights
                 continue
-            groups.setdefault((name.startswith("motion_in.") and c.motion_lr_scale != 1.0, p.ndim >= 2), []).append(p)
+            groups.setdefault((motion and c.motion_lr_scale != 1.0, p.ndim >= 2), []).append(p)
         return torch.optim.AdamW([{"params": ps, "weight_decay": c.weight_decay if decay else 0.0,
                                    **({"lr": c.lr * c.motion_lr_scale} if motion else {})}
                                   for (motion, decay), ps in sorted(groups.items())],
