@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
-from pocoloco.diffusion.few_step import check_student_calls, sample_few_step, student_grid
+from pocoloco.diffusion.few_step import (allowed_calls, check_student_calls, polish, polished_grid,
+                                         sample_few_step, student_grid)
 
 
 @pytest.fixture(scope="module")
@@ -159,6 +160,104 @@ def test_distill_end_to_end_resumes_and_samples(latent_teacher, tiny_dataset, tm
         assert not np.allclose(a.points[0], a.points[1])  # two seeds, two clouds
 
 
+def test_polished_grid_and_the_calls_it_allows():
+    """With its teacher making the last call, a 4-call student samples with 3 .. 5 calls: its
+    grid's first calls - 2 times and its last, then the teacher; 1 and 2 calls stay its own."""
+    assert polished_grid(1000, 4, 4) == [999, 749, 249]
+    assert polished_grid(1000, 3, 4) == [999, 249]
+    assert polished_grid(1000, 5, 4) == [999, 749, 499, 249]
+    assert polished_grid(1000, 2, 4) is None and polished_grid(1000, 6, 4) is None
+    assert allowed_calls(4) == [1, 2, 4] and allowed_calls(4, polish=True) == [1, 2, 3, 4, 5]
+    check_student_calls(3, 4, polish=True)
+    with pytest.raises(ValueError, match="samples with 1, 2, 3, 4, 5 .*its teacher makes the last") as e:
+        check_student_calls(6, 4, polish=True)
+    assert "\n" not in str(e.value)
+
+
+def test_polish_is_one_teacher_call_on_the_renoised_answer(four):
+    """``polish`` against the written-out SDEdit step: x_t = sqrt(abar) x0 + sqrt(1 - abar) z at
+    1-based step t, then the denoiser's x0 estimate there."""
+    den = LinearDenoiser()
+    x0 = torch.randn(2, 64, 3, generator=torch.Generator().manual_seed(3))
+    out = polish(den, four, x0, None, 20, torch.Generator().manual_seed(5))
+    ab = four.alpha_bar(19)
+    z = torch.randn(x0.shape, generator=torch.Generator().manual_seed(5))
+    xt = ab**0.5 * x0.double() + (1 - ab) ** 0.5 * z.double()
+    eps = den(xt.float(), torch.full((2,), 19)).double()
+    ref = ((xt - (1 - ab) ** 0.5 * eps) / ab**0.5).float()
+    assert torch.allclose(out, ref, atol=1e-5), (out - ref).abs().max()
+    assert (out - x0).abs().mean() > 1e-3  # it moved the points
+    for bad in (0, 1001):
+        with pytest.raises(ValueError, match="polish t must be in"):
+            polish(den, four, x0, None, bad, None)
+
+
+@pytest.fixture(scope="module")
+def tiny_student(latent_teacher, tiny_dataset, tmp_path_factory):
+    from pocoloco.methods.pocoloco.distill import distill
+
+    out = tmp_path_factory.mktemp("student") / "d"
+    distill(latent_teacher, tiny_dataset, out, steps=2, calls=4, pairs=2, pair_points=16, teacher_steps=4,
+            batch_size=2, progress=False)  # fmt: skip
+    return out / "model"
+
+
+def test_a_teacher_finishes_a_polished_student(latent_teacher, tiny_student, tiny_run, tmp_path, torch_single_thread):
+    """``export-model --polish-with TEACHER``: the student's 4 calls become 3 of its own (999, 749,
+    249) and its teacher's one at --polish-t, equal to the loop written out; 1 and 2 calls are the
+    student's alone; a changed, wrong or missing teacher is a one-line error."""
+    import shutil
+
+    from pocoloco.cli import main
+    from pocoloco.diffusion.samplers import sample_ddim
+    from pocoloco.methods import SamplerOptions, load_method
+    from pocoloco.methods.pocoloco.sampling import condition_for
+
+    teacher_copy = tmp_path / "teacher"
+    assert main(["export-model", "--ckpt", str(latent_teacher), "--out", str(teacher_copy)]) == 0
+    out = tmp_path / "p"
+    assert main(["export-model", "--ckpt", str(tiny_student), "--polish-with", str(teacher_copy), "--polish-t", "30",
+                 "--out", str(out)]) == 0  # fmt: skip
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["polish"]["t"] == 30 and meta["polish"]["ckpt"] == str(teacher_copy.resolve())
+    m, plain, teacher = load_method(out), load_method(tiny_student), load_method(teacher_copy)
+    assert m.polish is not None and m.polish[1] == 30 and plain.polish is None
+    pose = m.load_pose("demo:skirt")
+    joints = np.asarray(pose.joints)
+    got = m.predict(pose, 48, seeds=[3], outfit=0).points[0]  # 4 calls, the default
+    assert m.sample_settings(SamplerOptions(), 48)["student_timesteps"] == [999, 749, 249]
+
+    schedule = NoiseSchedule.from_kind(m.config.schedule, m.config.num_timesteps)
+    kw = m.condition(0)
+    joints_n = m.normalisation.normalise(np.zeros((1, 3), np.float32), joints)[1]
+    cond = condition_for(torch.as_tensor(joints_n)[None], kw["outfit"], kw["shape"])
+    rng = PerSampleRNG([3])
+    x = sample_ddim(plain.model, schedule, rng.randn((48, 3)), cond, timesteps=[999, 749, 249], renoise=1.0, rng=rng,
+                    prediction_type=m.config.prediction_type, clip=None)  # fmt: skip
+    x = polish(teacher.model, schedule, x, cond, 30, rng, prediction_type=m.config.prediction_type)
+    root = m.normalisation.root(joints).astype(np.float32)
+    ref = m.normalisation.denormalise(x.numpy(), root, m.normalisation.angle(joints))[0]
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    for calls in (1, 2):  # below 3 calls the teacher does not finish
+        opts = SamplerOptions(steps=calls)
+        np.testing.assert_array_equal(m.predict(pose, 48, seeds=[3], outfit=0, options=opts).points,
+                                      plain.predict(pose, 48, seeds=[3], outfit=0, options=opts).points)  # fmt: skip
+    assert m.predict(pose, 48, seeds=[3], outfit=0, options=SamplerOptions(steps=3)).points.shape == (1, 48, 3)
+
+    for args, match in [(["--ckpt", str(tiny_student), "--polish-t", "20"], None),  # no teacher named
+                        (["--ckpt", str(latent_teacher), "--polish-with", str(teacher_copy)], None),  # not a student
+                        (["--ckpt", str(tiny_student), "--polish-with", str(tiny_run)], None)]:  # another network
+        assert main(["export-model", *args, "--out", str(tmp_path / "bad")]) == 2 and not (tmp_path / "bad").exists()
+    shutil.rmtree(teacher_copy)
+    with pytest.raises(ValueError, match="cannot be loaded") as e:
+        load_method(out)
+    assert "\n" not in str(e.value)
+    assert main(["export-model", "--ckpt", str(latent_teacher), "--raw-weights", "--out", str(teacher_copy)]) == 0
+    with pytest.raises(ValueError, match="has changed since the export") as e:
+        load_method(out)
+    assert "\n" not in str(e.value)
+
+
 def test_distill_refuses_bad_teachers_and_settings(latent_teacher, tiny_run, tiny_dataset, tmp_path):
     from pocoloco.methods.pocoloco.distill import PairSettings, distill
 
@@ -249,8 +348,8 @@ def test_pair_batches_mix_teacher_states_and_renoised_answers(four):
 
 def test_shipped_fast_model_samples_with_its_own_sampler(tmp_path):
     """``--ckpt default:fast``: a student of the shipped default (its teacher named by SHA-256), int8
-    weights, 4 calls by default; a clothed body near the demo pose's joints; a diffusion sampler or
-    3 calls is a one-line error."""
+    weights, 4 calls by default (3 of its own, the default's last: ``polish``); a clothed body near
+    the demo pose's joints; a diffusion sampler or 6 calls is a one-line error."""
     from pocoloco.cli import main
     from pocoloco.engine.shipped import default_checkpoint, describe_checkpoint
 
@@ -259,19 +358,21 @@ def test_shipped_fast_model_samples_with_its_own_sampler(tmp_path):
     teacher = json.loads((default_checkpoint() / "meta.json").read_text())
     assert meta["weights_dtype"] == "int8" and meta["config"]["student_calls"] == 4
     assert meta["distilled_from"]["teacher_sha256"] == teacher["meta_sha256"]
+    assert meta["polish"] == {"ckpt": "default", "meta_sha256": teacher["meta_sha256"], "t": 20}
     assert describe_checkpoint(path) == "default:fast"
     out = tmp_path / "s"
     assert main(["sample", "--ckpt", "default:fast", "--points", "400", "--num", "2", "--no-render", "--threads", "1",
                  "--out", str(out)]) == 0  # fmt: skip
     info = json.loads((out / "sample.json").read_text())
     assert info["sampler"] == "few-step" and info["steps"] == 4
+    assert info["student_timesteps"] == [999, 749, 249] and info["polish"] == {"with": "default", "t": 20}
     from pocoloco.data.published import read_ply
     from pocoloco.methods import load_method
 
     pts = read_ply(out / "sample_000.ply").points
     joints = np.asarray(load_method(path).load_pose("demo:skirt").joints)
     assert np.isfinite(pts).all() and np.linalg.norm(pts.mean(0) - joints.mean(0)) < 0.3
-    for extra in (["--sampler", "ddim"], ["--steps", "3"]):
+    for extra in (["--sampler", "ddim"], ["--steps", "6"]):
         assert main(["sample", "--ckpt", "default:fast", "--points", "64", "--out", str(tmp_path / "x"), *extra]) == 2
 
 

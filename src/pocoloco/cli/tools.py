@@ -15,6 +15,7 @@ from pocoloco.data.poses import load_joints
 from pocoloco.data.published import CLOUD_CHECK_HELP, check_cloud, read_ply
 from pocoloco.engine.checkpoint import WEIGHTS_DTYPES, export_for_sampling, resolve_checkpoint
 from pocoloco.methods import load_method
+from pocoloco.methods.pocoloco.method import DEFAULT_POLISH_T, polish_link
 from pocoloco.viz.render import (
     VIEWS,
     render_gif,
@@ -166,8 +167,14 @@ def cmd_export_model(args: argparse.Namespace) -> None:
     """A small sampling-only copy of a checkpoint (how the shipped models were made)."""
     ckpt = resolve_checkpoint(args.ckpt)
     buffers = [name for name, b in load_method(ckpt).model.named_buffers() if b.is_floating_point()]
+    if args.polish_t is not None and not args.polish_with:
+        raise ValueError("--polish-t goes with --polish-with (the teacher that makes the last call)")
+    extra = {}
+    if args.polish_with:
+        t = DEFAULT_POLISH_T if args.polish_t is None else args.polish_t
+        extra["polish"] = polish_link(ckpt, args.polish_with, t)
     out = export_for_sampling(ckpt, args.out, use_ema=not args.raw_weights, dtype=args.dtype,
-                              keep_float32=buffers)  # geometry buffers (templates, UV queries) stay float32
+                              keep_float32=buffers, extra_meta=extra)  # geometry buffers (templates, UV queries) stay float32
     size = sum(f.stat().st_size for f in out.iterdir())
     weights = json.loads((out / "meta.json").read_text(encoding="utf-8"))["weights"]  # raw if the model keeps no EMA
     print(f"wrote {out} ({size / 1e6:.1f} MB, {'EMA' if weights == 'ema' else 'raw'} weights, {args.dtype})")
@@ -207,6 +214,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--dtype", choices=list(WEIGHTS_DTYPES), default="float16",
                    help="storage dtype of the floating weights (default float16: half the bytes, what ships; "
                         "loaded back as float32)")  # fmt: skip
+    s.add_argument("--polish-with", metavar="CKPT",
+                   help="a distilled model only: its teacher (e.g. default), linked by name and digest, makes the "
+                        "last of 3 or more calls, denoising the student's answer re-noised to --polish-t")  # fmt: skip
+    s.add_argument("--polish-t", type=int, default=None,
+                   help=f"the step (1-based, of 1,000) the teacher re-noises to (default {DEFAULT_POLISH_T})")
     s.set_defaults(func=cmd_export_model)
     s = sub.add_parser("uvmap", help="rasterise the anny UV layout: pixel -> (face, barycentric) + template position map")
     s.add_argument("--resolution", type=int, default=256, help="map size R (default 256)")

@@ -15,6 +15,14 @@ re-noising of DDIM, Song et al. 2021, eq. 12)::
 r = 1 the consistency models' multistep sampler (every step fresh noise). The grids of 1 and 2
 calls are sub-grids of 4's (999; 999, 499), so one student trained on the 4-call grid samples with
 1, 2 or 4 calls. The state is kept in float64 as in :mod:`pocoloco.diffusion.samplers`.
+
+**The teacher's finishing call** (``polish``): the student's clouds are right in the large but
+fuzzy at the scale of a centimetre or two, where its teacher is at its best. SDEdit (Meng et al.
+2022) at a low step does that last part: the student's x0 is re-noised to step ``t`` (1-based, as
+the apps' chains; ~20 of 1,000, a noise of ~0.1 normalised units) with fresh noise and the
+*teacher* gives its x0 estimate there, in one call. With ``calls`` >= 3 network calls in all, the
+student spends ``calls - 1`` on its grid's first ``calls - 2`` times and its last
+(:func:`polished_grid`: 4 calls = the student at 999, 749, 249, then the teacher).
 """
 
 from __future__ import annotations
@@ -23,11 +31,11 @@ from typing import Any
 
 import torch
 
-from pocoloco.diffusion.sampler_base import Denoiser, make_timesteps
+from pocoloco.diffusion.sampler_base import Denoiser, PerSampleRNG, make_timesteps
 from pocoloco.diffusion.samplers import sample_ddim
 from pocoloco.diffusion.schedules import NoiseSchedule
 
-__all__ = ["check_student_calls", "sample_few_step", "student_grid"]
+__all__ = ["check_student_calls", "polish", "polished_grid", "sample_few_step", "student_grid"]
 
 
 def student_grid(num_timesteps: int, calls: int) -> list[int]:
@@ -36,14 +44,37 @@ def student_grid(num_timesteps: int, calls: int) -> list[int]:
     return make_timesteps(num_timesteps, calls, "trailing")
 
 
-def check_student_calls(calls: int, trained_calls: int, num_timesteps: int = 1000) -> None:
+def polished_grid(num_timesteps: int, calls: int, trained_calls: int) -> list[int] | None:
+    """The student's timesteps when its teacher makes the last of ``calls`` network calls: the
+    first ``calls - 2`` times of the student's grid and its last (4 of a 4-call student: [999,
+    749, 249]; 5: the whole grid); None where the teacher does not finish (fewer than 3 calls, or
+    more than the grid's + 1)."""
+    grid = student_grid(num_timesteps, trained_calls)
+    if not isinstance(calls, int) or not 3 <= calls <= trained_calls + 1:
+        return None
+    return grid[: calls - 2] + grid[-1:]
+
+
+def allowed_calls(trained_calls: int, num_timesteps: int = 1000, polish: bool = False) -> list[int]:
+    """The numbers of network calls a student of ``trained_calls`` samples with: those whose
+    trailing grid is on its own (1, 2, 4 of 4), and with a finishing teacher also 3 .. grid + 1."""
+    trained = set(student_grid(num_timesteps, trained_calls))
+    ok = {n for n in range(1, trained_calls + 1) if set(student_grid(num_timesteps, n)) <= trained}
+    if polish:
+        ok |= set(range(3, trained_calls + 2))
+    return sorted(ok)
+
+
+def check_student_calls(calls: int, trained_calls: int, num_timesteps: int = 1000, polish: bool = False) -> None:
     """One-line ValueError unless ``calls`` network calls visit only timesteps the student was
-    trained at (its grid of ``trained_calls``)."""
-    trained = student_grid(num_timesteps, trained_calls)
-    if not isinstance(calls, int) or calls < 1 or not set(student_grid(num_timesteps, calls)) <= set(trained):
-        ok = [n for n in range(1, trained_calls + 1) if set(student_grid(num_timesteps, n)) <= set(trained)]
+    trained at (its grid of ``trained_calls``), or, with a finishing teacher (``polish``), are
+    what :func:`polished_grid` plans."""
+    ok = allowed_calls(trained_calls, num_timesteps, polish)
+    if not isinstance(calls, int) or calls not in ok:
+        trained = student_grid(num_timesteps, trained_calls)
         raise ValueError(f"--steps {calls}: this distilled model was trained for {trained_calls} calls and samples "
-                         f"with {', '.join(map(str, ok))} (its timesteps {trained})")  # fmt: skip
+                         f"with {', '.join(map(str, ok))} (its timesteps {trained}"
+                         f"{'; from 3 calls its teacher makes the last' if polish else ''})")  # fmt: skip
 
 
 def sample_few_step(
@@ -62,3 +93,30 @@ def sample_few_step(
     (0: deterministic). ``kwargs``: ``sample_ddim``'s (prediction_type, timesteps, clip, rng, known,
     progress). Returns (B, N, C) samples in ``noise.dtype``."""
     return sample_ddim(denoiser, schedule, noise, cond, steps=steps, renoise=renoise, **kwargs)
+
+
+def polish(
+    teacher: Denoiser,
+    schedule: NoiseSchedule,
+    x0: torch.Tensor,
+    cond: Any,
+    t: int,
+    rng: PerSampleRNG | torch.Generator | None,
+    *,
+    prediction_type: str | None = None,
+    clip: float | None = None,
+) -> torch.Tensor:
+    """The teacher's finishing call (module docstring): ``x0`` (B, N, C) re-noised to 1-based step
+    ``t`` with ``rng``'s fresh noise, ``x_t = sqrt(abar) x0 + sqrt(1 - abar) z`` (DDPM eq. 4), and
+    the teacher's x0 estimate there (one DDIM step to the end). Returns (B, N, C) in x0's dtype."""
+    T = schedule.num_timesteps
+    if not 1 <= int(t) <= T:
+        raise ValueError(f"polish t must be in [1, {T}], got {t}")
+    ab = schedule.alpha_bar(int(t) - 1)
+    if isinstance(rng, PerSampleRNG):
+        z = rng.randn_like(x0)
+    else:
+        z = torch.randn(x0.shape, generator=rng, dtype=x0.dtype, device="cpu" if rng is None else rng.device)
+    x = ab**0.5 * x0.double() + (1.0 - ab) ** 0.5 * z.to(x0.device).double()
+    return sample_ddim(teacher, schedule, x.to(x0.dtype), cond, prediction_type=prediction_type,
+                       timesteps=[int(t) - 1], clip=clip)  # fmt: skip

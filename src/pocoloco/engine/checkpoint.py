@@ -46,7 +46,7 @@ import re
 import shutil
 import uuid
 import warnings
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -508,7 +508,8 @@ def _load_one(ckpt: Path, expect_model: str | None, expect_preset: str | None, m
 
 
 def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema: bool = True,
-                        dtype: str = "float32", keep_float32: Collection[str] = ()) -> Path:
+                        dtype: str = "float32", keep_float32: Collection[str] = (),
+                        extra_meta: Mapping[str, Any] | None = None) -> Path:
     """Write a small sampling-only copy of a checkpoint: ``meta.json`` + one ``model.safetensors``.
 
     The weights are the EMA weights (``use_ema``, if the checkpoint has them) or the raw ones; no
@@ -523,6 +524,7 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
         as ``weights_dtype``. A value beyond float16's range (65504) is a one-line ValueError.
     keep_float32: tensors stored in float32 whatever ``dtype`` (a model's geometry buffers: a
         template's vertices in metres lose ~0.5 mm to float16, which moves every output point).
+    extra_meta: entries added to ``meta.json`` (e.g. a distilled model's ``polish`` link).
     """
     from safetensors.torch import save_file
 
@@ -540,6 +542,7 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     meta = dict(ck.meta)
     meta.update(has_ema=False, has_training_state=False, exported_from=str(ck.path),
                 weights="ema" if (use_ema and ck.ema_state is not None) else "raw", weights_dtype=dtype)  # fmt: skip
+    meta.update(extra_meta or {})
     out = Path(out)
     if out.exists():
         raise ValueError(f"{out}: already exists")

@@ -3,7 +3,9 @@ pose-conditioned point-cloud diffusion model, p(X | K) with K the 24 joints only
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -22,9 +24,11 @@ from pocoloco.data.poses import (
     pose_from_frame,
     subject_of_spec,
 )
+from pocoloco.diffusion.few_step import polished_grid
 from pocoloco.diffusion.schedules import NoiseSchedule
 
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
+from pocoloco.engine.shipped import resolve_ckpt_arg, shipped_name
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import Method, PointPrior, SampledClouds, SamplerOptions
 from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig, point_bytes
@@ -34,7 +38,12 @@ from pocoloco.methods.pocoloco.training import PocoLocoTask
 from pocoloco.models.conditioning import OutfitBound, phenotype_vector
 from pocoloco.models.denoisers import build_denoiser
 
-__all__ = ["LoadedDenoiser", "PocoLocoMethod", "load_denoiser"]
+__all__ = ["DEFAULT_POLISH_T", "LoadedDenoiser", "PocoLocoMethod", "load_denoiser", "polish_link"]
+
+#: the step a distilled model's teacher re-noises its answer to for the last call (1-based): on
+#: quarter ``medium`` v3 (28 test frames x 2 seeds), t = 10 / 20 / 30 / 50 after the student's 3
+#: calls gave Chamfer x1.010 / 1.002 / 1.002 / 1.013 of the 25-call teacher (docs/lab/fast.md)
+DEFAULT_POLISH_T = 20
 
 
 class PocoLocoMethod(Method):
@@ -50,6 +59,8 @@ class PocoLocoMethod(Method):
         super().__init__(*args, **kwargs)
         self.weights = weights
         self.outfits = list(self.meta.get("outfits", []))
+        #: (teacher denoiser, t) of a distilled student whose teacher makes the last call, or None
+        self.polish: tuple[torch.nn.Module, int] | None = None
 
     @property
     def needs_body(self) -> bool:  # type: ignore[override]
@@ -159,7 +170,10 @@ class PocoLocoMethod(Method):
         except RuntimeError as e:
             raise ValueError(f"{ck.path}: weights do not match the stored config ({one_line(e)})") from None
         weights = "ema" if use_ema else "raw"
-        return cls(model.to(device).eval(), config, ck.normalisation, ck.path, ck.step, ck.meta, weights=weights)
+        method = cls(model.to(device).eval(), config, ck.normalisation, ck.path, ck.step, ck.meta, weights=weights)
+        if ck.meta.get("polish"):
+            method.polish = _polishing_teacher(ck, config, device)
+        return method
 
     @classmethod
     def presets(cls) -> dict[str, PocoLocoTrainConfig]:
@@ -174,7 +188,7 @@ class PocoLocoMethod(Method):
         return "PocoLoco"
 
     def check_options(self, options: SamplerOptions) -> None:
-        sampler_for(self.config, options.sampler, options.steps)
+        sampler_for(self.config, options.sampler, options.steps, self.polish is not None)
 
     def bytes_per_point(self) -> int:
         """The latent denoiser's point stream: ``point_width`` x (``point_mlp_ratio`` + 2) float32
@@ -229,11 +243,15 @@ class PocoLocoMethod(Method):
                              batch_size=options.batch_size, progress=options.progress, clip=options.clip,
                              bf16=options.bf16, body=self.body_points_of(pose),
                              velocity=pose.velocity if self.config.joint_velocity else None,
-                             motion=pose.motion if self.config.motion_window else None, **kw)  # fmt: skip
+                             motion=pose.motion if self.config.motion_window else None, polish=self.polish,
+                             **kw)  # fmt: skip
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
-        sampler, steps = sampler_for(self.config, options.sampler, options.steps)
+        sampler, steps = sampler_for(self.config, options.sampler, options.steps, self.polish is not None)
+        grid = polished_grid(self.config.num_timesteps, steps, int(self.config.student_calls)) if self.polish else None
         return {"preset": self.config.preset, "weights": self.weights, "sampler": sampler, "steps": steps,
+                **({"student_timesteps": grid, "polish": {"with": self.meta["polish"].get("ckpt"),
+                                                          "t": self.polish[1]}} if grid else {}),
                 "batch_size": options.batch_size, "clip": options.clip, "bf16": options.bf16,
                 **({"even_candidates": self.even_candidates(num_points)} if options.even else {})}  # fmt: skip
 
@@ -243,6 +261,52 @@ class PocoLocoMethod(Method):
         4 N +0.00, at half the time; held out 2 N +0.10; at 2,048: 4 N -0.37, 2 N -0.27; BENCHMARKS
         "Evenly spread clouds")."""
         return (4 if num_points <= 4096 else 2) * int(num_points)
+
+
+def _polishing_teacher(ck: Checkpoint, config: PocoLocoTrainConfig, device: str) -> tuple[torch.nn.Module, int]:
+    """(teacher denoiser, t) from a student's ``meta["polish"]`` = {ckpt, meta_sha256, t}
+    (``pocoloco export-model --polish-with``): the teacher loaded by its name (a shipped model) or
+    folder, checked against the digest recorded at export and against the student's network
+    (the same conditioning, so that it reads the student's condition); one-line errors."""
+    ref = ck.meta["polish"]
+    name, t = ref.get("ckpt"), ref.get("t")
+    if not name or not isinstance(t, int) or not 1 <= t <= config.num_timesteps or not config.student_calls:
+        raise ValueError(f"{ck.path / META_FILE}: corrupt polish entry {ref!r} (a distilled model's teacher, by name, "
+                         f"with t in [1, {config.num_timesteps}])")  # fmt: skip
+    try:
+        teacher = PocoLocoMethod.from_checkpoint(load_checkpoint(resolve_ckpt_arg(name), expect_model="pocoloco",
+                                                                 training_state=False), device=device)  # fmt: skip
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{ck.path}: its teacher {name} (which makes its last call) cannot be loaded ({one_line(e)})") from None
+    if teacher.meta.get("meta_sha256") != ref.get("meta_sha256"):
+        raise ValueError(f"{ck.path}: its teacher {name} has changed since the export (meta.json digest "
+                         f"{str(teacher.meta.get('meta_sha256'))[:12]}, recorded {str(ref.get('meta_sha256'))[:12]}): "
+                         f"export it again with `pocoloco export-model --polish-with`")  # fmt: skip
+    if teacher.config.student_calls or teacher.config.denoiser != config.denoiser or \
+            teacher.normalisation != ck.normalisation:  # fmt: skip
+        raise ValueError(f"{ck.path}: {name} is not this student's teacher (another network, conditioning or "
+                         f"normalisation)")  # fmt: skip
+    return teacher.model, int(t)
+
+
+def polish_link(student: str | Path, teacher: str, t: int = DEFAULT_POLISH_T) -> dict[str, Any]:
+    """The ``meta["polish"]`` entry that makes ``teacher`` finish a distilled ``student``'s clouds at
+    1-based step ``t`` (``pocoloco export-model --polish-with``): the teacher's name (``default`` for
+    a shipped model, else its folder's absolute path), its meta.json digest and t; checked as at load."""
+    ck = load_checkpoint(student, expect_model="pocoloco", training_state=False)
+    config = PocoLocoTrainConfig.from_dict(ck.config)
+    if not config.student_calls:
+        raise ValueError(f"{student}: --polish-with is for a distilled model (pocoloco distill); this one is a "
+                         f"diffusion model")  # fmt: skip
+    path = resolve_ckpt_arg(teacher)
+    teacher_ck = load_checkpoint(path, expect_model="pocoloco", training_state=False)
+    digest = teacher_ck.meta.get("meta_sha256")
+    if not digest:
+        raise ValueError(f"{teacher}: an older checkpoint without checksums cannot be linked (export it first)")
+    entry = {"ckpt": shipped_name(teacher_ck.path) or os.fspath(Path(teacher_ck.path).resolve()),
+             "meta_sha256": str(digest), "t": int(t)}  # fmt: skip
+    _polishing_teacher(replace(ck, meta={**ck.meta, "polish": entry}), config, "cpu")  # the checks of loading
+    return entry
 
 
 class LoadedDenoiser(NamedTuple):

@@ -26,7 +26,7 @@ import torch
 from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.motion_window import MotionWindow, window_samples
 from pocoloco.data.poses import check_joints
-from pocoloco.diffusion.few_step import check_student_calls
+from pocoloco.diffusion.few_step import check_student_calls, polish as teacher_polish, polished_grid
 from pocoloco.diffusion.samplers import (
     SAMPLER_STEPS,
     PerSampleRNG,
@@ -63,12 +63,14 @@ def condition_for(joints: torch.Tensor, outfit: int | None = None, shape: Sequen
                          motion=None if motion is None else motion.to(joints.device, joints.dtype).expand(B, -1, -1))  # fmt: skip
 
 
-def sampler_for(config: Any, sampler: str, steps: int | None) -> tuple[str, int]:
+def sampler_for(config: Any, sampler: str, steps: int | None, polish: bool = False) -> tuple[str, int]:
     """The sampler and number of network calls a model of ``config`` samples with when asked for
     ``sampler`` / ``steps`` (None: the sampler's default). A distilled student
     (``config.student_calls`` > 0) samples with the few-step sampler only: the default "dpm++sde"
     means it, ``steps`` None its trained number of calls, and another sampler or a number of calls
-    off its grid is a one-line error. A diffusion model keeps what was asked."""
+    off its grid is a one-line error (``polish``: its teacher finishes, which also allows 3 ..
+    grid + 1 calls, :func:`~pocoloco.diffusion.few_step.polished_grid`). A diffusion model keeps
+    what was asked."""
     calls = int(getattr(config, "student_calls", 0) or 0)
     if not calls:
         if sampler == "few-step":
@@ -80,7 +82,7 @@ def sampler_for(config: Any, sampler: str, steps: int | None) -> tuple[str, int]
         raise ValueError(f"--sampler {sampler}: this distilled model samples with its own few-step sampler only "
                          f"(--steps 1 .. {calls}); the diffusion samplers are for its teacher")  # fmt: skip
     steps = calls if steps is None else int(steps)
-    check_student_calls(steps, calls, config.num_timesteps)
+    check_student_calls(steps, calls, config.num_timesteps, polish)
     return "few-step", steps
 
 
@@ -105,6 +107,7 @@ def sample_clouds(
     code: torch.Tensor | None = None,
     velocity: np.ndarray | None = None,
     motion: MotionWindow | None = None,
+    polish: tuple[torch.nn.Module, int] | None = None,
 ) -> SampledClouds:
     """Draw ``num`` clouds of ``num_points`` points from the denoiser, conditioned on one pose.
 
@@ -137,6 +140,9 @@ def sample_clouds(
         motion: the last seconds of the motion before the pose (models trained with a
             ``motion_window``: a :class:`~pocoloco.data.motion_window.MotionWindow` of as many
             samples; None: the body at rest).
+        polish: (teacher denoiser, t) of a distilled student whose teacher makes its last call,
+            re-noising the student's answer to 1-based step t (:func:`~pocoloco.diffusion.few_step.polish`)
+            when ``steps`` >= 3 (:func:`~pocoloco.diffusion.few_step.polished_grid`); None: off.
         bf16: run the denoiser under bf16 autocast (its matmuls and attention in bfloat16; the
             sampler's arithmetic and the returned points stay float32). Several times faster on
             CPUs with AMX / avx512_bf16 and on recent GPUs; slower on CPUs without them.
@@ -154,7 +160,7 @@ def sample_clouds(
     seeds = list(range(num)) if seeds is None else [int(s) for s in seeds]
     if len(seeds) != num:
         raise ValueError(f"seeds must have num={num} entries, got {len(seeds)}")
-    sampler, steps = sampler_for(config, sampler, steps)
+    sampler, steps = sampler_for(config, sampler, steps, polish is not None)
     joints = check_joints("joints", joints, J)
     param = next(model.parameters())
     device, dtype = param.device, param.dtype
@@ -185,8 +191,13 @@ def sample_clouds(
     schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
     kwargs: dict[str, Any] = {"prediction_type": config.prediction_type, "clip": clip}
     kwargs["steps"] = steps
+    grid = None
     if sampler == "few-step":
         kwargs["renoise"] = float(getattr(config, "student_renoise", 1.0))
+        if polish is not None:
+            grid = polished_grid(config.num_timesteps, steps, int(config.student_calls))
+        if grid is not None:  # the student's part of the calls; its teacher makes the last
+            kwargs["timesteps"], kwargs["steps"] = grid, len(grid)
 
     was_training = model.training
     model.eval()
@@ -200,6 +211,9 @@ def sample_clouds(
                                  outfit, shape, body_t, code, velocity_t, motion_t)  # fmt: skip
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 x = sample(sampler, model, schedule, noise, cond, rng=rng, **kwargs)  # (B, N, C)
+                if grid is not None:
+                    x = teacher_polish(polish[0], schedule, x, cond, polish[1], rng,
+                                       prediction_type=config.prediction_type, clip=clip)  # fmt: skip
             out[b0 : b0 + len(chunk)] = x.float().cpu().numpy()
             if progress is not None:
                 progress(b0 + len(chunk), num)
