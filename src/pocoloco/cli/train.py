@@ -426,7 +426,7 @@ def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="the dataset the teacher was trained on (its train split)")
     parser.add_argument("--out", required=True, help="run folder (teacher pairs in OUT/pairs, the student in OUT/model)")
     parser.add_argument("--calls", type=int, default=4, help="network calls of the student's grid (default 4; it "
-                        "samples with 1, 2 or 4)")  # fmt: skip
+                        "samples with 1 to 4)")  # fmt: skip
     parser.add_argument("--pairs", type=int, default=1024, help="teacher pairs (default 1024)")
     parser.add_argument("--pair-points", type=int, default=512, help="points per pair cloud (default 512)")
     parser.add_argument("--teacher-sampler", default="dpm++", help="the teacher's deterministic sampler (default "

@@ -13,7 +13,7 @@ minutes). ``assets/hybrid_medium`` the hybrid of
 the two (``default:pop`` + ``default``): its free-region maps and a link to each, no weights of its own
 (``pocoloco hybrid --link``). ``assets/pocoloco_fast_medium`` (``default:fast``, issue 42) a
 student distilled from ``default`` (``pocoloco distill``, ``scripts/fast_medium_v3.sh``) that samples
-in 1, 2 or 4 network calls (its default 4), stored as per-row int8; ``assets/hybrid_fast_medium``
+in 1 to 4 network calls, its default 4 of which the last is ``default``'s (``export-model --polish-with``), stored as per-row int8; ``assets/hybrid_fast_medium``
 (``default:hybrid-fast``) the hybrid with that student as its free-region generator (``default:pop``
 + ``default:fast``, ``default:hybrid``'s maps, linked like it). How each was trained and its evaluation are in README.md ("The default
 model", "POP and CloSET"). Written by :func:`pocoloco.engine.checkpoint.export_for_sampling`

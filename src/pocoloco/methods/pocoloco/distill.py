@@ -16,7 +16,8 @@
    ``distill_chamfer`` x the Chamfer distance to x0* (PSF, Wu et al. CVPR 2023, distils its one-step
    point generator with a Chamfer loss). The noisiest time, where the student must do the most, is
    drawn for 40 % of a batch's clouds (the others evenly).
-3. Sampling: :func:`pocoloco.diffusion.few_step.sample_few_step` with 1, 2 or 4 calls.
+3. Sampling: :func:`pocoloco.diffusion.few_step.sample_few_step` with 1 to 4 calls (and, with
+   ``export-model --polish-with``, the teacher's finishing call, :func:`~pocoloco.diffusion.few_step.polish`).
 
 Everything random is a pure function of the seed: the pair frames and noises (``seed_of(seed, 11,
 shard)``, per-pair ``PerSampleRNG`` seeds), each step's pairs and times (``seed_of(seed, 12, step,

@@ -24,7 +24,7 @@ from pocoloco.data.poses import (
     pose_from_frame,
     subject_of_spec,
 )
-from pocoloco.diffusion.few_step import polished_grid
+from pocoloco.diffusion.few_step import polished_grid, sampling_grid
 from pocoloco.diffusion.schedules import NoiseSchedule
 
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
@@ -248,10 +248,12 @@ class PocoLocoMethod(Method):
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         sampler, steps = sampler_for(self.config, options.sampler, options.steps, self.polish is not None)
-        grid = polished_grid(self.config.num_timesteps, steps, int(self.config.student_calls)) if self.polish else None
+        c = self.config
+        grid = polished_grid(c.num_timesteps, steps, int(c.student_calls)) if self.polish else None
+        own = grid or (sampling_grid(c.num_timesteps, steps, int(c.student_calls)) if c.student_calls else None)
         return {"preset": self.config.preset, "weights": self.weights, "sampler": sampler, "steps": steps,
-                **({"student_timesteps": grid, "polish": {"with": self.meta["polish"].get("ckpt"),
-                                                          "t": self.polish[1]}} if grid else {}),
+                **({"student_timesteps": own} if own else {}),
+                **({"polish": {"with": self.meta["polish"].get("ckpt"), "t": self.polish[1]}} if grid else {}),
                 "batch_size": options.batch_size, "clip": options.clip, "bf16": options.bf16,
                 **({"even_candidates": self.even_candidates(num_points)} if options.even else {})}  # fmt: skip
 

@@ -26,7 +26,7 @@ import torch
 from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.motion_window import MotionWindow, window_samples
 from pocoloco.data.poses import check_joints
-from pocoloco.diffusion.few_step import check_student_calls, polish as teacher_polish, polished_grid
+from pocoloco.diffusion.few_step import check_student_calls, polish as teacher_polish, polished_grid, sampling_grid
 from pocoloco.diffusion.samplers import (
     SAMPLER_STEPS,
     PerSampleRNG,
@@ -191,13 +191,13 @@ def sample_clouds(
     schedule = NoiseSchedule.from_kind(config.schedule, config.num_timesteps)
     kwargs: dict[str, Any] = {"prediction_type": config.prediction_type, "clip": clip}
     kwargs["steps"] = steps
-    grid = None
+    grid = None  # the student's calls when its teacher makes the last
     if sampler == "few-step":
         kwargs["renoise"] = float(getattr(config, "student_renoise", 1.0))
         if polish is not None:
             grid = polished_grid(config.num_timesteps, steps, int(config.student_calls))
-        if grid is not None:  # the student's part of the calls; its teacher makes the last
-            kwargs["timesteps"], kwargs["steps"] = grid, len(grid)
+        own = grid or sampling_grid(config.num_timesteps, steps, int(config.student_calls))
+        kwargs["timesteps"], kwargs["steps"] = own, len(own)
 
     was_training = model.training
     model.eval()
