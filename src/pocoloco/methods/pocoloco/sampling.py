@@ -68,9 +68,9 @@ def sampler_for(config: Any, sampler: str, steps: int | None, polish: bool = Fal
     ``sampler`` / ``steps`` (None: the sampler's default). A distilled student
     (``config.student_calls`` > 0) samples with the few-step sampler only: the default "dpm++sde"
     means it, ``steps`` None its trained number of calls, and another sampler or a number of calls
-    off its grid is a one-line error (``polish``: its teacher finishes, which also allows 3 ..
-    grid + 1 calls, :func:`~pocoloco.diffusion.few_step.polished_grid`). A diffusion model keeps
-    what was asked."""
+    beyond its grid is a one-line error (``polish``: its teacher makes the last of 3 or more calls,
+    and one more than the grid is allowed, :func:`~pocoloco.diffusion.few_step.polished_grid`). A
+    diffusion model keeps what was asked."""
     calls = int(getattr(config, "student_calls", 0) or 0)
     if not calls:
         if sampler == "few-step":
