@@ -18,6 +18,10 @@
 #   RUNS="s256:--preset latent_small --batch-size 256 --lr 2e-3;s1024:--preset latent_small --batch-size 1024"
 # A run's own --steps / --decay-steps win over the defaults (100,000 steps, wsd over the last fifth:
 # the clock ends it, cooled down).
+# MODEL=distill distils TEACHER (default: default) into a few-step student on the pack (`pocoloco distill
+# --data PACK`: the teacher pairs made there, then the student, on the budget's clock), RUNS of distill
+# options (default one run, 2,048 pairs, batch 128); each student comes back as NAME/model and, with its
+# teacher's finishing call, NAME/polished (int8, what `default:fast` ships as).
 # MODEL=pop (or closet) trains that method on a `pocoloco data pack --bodies` pack instead: no bench and
 # no search, the RUNS given (default: one run continuing the shipped model at batch 16 on all the
 # pack's points of each frame, its learning rate cooled down to 0 over the last fifth of the clock,
@@ -49,6 +53,11 @@ if [ "$MODEL" = pocoloco ]; then
   TRAIN=($PY -m pocoloco train --data "$PACK" --outfit-codes --body-shape --bf16 --device "$DEVICE" --ckpt-every 1000
          --sample-every 0 --log-every 50 --no-progress)
   RUN_DEFAULTS="--steps 100000 --lr-schedule wsd --decay-steps 20000"
+elif [ "$MODEL" = distill ]; then  # a few-step student of TEACHER (default: default) on the pack (issue 42)
+  TRAIN=($PY -m pocoloco distill --ckpt "${TEACHER:-default}" --data "$PACK" --device "$DEVICE")
+  RUN_DEFAULTS="--steps 1000000"
+  SKIP_BENCH=1
+  RUNS=${RUNS:-"d:--pairs 2048 --pair-points 512 --batch-size 128 --lr 1e-4 --renoised-share 0.5"}
 else  # POP / CloSET: the run's own --steps and learning-rate schedule
   TRAIN=($PY -m pocoloco train --model "$MODEL" --data "$PACK" --device "$DEVICE" --ckpt-every 1000 --sample-every 0
          --log-every 50 --no-progress)
@@ -80,13 +89,21 @@ if [ -n "${RUNS:-}" ]; then
     NAME=${spec%%:*}
     ARGS=${spec#*:}
     echo "   $NAME: $ARGS"
+    if [ "$MODEL" = distill ]; then LOADER=(); else LOADER=(--workers "$W"); fi  # distill reads its pairs, no loader
     # shellcheck disable=SC2086
-    "${TRAIN[@]}" --out "$OUT/$NAME" --workers "$W" --threads "$T" $RUN_DEFAULTS --time-budget "$MINUTES" $ARGS \
+    "${TRAIN[@]}" --out "$OUT/$NAME" "${LOADER[@]}" --threads "$T" $RUN_DEFAULTS --time-budget "$MINUTES" $ARGS \
       > "$OUT/$NAME.log" 2>&1 &
     PIDS+=($!)
   done
   for pid in "${PIDS[@]}"; do wait "$pid" || echo "a run failed (pid $pid)"; done
   for spec in "${SPECS[@]}"; do NAME=${spec%%:*}; echo "-- $NAME"; tail -n 3 "$OUT/$NAME.log"; done
+  if [ "$MODEL" = distill ]; then  # each student also with its teacher's finishing call (export-model --polish-with)
+    for spec in "${SPECS[@]}"; do
+      NAME=${spec%%:*}
+      $PY -m pocoloco export-model --ckpt "$OUT/$NAME/model" --dtype int8 --polish-with "${TEACHER:-default}" \
+        --out "$OUT/$NAME/polished" || echo "export of $NAME failed"
+    done
+  fi
 else  # one run, its network and batch from a search (or BEST)
 if [ -n "${BEST:-}" ]; then  # "PRESET BATCH STEPS_PER_S" from an earlier search: no search now
   printf '{"best": {"preset": "%s", "batch": %s, "steps_per_s": %s}}' $BEST > "$OUT/search.json"
@@ -121,8 +138,9 @@ if [ -n "${INIT_FROM:-}" ]; then START_ARGS="--init-from $INIT_FROM"; else START
 fi
 
 echo "== pack results ($(elapsed) s)"
-# the trip back takes at most 8 files of 16 MiB: one tar of everything but the full checkpoints, in 15 MB parts
-tar -cf "$OUT/results.tar" -C "$OUT" --exclude=checkpoints --exclude=results.tar --exclude=job.log . 2>/dev/null
+# the trip back takes at most 8 files of 16 MiB: one tar of everything but the full checkpoints and a
+# distillation's teacher pairs, in 15 MB parts
+tar -cf "$OUT/results.tar" -C "$OUT" --exclude=checkpoints --exclude=pairs --exclude=results.tar --exclude=job.log . 2>/dev/null
 split -b 15000000 -d "$OUT/results.tar" "$OUT/results.tar.part"
 rm -f "$OUT/results.tar"
 find "$OUT" -mindepth 1 -maxdepth 1 ! -name 'results.tar.part*' ! -name job.log -exec rm -rf {} +

@@ -261,6 +261,28 @@ def test_a_teacher_finishes_a_polished_student(latent_teacher, tiny_student, tin
     assert "\n" not in str(e.value)
 
 
+def test_distill_from_a_training_pack(latent_teacher, tiny_dataset, tmp_path):
+    """``distill --data PACK``: the teacher pairs and the student from a training pack (what a GPU
+    lease carries), their poses the pack's frames; the student samples."""
+    from pocoloco.cli import main
+    from pocoloco.data.pack import PackedDataset, write_pack
+    from pocoloco.methods import load_method
+    from pocoloco.methods.pocoloco.distill import read_teacher_pairs
+
+    pack = tmp_path / "t.pack"
+    write_pack(tiny_dataset, pack, splits=("train",), every=1, points=256)
+    out = tmp_path / "d"
+    assert main(["distill", "--ckpt", str(latent_teacher), "--data", str(pack), "--out", str(out), "--pairs", "3",
+                 "--pair-points", "32", "--teacher-steps", "4", "--steps", "2", "--batch-size", "2", "--threads", "1",
+                 "--device", "cpu"]) == 0  # fmt: skip
+    pairs = read_teacher_pairs(out / "pairs")
+    ds = PackedDataset(pack, "train")
+    frames = np.concatenate([np.load(f)["frames"] for f in sorted((out / "pairs").glob("shard_*.npz"))])
+    np.testing.assert_allclose(pairs.joints, np.stack([ds[int(i)]["joints"] for i in frames]), atol=1e-6)
+    m = load_method(out / "model")
+    assert m.config.student_calls == 4 and m.predict(m.load_pose("demo:skirt"), 32, outfit=0).points.shape == (1, 32, 3)
+
+
 def test_distill_refuses_bad_teachers_and_settings(latent_teacher, tiny_run, tiny_dataset, tmp_path):
     from pocoloco.methods.pocoloco.distill import PairSettings, distill
 

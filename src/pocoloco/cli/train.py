@@ -393,7 +393,11 @@ def cmd_distill(args: argparse.Namespace) -> None:
     """``pocoloco distill``: teacher pairs, then the few-step student (issue 42)."""
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 minutes, got {args.time_budget}")
-    data = OpenedDataset.open(args.data, subjects=[]).ensure_checked(None)
+    if is_pack(args.data):  # a training pack (pocoloco data pack): what a GPU lease can carry
+        training_card(args.data)
+        data = args.data
+    else:
+        data = OpenedDataset.open(args.data, subjects=[]).ensure_checked(None)
     device, _ = init_distributed(args.device)
     if args.threads is None and device.type == "cpu" and "OMP_NUM_THREADS" not in os.environ:
         torch.set_num_threads(max(1, os.cpu_count() or 1))
@@ -417,13 +421,14 @@ def cmd_distill(args: argparse.Namespace) -> None:
                               export_to=Path(out) / "model", init_from=None if args.resume else task.teacher)  # fmt: skip
         why = " (time budget reached)" if result.stopped_by_budget else ""
         print(f"distilled to step {result.step}{why} ({result.steps_per_s:.3f} steps/s), loss {result.final_loss:.4f}; "
-              f"model {result.export} (sample with --ckpt {result.export} --steps 1, 2 or {args.calls})")  # fmt: skip
+              f"model {result.export} (sample with --ckpt {result.export} --steps 1 to {args.calls})")  # fmt: skip
 
 
 def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``pocoloco distill`` options."""
     parser.add_argument("--ckpt", default="default", help="the teacher: a PocoLoco checkpoint (default: default)")
-    parser.add_argument("--data", required=True, help="the dataset the teacher was trained on (its train split)")
+    parser.add_argument("--data", required=True, help="the dataset the teacher was trained on (its train split), or "
+                        "a training pack of it (pocoloco data pack)")  # fmt: skip
     parser.add_argument("--out", required=True, help="run folder (teacher pairs in OUT/pairs, the student in OUT/model)")
     parser.add_argument("--calls", type=int, default=4, help="network calls of the student's grid (default 4; it "
                         "samples with 1 to 4)")  # fmt: skip
