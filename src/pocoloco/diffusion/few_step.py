@@ -34,7 +34,7 @@ from typing import Any
 
 import torch
 
-from pocoloco.diffusion.sampler_base import Denoiser, PerSampleRNG, make_timesteps
+from pocoloco.diffusion.sampler_base import Denoiser, PerSampleRNG, make_timesteps, randn_like
 from pocoloco.diffusion.samplers import sample_ddim
 from pocoloco.diffusion.schedules import NoiseSchedule
 
@@ -121,10 +121,6 @@ def polish(
     if not 1 <= int(t) <= T:
         raise ValueError(f"polish t must be in [1, {T}], got {t}")
     ab = schedule.alpha_bar(int(t) - 1)
-    if isinstance(rng, PerSampleRNG):
-        z = rng.randn_like(x0)
-    else:
-        z = torch.randn(x0.shape, generator=rng, dtype=x0.dtype, device="cpu" if rng is None else rng.device)
-    x = ab**0.5 * x0.double() + (1.0 - ab) ** 0.5 * z.to(x0.device).double()
+    x = ab**0.5 * x0.double() + (1.0 - ab) ** 0.5 * randn_like(x0, rng).double()
     return sample_ddim(teacher, schedule, x.to(x0.dtype), cond, prediction_type=prediction_type,
                        timesteps=[int(t) - 1], clip=clip)  # fmt: skip

@@ -26,7 +26,7 @@ from pocoloco.diffusion.schedules import (
 )
 
 __all__ = ["ALPHA_BAR_MIN", "KARRAS_RHO", "SPACINGS", "Denoiser", "PerSampleRNG", "ProgressFn", "SamplerRun", "Spacing",
-           "StepInfo", "make_noise", "make_timesteps", "resolve_timesteps"]  # fmt: skip
+           "StepInfo", "make_noise", "make_timesteps", "randn_like", "resolve_timesteps"]  # fmt: skip
 
 Spacing = Literal["trailing", "linspace", "karras", "lambda"]
 SPACINGS: tuple[str, ...] = ("trailing", "linspace", "karras", "lambda")
@@ -130,7 +130,9 @@ def make_noise(
     return PerSampleRNG(seeds, device).randn(shape_per_sample, dtype=dtype, device=device)
 
 
-def _randn_like(x: torch.Tensor, rng: PerSampleRNG | torch.Generator | None) -> torch.Tensor:
+def randn_like(x: torch.Tensor, rng: PerSampleRNG | torch.Generator | None) -> torch.Tensor:
+    """Standard normal noise shaped like ``x`` (its dtype and device) from ``rng``: a
+    :class:`PerSampleRNG` (one stream per sample), a ``torch.Generator``, or None (torch's global one)."""
     if isinstance(rng, PerSampleRNG):
         return rng.randn_like(x)
     if rng is None:
@@ -295,7 +297,7 @@ class SamplerRun:
 
     def randn_like(self, x: torch.Tensor) -> torch.Tensor:
         """Fresh noise in the model dtype (so streams match diffusers'), returned as float64."""
-        return _randn_like(x.to(self.dtype), self.rng).to(torch.float64)
+        return randn_like(x.to(self.dtype), self.rng).to(torch.float64)
 
     def impose_known(self, x: torch.Tensor, ab: float, eps: torch.Tensor | None = None) -> torch.Tensor:
         """Replace the known points by q(x_s | x0_known) at abar_s = ab (exact x0 when ab == 1)."""

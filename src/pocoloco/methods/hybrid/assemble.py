@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from pocoloco.engine.checkpoint import load_checkpoint, save_checkpoint
-from pocoloco.engine.shipped import shipped_name
+from pocoloco.engine.links import link_name, link_to
 from pocoloco.methods.hybrid.method import HybridConfig
 from pocoloco.methods.hybrid.regions import FreeRegionMaps, learn_free_maps, recount_point_shares, render_free_maps
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
@@ -102,8 +102,7 @@ def assemble_hybrid(
     render_free_maps(region, data, out / "maps.png")
     point_share = torch.from_numpy(region.point_share.astype(np.float32))
     if link:
-        linked = {part: {"ckpt": link_name(m.path), "meta_sha256": _meta_sha256(m)}
-                  for part, m in (("attached", pop), ("free", gen))}  # fmt: skip
+        linked = {part: link_to(m.path, m.meta, "leave out --link") for part, m in (("attached", pop), ("free", gen))}
         free_mask = np.stack([region.free(i) for i in range(len(names))])
         state = {"free_bits": torch.from_numpy(np.packbits(free_mask, axis=1)), "point_share": point_share}
         sources = {part: ref["ckpt"] for part, ref in linked.items()}
@@ -125,16 +124,3 @@ def assemble_hybrid(
                                   "free_outfits": gen.outfits, "map_frames": region.frames.tolist(),
                                   "data": os.fspath(data), **({"linked": linked} if linked else {})})  # fmt: skip
 
-
-def link_name(path: str | os.PathLike) -> str:
-    """How a linked hybrid names a source checkpoint folder: ``default:pop`` / ``default`` for a
-    shipped model (found wherever pocoloco is installed), else the folder's absolute path."""
-    return shipped_name(path) or os.fspath(Path(path).resolve())
-
-
-def _meta_sha256(method: POPMethod | PocoLocoMethod) -> str:
-    """The loaded checkpoint's own digest of its meta.json (which holds its weight files' digests)."""
-    digest = method.meta.get("meta_sha256")
-    if not digest:
-        raise ValueError(f"{method.path}: an older checkpoint without checksums cannot be linked (leave out --link)")
-    return str(digest)

@@ -32,8 +32,8 @@ from torch import nn
 
 from pocoloco.body.surface import vertex_normals
 from pocoloco.data.poses import MeanShapeCache, Pose, dataset_frame_path, demo_motion, subject_of_spec
-from pocoloco.engine.checkpoint import Checkpoint, load_checkpoint, one_line
-from pocoloco.engine.shipped import resolve_ckpt_arg
+from pocoloco.engine.checkpoint import Checkpoint, one_line
+from pocoloco.engine.links import load_linked
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import AnimationPrior, Method, SampledClouds, SamplerOptions
 from pocoloco.methods.hybrid.regions import (MIN_FREE_SHARE, FreeRegionMaps, inside_depth, point_regions,
@@ -554,17 +554,10 @@ def _linked_state(ck: Checkpoint) -> dict[str, torch.Tensor]:
     state: dict[str, torch.Tensor] = {}
     for part, kind in (("attached", "pop"), ("free", "pocoloco")):
         ref = ck.meta["linked"].get(part) or {}
-        name = ref.get("ckpt")
-        if not name:
+        if not ref.get("ckpt"):
             raise ValueError(f"{ck.path}: corrupt hybrid checkpoint (no linked {part} model)")
-        try:
-            source = load_checkpoint(resolve_ckpt_arg(name), expect_model=kind, training_state=False)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"{ck.path}: links the {part} model {name}, which cannot be loaded ({one_line(e)})") from None
-        if source.meta.get("meta_sha256") != ref.get("meta_sha256"):
-            raise ValueError(f"{ck.path}: links the {part} model {name} as it was when assembled; it has changed since "
-                             f"(meta.json digest {str(source.meta.get('meta_sha256'))[:12]}, recorded "
-                             f"{str(ref.get('meta_sha256'))[:12]}): assemble the hybrid again with `pocoloco hybrid`")  # fmt: skip
+        source = load_linked(ck.path, ref, kind, f"the {part} model", "the hybrid was assembled",
+                             "assemble the hybrid again with `pocoloco hybrid`")  # fmt: skip
         weights = source.ema_state if source.ema_state is not None else source.model_state
         state.update({f"{part}.{k}": v for k, v in weights.items()})
     return state

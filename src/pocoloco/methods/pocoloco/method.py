@@ -3,7 +3,6 @@ pose-conditioned point-cloud diffusion model, p(X | K) with K the 24 joints only
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -28,7 +27,8 @@ from pocoloco.diffusion.few_step import polished_grid, sampling_grid
 from pocoloco.diffusion.schedules import NoiseSchedule
 
 from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
-from pocoloco.engine.shipped import resolve_ckpt_arg, shipped_name
+from pocoloco.engine.links import link_to, load_linked
+from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import Method, PointPrior, SampledClouds, SamplerOptions
 from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig, point_bytes
@@ -41,8 +41,9 @@ from pocoloco.models.denoisers import build_denoiser
 __all__ = ["DEFAULT_POLISH_T", "LoadedDenoiser", "PocoLocoMethod", "load_denoiser", "polish_link"]
 
 #: the step a distilled model's teacher re-noises its answer to for the last call (1-based): on
-#: quarter ``medium`` v3 (28 test frames x 2 seeds), t = 10 / 20 / 30 / 50 after the student's 3
-#: calls gave Chamfer x1.010 / 1.002 / 1.002 / 1.013 of the 25-call teacher (docs/lab/fast.md)
+#: quarter ``medium`` v3 (28 frames x 2 seeds), t = 10 / 20 / 30 / 50 after the first student's 3
+#: calls gave Chamfer x1.016 / 1.008 / 1.009 / 1.022 of the 25-call teacher on test, x1.056 / 1.050
+#: / 1.052 / 1.065 held out (docs/lab/fast.md; benchmarks/results/fast_medium_v3/polish/sweep_*.json)
 DEFAULT_POLISH_T = 20
 
 
@@ -275,15 +276,9 @@ def _polishing_teacher(ck: Checkpoint, config: PocoLocoTrainConfig, device: str)
     if not name or not isinstance(t, int) or not 1 <= t <= config.num_timesteps or not config.student_calls:
         raise ValueError(f"{ck.path / META_FILE}: corrupt polish entry {ref!r} (a distilled model's teacher, by name, "
                          f"with t in [1, {config.num_timesteps}])")  # fmt: skip
-    try:
-        teacher = PocoLocoMethod.from_checkpoint(load_checkpoint(resolve_ckpt_arg(name), expect_model="pocoloco",
-                                                                 training_state=False), device=device)  # fmt: skip
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{ck.path}: its teacher {name} (which makes its last call) cannot be loaded ({one_line(e)})") from None
-    if teacher.meta.get("meta_sha256") != ref.get("meta_sha256"):
-        raise ValueError(f"{ck.path}: its teacher {name} has changed since the export (meta.json digest "
-                         f"{str(teacher.meta.get('meta_sha256'))[:12]}, recorded {str(ref.get('meta_sha256'))[:12]}): "
-                         f"export it again with `pocoloco export-model --polish-with`")  # fmt: skip
+    source = load_linked(ck.path, ref, "pocoloco", "its teacher", "the export",
+                         "export it again with `pocoloco export-model --polish-with`")  # fmt: skip
+    teacher = PocoLocoMethod.from_checkpoint(source, device=device)
     if teacher.config.student_calls or teacher.config.denoiser != config.denoiser or \
             teacher.normalisation != ck.normalisation:  # fmt: skip
         raise ValueError(f"{ck.path}: {name} is not this student's teacher (another network, conditioning or "
@@ -300,13 +295,8 @@ def polish_link(student: str | Path, teacher: str, t: int = DEFAULT_POLISH_T) ->
     if not config.student_calls:
         raise ValueError(f"{student}: --polish-with is for a distilled model (pocoloco distill); this one is a "
                          f"diffusion model")  # fmt: skip
-    path = resolve_ckpt_arg(teacher)
-    teacher_ck = load_checkpoint(path, expect_model="pocoloco", training_state=False)
-    digest = teacher_ck.meta.get("meta_sha256")
-    if not digest:
-        raise ValueError(f"{teacher}: an older checkpoint without checksums cannot be linked (export it first)")
-    entry = {"ckpt": shipped_name(teacher_ck.path) or os.fspath(Path(teacher_ck.path).resolve()),
-             "meta_sha256": str(digest), "t": int(t)}  # fmt: skip
+    teacher_ck = load_checkpoint(resolve_ckpt_arg(teacher), expect_model="pocoloco", training_state=False)
+    entry = {**link_to(teacher_ck.path, teacher_ck.meta, "export it first"), "t": int(t)}
     _polishing_teacher(replace(ck, meta={**ck.meta, "polish": entry}), config, "cpu")  # the checks of loading
     return entry
 
