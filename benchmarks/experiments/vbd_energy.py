@@ -16,7 +16,12 @@ neighbours, colour order reversed every substep (symmetric Gauss-Seidel), no ben
 iterations): the bottom ring's mean speed, its mean tangential speed (a spin about the axis),
 the centroid's swing and the radial flapping after ``--frames`` frames.
 
-    python benchmarks/experiments/vbd_energy.py [--iterations 5 20 100] [--frames 100] [--out ...]
+``--init`` starts the sheet's sweeps at another initial guess (``vbd_init.py``: the VBD paper's
+adaptive one), ``--chebyshev RHO`` accelerates them (``pocoloco.synth.vbd_chebyshev``); the tube
+has the same as variants.
+
+    python benchmarks/experiments/vbd_energy.py [--iterations 5 20 100] [--frames 100]
+        [--init adaptive velocity inertia] [--chebyshev 0.9 ...] [--out ...]
     python benchmarks/experiments/vbd_energy.py --tube [--frames 250] [--out ...]
 """
 
@@ -30,8 +35,26 @@ from pathlib import Path
 import numpy as np
 
 
+def _solver(model, iterations: int, init: str | None, chebyshev: float | None = None):  # noqa: ANN001, ANN202
+    """newton's VBD solver (init and chebyshev None); or one whose iterations start at another initial
+    guess (``vbd_init.INIT_MODES``: the VBD paper's adaptive one, x + h v, or newton's own inertia);
+    or newton's with Chebyshev-accelerated iterations of spectral radius estimate ``chebyshev``."""
+    import newton
+
+    if init is not None or chebyshev is not None:
+        import sys
+
+        sys.path.insert(0, str(Path(__file__).parent))
+        from vbd_init import INIT_MODES, SolverVBDChebyshev, SolverVBDInit
+
+        if chebyshev is not None:
+            return SolverVBDChebyshev(model, rho=chebyshev, iterations=iterations)
+        return SolverVBDInit(model, init_mode=INIT_MODES[init], iterations=iterations)
+    return newton.solvers.SolverVBD(model, iterations=iterations)
+
+
 def hanging_sheet(iterations: int, substeps: int, frames: int, n: int = 24, size: float = 0.5, kick: float = 0.5,
-                  tri_kd: float = 1e-5) -> dict:  # fmt: skip
+                  tri_kd: float = 1e-5, init: str | None = None, chebyshev: float | None = None) -> dict:  # fmt: skip
     """Energy [mJ] and bottom-edge speed [cm/s] per frame of a kicked hanging sheet."""
     from pocoloco.body.anny_body import quiet_warp
 
@@ -55,7 +78,7 @@ def hanging_sheet(iterations: int, substeps: int, frames: int, n: int = 24, size
         b.particle_mass[j] = 0.0  # the top edge is pinned
     b.color()
     model = b.finalize(device="cpu")
-    solver = newton.solvers.SolverVBD(model, iterations=iterations)
+    solver = _solver(model, iterations, init, chebyshev)
     s0, s1, control = model.state(), model.state(), model.control()
     qd = s0.particle_qd.numpy()
     qd[n:, 1] = kick
@@ -86,12 +109,16 @@ TUBE_VARIANTS = {
     "20 iterations, bending colouring": {"iterations": 20, "bend_colour": True},
     "diagonals alternating (achiral)": {"achiral": True},
     "achiral, bending colouring": {"achiral": True, "bend_colour": True},
+    "adaptive initial guess (VBD paper)": {"init": "adaptive"},
+    "adaptive initial guess, achiral": {"init": "adaptive", "achiral": True},
+    "Chebyshev rho 0.9": {"chebyshev": 0.9},
+    "Chebyshev rho 0.9, achiral": {"chebyshev": 0.9, "achiral": True},
 }
 
 
 def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: float = 1e-3, bend_colour: bool = False,
                  symmetric: bool = False, achiral: bool = False, around: int = 48,
-                 rows: int = 24) -> dict:  # fmt: skip
+                 rows: int = 24, init: str | None = None, chebyshev: float | None = None) -> dict:  # fmt: skip
     """A tube pinned at its top ring hanging from rest: bottom-ring speed over time and, at the end,
     its spin (mean tangential speed), radial flapping and the centroid's offset / speed (cm, cm/s)."""
     from pocoloco.body.anny_body import quiet_warp
@@ -124,7 +151,7 @@ def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: f
         b.particle_mass[j] = 0.0
     b.color(include_bending=bend_colour)
     model = b.finalize(device="cpu")
-    solver = newton.solvers.SolverVBD(model, iterations=iterations)
+    solver = _solver(model, iterations, init, chebyshev)
     s0, s1, control = model.state(), model.state(), model.control()
     dt = 1.0 / 25.0 / substeps
     speed = []
@@ -155,6 +182,11 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--tube", action="store_true", help="the hanging tube and its solver variants instead")
     ap.add_argument("--variants", nargs="+", help="--tube: only these variants (names of TUBE_VARIANTS)")
+    ap.add_argument("--init", nargs="+", choices=["adaptive", "velocity", "inertia"],
+                    help="the sheet: also each iteration count with these initial guesses of the iterations "
+                         "(vbd_init.py: the VBD paper's adaptive one, x + h v, or newton's inertia re-written)")
+    ap.add_argument("--chebyshev", type=float, nargs="+",
+                    help="the sheet: also each iteration count with Chebyshev-accelerated sweeps of these rho")
     ap.add_argument("--out", default="benchmarks/results/vbd_energy.json")
     args = ap.parse_args()
     if args.tube:
@@ -173,10 +205,15 @@ def main() -> None:
         print(f"wrote {out}")
         return
     runs = [hanging_sheet(it, args.substeps, args.frames) for it in args.iterations]
-    print(f"{'iterations':>10s} {'E(0) mJ':>8s} {'E(end) mJ':>9s} {'E max':>8s} {'gain mJ':>8s} {'speed end':>9s} {'s':>7s}")
+    for init in args.init or []:
+        runs += [{**hanging_sheet(it, args.substeps, args.frames, init=init), "init": init} for it in args.iterations]
+    for rho in args.chebyshev or []:
+        runs += [{**hanging_sheet(it, args.substeps, args.frames, chebyshev=rho), "init": f"cheb {rho}"}
+                 for it in args.iterations]  # fmt: skip
+    print(f"{'init':>8s} {'iterations':>10s} {'E(0) mJ':>8s} {'E(end) mJ':>9s} {'E max':>8s} {'gain mJ':>8s} {'speed end':>9s} {'s':>7s}")
     for r in runs:
         e = np.array(r["energy_mJ"])
-        print(f"{r['iterations']:10d} {e[0]:8.2f} {e[-1]:9.2f} {e.max():8.2f} {e.max() - e[0]:8.2f} "
+        print(f"{r.get('init', 'newton'):>8s} {r['iterations']:10d} {e[0]:8.2f} {e[-1]:9.2f} {e.max():8.2f} {e.max() - e[0]:8.2f} "
               f"{r['bottom_speed_cm_s'][-1]:9.1f} {r['seconds']:7.1f}")  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -184,7 +221,10 @@ def main() -> None:
         r["energy_mJ"] = [round(x, 3) for x in r["energy_mJ"][::5]]
         r["bottom_speed_cm_s"] = [round(x, 2) for x in r["bottom_speed_cm_s"][::5]]
     out.write_text(json.dumps({"command": "python benchmarks/experiments/vbd_energy.py " + " ".join(
-        f"--{k} {' '.join(map(str, v)) if isinstance(v, list) else v}" for k, v in vars(args).items() if k != "out"),
+        f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}" for k, v in vars(args).items()
+        if k not in ("out", "init", "tube", "variants", "chebyshev"))
+        + (" --init " + " ".join(args.init) if args.init else "")
+        + (" --chebyshev " + " ".join(map(str, args.chebyshev)) if args.chebyshev else ""),
         "every": 5, "runs": runs}, indent=1))  # fmt: skip
     print(f"wrote {out}")
 

@@ -92,6 +92,8 @@ class ClothSimSettings:
         ``ModelBuilder.color(include_bending=True)``); without it (data v1 / v2) vertices that share
         a bending element are updated in the same parallel pass, which feeds energy into hanging
         cloth (benchmarks/experiments/vbd_energy.py --tube).
+    chebyshev_rho: Chebyshev acceleration of the VBD sweeps with this spectral radius estimate
+        (``synth.vbd_chebyshev``; 0 = newton's plain sweeps, data v1 - v3). Not with self-contact.
     self_contact: newton VBD cloth self-contact (vertex-triangle and edge-edge).
     self_contact_margin: distance [m] at which two cloth layers start to repel.
     self_contact_gap: extra detection reach [m]. VBD's divide-and-truncate bound
@@ -136,6 +138,7 @@ class ClothSimSettings:
     air_drag_normal: float = 0.0
     air_drag_tangential: float = 0.0
     color_bending: bool = False
+    chebyshev_rho: float = 0.0
     self_contact: bool = False
     self_contact_margin: float = 0.004
     self_contact_gap: float = 0.012
@@ -367,6 +370,19 @@ class SettledCloth:
                             first_frame, (r @ fv).astype(np.float64), rest)  # fmt: skip
 
 
+def _vbd_solver(model, s: ClothSimSettings, extra: dict):  # noqa: ANN001, ANN202 (newton's types)
+    """newton's VBD solver for ``s`` (``extra``: self-contact keyword arguments), Chebyshev-accelerated
+    when ``s.chebyshev_rho`` > 0 and the cloth has no self-contact."""
+    import newton
+
+    if s.chebyshev_rho > 0.0 and not extra.get("particle_enable_self_contact"):
+        from .vbd_chebyshev import SolverVBDChebyshev
+
+        return SolverVBDChebyshev(model, rho=s.chebyshev_rho, iterations=s.iterations,
+                                  integrate_with_external_rigid_solver=True, **extra)  # fmt: skip
+    return newton.solvers.SolverVBD(model, iterations=s.iterations, integrate_with_external_rigid_solver=True, **extra)
+
+
 def simulate_garment(
     body: AnnyBody,
     garment: Garment,
@@ -399,6 +415,8 @@ def simulate_garment(
         raise ValueError(f"unknown collider {s.collider!r}; expected one of {COLLIDERS}")
     if s.frame not in ("world", "root"):
         raise ValueError(f"frame must be 'world' or 'root', got {s.frame!r}")
+    if not 0.0 <= s.chebyshev_rho < 1.0:
+        raise ValueError(f"chebyshev_rho must be in [0, 1), got {s.chebyshev_rho}")
     if s.substeps < 1 or s.iterations < 1 or s.fps <= 0:
         raise ValueError("substeps, iterations and fps must be positive")
     T = posed.vertices.shape[0]
@@ -488,9 +506,7 @@ def simulate_garment(
             "particle_self_contact_gap": s.self_contact_gap,
             "collision_frequency_type": {newton.solvers.SolverBase.CollisionSlot.SOFT_SELF_CONTACT: when},
         }
-    solvers = [newton.solvers.SolverVBD(
-        model, iterations=s.iterations, integrate_with_external_rigid_solver=True, **extra
-    )]  # fmt: skip
+    solvers = [_vbd_solver(model, s, extra)]
     self_contact_off_from = None
     pipeline = newton.CollisionPipeline(model, soft_contact_gap=s.contact_margin)
     contacts = pipeline.contacts()
@@ -592,8 +608,7 @@ def simulate_garment(
             if s.self_contact and s.self_contact_fallback and self_contact_off_from is None:
                 # self-contact's speed bound let the cloth tear: go on without it
                 self_contact_off_from = t
-                solvers[0] = newton.solvers.SolverVBD(model, iterations=s.iterations,
-                                                      integrate_with_external_rigid_solver=True)  # fmt: skip
+                solvers[0] = _vbd_solver(model, s, {})
                 graphs.clear()  # they replay the old solver's kernels
         elif st.valid:
             last_good = x
