@@ -99,18 +99,24 @@ def models_speed(names: list[str], repeats: int, n: int = 2048) -> list[dict]:
     return out
 
 
-def animation(teacher: str, student: str, motion: str, frames: int, threads: int, points: int = 2048) -> list[dict]:
+def animation(teacher: str, student: str, motion: str, frames: int, threads: int, points: int = 2048,
+              no_polish: bool = False) -> list[dict]:  # fmt: skip
     """``pocoloco animate`` (chain, its defaults: the teacher renoises each frame to t = 200 and runs
-    25 SDE steps; the student to t = 250, one call) of ``frames`` frames: frames per second of the
-    animation itself (no rendering), flicker and Chamfer to the scans."""
+    25 SDE steps; the student to t = 250, one call, and its teacher's finishing call if it has one)
+    of ``frames`` frames: frames per second of the animation itself (no rendering), flicker and
+    Chamfer to the scans. ``no_polish``: also the student with ``--no-polish`` (its call alone)."""
     import subprocess
     import tempfile
 
     out = []
-    for name, ckpt in (("teacher", teacher), ("student", student)):
+    runs = [("teacher", teacher, []), ("student", student, [])]
+    if no_polish:
+        runs.append(("student, --no-polish", student, ["--no-polish"]))
+    for name, ckpt, extra in runs:
         with tempfile.TemporaryDirectory() as tmp:
             cmd = [sys.executable, "-m", "pocoloco", "animate", "--ckpt", ckpt, "--motion", motion, "--frames",
-                   f"0:{frames}", "--points", str(points), "--threads", str(threads), "--no-render", "--out", tmp]  # fmt: skip
+                   f"0:{frames}", "--points", str(points), "--threads", str(threads), "--no-render", "--out", tmp,
+                   *extra]  # fmt: skip
             subprocess.run(cmd, check=True, capture_output=True)
             info = json.loads((Path(tmp) / "animation.json").read_text())
         m = info["metrics"]
@@ -118,7 +124,7 @@ def animation(teacher: str, student: str, motion: str, frames: int, threads: int
                     "frames_per_s": frames / info["seconds_total"], "flicker_cm": m["flicker_mean_cm"],
                     "gt_flicker_cm": m["gt_flicker_mean_cm"], "chamfer_to_gt_cm": m["chamfer_to_gt_mean_cm"]})  # fmt: skip
         r = out[-1]
-        print(f"animate {name:<8} {r['frames_per_s']:6.2f} frames/s  flicker {r['flicker_cm']:.2f} cm "
+        print(f"animate {name:<20} {r['frames_per_s']:6.2f} frames/s  flicker {r['flicker_cm']:.2f} cm "
               f"(scans {r['gt_flicker_cm']:.2f})  Chamfer to scans {r['chamfer_to_gt_cm']:.2f} cm", flush=True)
     return out
 
@@ -177,6 +183,8 @@ def main() -> None:
     ap.add_argument("--animate", default=None, help="a DATASET:subject/split/sequence to animate with both models")
     ap.add_argument("--animate-frames", type=int, default=40)
     ap.add_argument("--animate-threads", type=int, default=2)
+    ap.add_argument("--animate-no-polish", action="store_true",
+                    help="--animate: also the student without its teacher's finishing call")
     ap.add_argument("--distribution", nargs="*", default=[], help="SPLIT=TEACHER_FILE:ROW,STUDENT_FILE:ROW "
                     "(bench distribution reports of one reference set)")  # fmt: skip
     ap.add_argument("--json", required=True)
@@ -205,7 +213,8 @@ def main() -> None:
             print(f"[{split}]")
             result["distribution"][split] = distribution(*pair.split(",", 1))
     if a.animate:
-        result["animation"] = animation(a.teacher, a.student, a.animate, a.animate_frames, a.animate_threads)
+        result["animation"] = animation(a.teacher, a.student, a.animate, a.animate_frames, a.animate_threads,
+                                        no_polish=a.animate_no_polish)  # fmt: skip
     Path(a.json).parent.mkdir(parents=True, exist_ok=True)
     Path(a.json).write_text(json.dumps(result, indent=1))
     print(f"wrote {a.json}")

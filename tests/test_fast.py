@@ -451,3 +451,49 @@ def test_edit_and_complete_with_the_fast_model_start_on_its_grid(tmp_path):
                  "demo:skirt", "--points", "400", "--no-render", "--out", str(tmp_path / "cp")]) == 0  # fmt: skip
     assert main(["edit", "--ckpt", "default:fast", "--source", str(src), "--joints", "demo:skirt", "--t", "100",
                  "--no-render", "--out", str(tmp_path / "bad")]) == 2  # fmt: skip
+
+
+def test_the_apps_chains_end_with_the_finishing_call(latent_teacher, tiny_student, tmp_path, torch_single_thread):
+    """A polished student's app chains (editing, completion, each animation frame: ``denoise_from``)
+    end with its teacher's call, equal to the student's chain then ``polish`` written out; with
+    ``polish=False`` they are the plain student's; known points stay known."""
+    from pocoloco.apps.animation import animate
+    from pocoloco.apps.common import denoise_from
+    from pocoloco.cli import main
+    from pocoloco.methods import load_method
+
+    out = tmp_path / "p"
+    assert main(["export-model", "--ckpt", str(tiny_student), "--polish-with", str(latent_teacher), "--polish-t", "30",
+                 "--out", str(out)]) == 0  # fmt: skip
+    m, plain = load_method(out), load_method(tiny_student)
+    prior, plain_prior = m.point_prior(0), plain.point_prior(0)
+    assert prior.polish is not None and prior.polish[1] == 30 and plain_prior.polish is None
+    joints = np.asarray(m.load_pose("demo:skirt").joints)
+    x0 = np.random.default_rng(0).normal(size=(1, 40, 3)).astype(np.float32)
+    got = denoise_from(prior, joints, x0, 250, seeds=[4])
+    student_only = denoise_from(plain_prior, joints, x0, 250, seeds=[4])
+    np.testing.assert_array_equal(denoise_from(prior, joints, x0, 250, seeds=[4], polish=False), student_only)
+    # written out: the student's call from t = 250, then the teacher at t = 30, one generator
+    rng = PerSampleRNG([4])
+    noise = rng.randn((40, 3))
+    from pocoloco.diffusion.chains import renoise
+    from pocoloco.diffusion.samplers import sample
+
+    _, joints_n = prior.normalisation.normalise(np.zeros((1, 3), np.float32), joints)
+    cond = torch.as_tensor(joints_n)[None]
+    x = sample("few-step", prior.denoiser, prior.schedule, renoise(prior.schedule, x0, noise, 250), cond,
+               timesteps=[249], rng=rng, prediction_type=prior.prediction_type, renoise=prior.student_renoise)  # fmt: skip
+    ref = polish(prior.polish[0], prior.schedule, x, cond, 30, rng, prediction_type=prior.prediction_type)
+    np.testing.assert_allclose(got, ref.float().numpy(), atol=1e-5)
+    assert np.abs(got - student_only).max() > 1e-4
+    mask = np.zeros((1, 40), bool)
+    mask[0, :10] = True
+    kept = denoise_from(prior, joints, None, 250, seeds=[4], known=(mask, x0))
+    np.testing.assert_allclose(kept[0, :10], x0[0, :10], atol=1e-6)
+    # animate: two frames, the finishing call on each unless told
+    poses = np.stack([joints, joints + 0.01]).astype(np.float32)
+    a = animate(prior, poses, 32, t=250, seed=1)
+    b = animate(prior, poses, 32, t=250, seed=1, polish=False)
+    c = animate(plain_prior, poses, 32, t=250, seed=1)
+    np.testing.assert_array_equal(b.points, c.points)
+    assert np.abs(a.points - c.points).max() > 1e-4

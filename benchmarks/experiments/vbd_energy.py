@@ -99,6 +99,56 @@ def hanging_sheet(iterations: int, substeps: int, frames: int, n: int = 24, size
             "energy_mJ": energy, "bottom_speed_cm_s": speed}  # fmt: skip
 
 
+def hanging_sheet_style3d(iterations: int, linear_iterations: int, substeps: int, frames: int, n: int = 24,
+                          size: float = 0.5, kick: float = 0.5, membrane: float = 1e3) -> dict:  # fmt: skip
+    """The kicked sheet of :func:`hanging_sheet` with newton's other cloth solver, Style3D (projective
+    dynamics, a PCG solve per iteration; its anisotropic membrane ``membrane`` along both threads and
+    a tenth of it in shear): energy [mJ] and bottom-edge speed [cm/s] per frame."""
+    from pocoloco.body.anny_body import quiet_warp
+
+    quiet_warp()
+    import warp as wp
+
+    import newton
+    from newton.solvers import SolverStyle3D, style3d
+
+    b = newton.ModelBuilder()
+    SolverStyle3D.register_custom_attributes(b)
+    style3d.add_cloth_grid(b, pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), float(-np.pi / 2)),
+                           vel=wp.vec3(0.0, 0.0, 0.0), dim_x=n - 1, dim_y=n - 1, cell_x=size / (n - 1),
+                           cell_y=size / (n - 1), mass=0.15 * size * size / (n * n),
+                           tri_aniso_ke=wp.vec3(membrane, membrane, membrane / 10), edge_aniso_ke=wp.vec3(1e-5, 1e-5, 1e-5),
+                           particle_radius=0.004)  # fmt: skip
+    q = np.array(b.particle_q)
+    for j in np.where(q[:, 2] > -1e-6)[0]:  # the top edge is pinned
+        b.particle_mass[j] = 0.0
+    model = b.finalize(device="cpu")
+    solver = SolverStyle3D(model, config=SolverStyle3D.Config(iterations=iterations, linear_iterations=linear_iterations))
+    s0, s1, control = model.state(), model.state(), model.control()
+    mass = model.particle_mass.numpy()
+    qd = s0.particle_qd.numpy()
+    qd[mass > 0, 1] = kick
+    s0.particle_qd.assign(qd)
+    bottom = np.where(q[:, 2] < q[:, 2].min() + 1e-6)[0]
+    pipeline = newton.CollisionPipeline(model)
+    contacts = pipeline.contacts()
+    dt = 1.0 / 25.0 / substeps
+    energy, speed = [], []
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        for _ in range(substeps):
+            pipeline.collide(s0, contacts)
+            solver.step(s0, s1, control, contacts, dt)
+            s0, s1 = s1, s0
+        v = np.linalg.norm(s0.particle_qd.numpy(), axis=1)
+        qq = s0.particle_q.numpy()
+        energy.append(float(((0.5 * mass * v**2).sum() + (mass * 9.81 * qq[:, 2]).sum()) * 1000))
+        speed.append(float(v[bottom].mean() * 100))
+    return {"iterations": iterations, "linear_iterations": linear_iterations, "substeps": substeps,
+            "seconds": time.perf_counter() - t0, "energy_mJ": energy, "bottom_speed_cm_s": speed,
+            "init": "style3d"}  # fmt: skip
+
+
 TUBE_VARIANTS = {
     "as the pipeline (5 iterations)": {},
     "colouring includes bending": {"bend_colour": True},
@@ -187,6 +237,9 @@ def main() -> None:
                          "(vbd_init.py: the VBD paper's adaptive one, x + h v, or newton's inertia re-written)")
     ap.add_argument("--chebyshev", type=float, nargs="+",
                     help="the sheet: also each iteration count with Chebyshev-accelerated sweeps of these rho")
+    ap.add_argument("--style3d", type=int, nargs="+", metavar="ITERATIONS",
+                    help="the sheet with newton's Style3D solver instead, at these iteration counts (as many "
+                         "PCG iterations each)")  # fmt: skip
     ap.add_argument("--out", default="benchmarks/results/vbd_energy.json")
     args = ap.parse_args()
     if args.tube:
@@ -204,7 +257,10 @@ def main() -> None:
                                    "every": 25, "variants": rows}, indent=1))  # fmt: skip
         print(f"wrote {out}")
         return
-    runs = [hanging_sheet(it, args.substeps, args.frames) for it in args.iterations]
+    if args.style3d:
+        runs = [hanging_sheet_style3d(it, it, args.substeps, args.frames) for it in args.style3d]
+    else:
+        runs = [hanging_sheet(it, args.substeps, args.frames) for it in args.iterations]
     for init in args.init or []:
         runs += [{**hanging_sheet(it, args.substeps, args.frames, init=init), "init": init} for it in args.iterations]
     for rho in args.chebyshev or []:
@@ -222,7 +278,8 @@ def main() -> None:
         r["bottom_speed_cm_s"] = [round(x, 2) for x in r["bottom_speed_cm_s"][::5]]
     out.write_text(json.dumps({"command": "python benchmarks/experiments/vbd_energy.py " + " ".join(
         f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}" for k, v in vars(args).items()
-        if k not in ("out", "init", "tube", "variants", "chebyshev"))
+        if k not in ("out", "init", "tube", "variants", "chebyshev", "style3d"))
+        + (" --style3d " + " ".join(map(str, args.style3d)) if args.style3d else "")
         + (" --init " + " ".join(args.init) if args.init else "")
         + (" --chebyshev " + " ".join(map(str, args.chebyshev)) if args.chebyshev else ""),
         "every": 5, "runs": runs}, indent=1))  # fmt: skip

@@ -149,6 +149,7 @@ def animate(
     finish: Callable[[int, np.ndarray, int], np.ndarray] | None = None,
     progress: Callable[[int, int], None] | None = None,
     windows: Sequence[MotionWindow | None] | None = None,
+    polish: bool = True,
 ) -> Animation:
     """Clouds (T, N, 3) for the poses ``joints`` (T, J, 3) (module docstring for the methods).
 
@@ -159,7 +160,9 @@ def animate(
     chain still carries the prior's clouds; :class:`~pocoloco.methods.base.AnimationPrior`); the
     frames then have no normals. windows: each frame's motion window (issue 41), given to a prior
     whose denoiser takes one (``prior.denoiser.motion``, a motion-aware model): the hems lag and
-    swing with the motion before each frame; None: every frame at rest.
+    swing with the motion before each frame; None: every frame at rest. polish: a distilled
+    student with a finishing teacher (``prior.polish``) ends every frame with the teacher's call
+    (two calls per chained frame); False: the student's one call alone.
     """
 
     if method not in METHODS:
@@ -195,13 +198,13 @@ def animate(
             prior.denoiser.motion = None if window is None else torch.from_numpy(normalisation.normalise_motion(window, joints[k]))
         if method != "chain" or k == 0:
             x = denoise_from(prior, joints[k], None, T, sampler, steps, [seeds[k]],
-                             num_points=num_points)  # fmt: skip
+                             num_points=num_points, polish=polish)  # fmt: skip
         else:
             ref = joints[k - 1] if anchor == "root" else joints[k]
             prev_n = None if normals is None else normals[k - 1]
             x0 = to_normalised(normalisation, points[k - 1], prev_n, ref, C)[None]  # (1, N, C)
             x = denoise_from(prior, joints[k], x0, t, sampler,
-                             None if steps is None else min(steps, t), [seeds[k]])  # fmt: skip
+                             None if steps is None else min(steps, t), [seeds[k]], polish=polish)  # fmt: skip
         p, n = to_metres(normalisation, x, joints[k])
         points[k] = p[0]
         if normals is not None:

@@ -23,7 +23,7 @@ import torch
 from pocoloco.data.dataset import Normalisation, rotate_z
 from pocoloco.data.format import read_frame
 from pocoloco.data.published import MAX_CLOUD_EXTENT_M, check_cloud, read_ply
-from pocoloco.diffusion.few_step import student_grid
+from pocoloco.diffusion.few_step import polish as teacher_polish, student_grid
 from pocoloco.diffusion.chains import chain_timesteps, renoise, repaint_resampling
 from pocoloco.diffusion.samplers import PerSampleRNG, sample
 from pocoloco.methods.base import PointPrior
@@ -50,6 +50,7 @@ def denoise_from(
     num_points: int | None = None,
     resample: int = 1,
     jump: int = 1,
+    polish: bool = True,
 ) -> np.ndarray:
     """Run the reverse chain from step ``t`` under one pose, in the *normalised* frame.
 
@@ -68,6 +69,9 @@ def denoise_from(
         resample, jump: RePaint's resampling (:func:`~pocoloco.diffusion.chains.repaint_resampling`;
             1: off, the default). With resample > 1 every step is an ancestral DDPM step whatever
             ``sampler`` is; denoiser calls = steps x resample.
+        polish: a distilled student whose teacher makes the last call (``prior.polish``): end the
+            chain with that call (:func:`~pocoloco.diffusion.few_step.polish`: one more network
+            call; ``known`` points are kept). False: the student's calls alone.
     Returns:
         (B, N, C) float32 normalised clouds (:func:`to_metres` maps them back).
     """
@@ -116,6 +120,15 @@ def denoise_from(
                 kw["renoise"] = prior.student_renoise
             out = sample(sampler, model, prior.schedule, noise, cond, timesteps=timesteps, rng=rng,
                          prediction_type=prior.prediction_type, **kw)  # fmt: skip
+            if polish and sampler == "few-step" and prior.polish is not None:
+                teacher, t_polish = prior.polish
+                if hasattr(teacher, "motion") and hasattr(model, "motion"):
+                    teacher.motion = model.motion  # the same motion window as the student's
+                out = teacher_polish(teacher, prior.schedule, out, cond, t_polish, rng,
+                                     prediction_type=prior.prediction_type)  # fmt: skip
+                if "known" in kw:
+                    mask, xk = kw["known"]
+                    out = torch.where(mask[..., None], xk.to(out.dtype), out)
     finally:
         model.train(was_training)
     return out.float().cpu().numpy()

@@ -284,6 +284,9 @@ def add_animate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--points", type=int, default=2048, help="N points per frame (default 2048)")
     parser.add_argument("--frames", help="frames to animate, START:STOP[:STEP] (default: all)")
     parser.add_argument("--fps", type=float, default=10.0, help="GIF frame rate (default 10)")
+    parser.add_argument("--no-polish", action="store_true",
+                        help="a distilled model whose teacher makes the last call (default:fast): each frame with "
+                             "the student's call alone (one network call per chained frame instead of two)")  # fmt: skip
     parser.add_argument("--motion-fps", type=float, default=25.0,
                         help="frames per second of a --motion joints file, for models trained with --motion-window "
                              "(each frame gets the motion before it; dataset sequences know theirs; default 25)")  # fmt: skip
@@ -343,14 +346,15 @@ def cmd_animate(args: argparse.Namespace) -> None:
     with progress_bar("animate", total=len(chosen)) as update:
         anim = animate(prior, joints, hook.prior_points, method=args.method, t=args.t,
                        sampler=args.sampler, steps=args.steps, seed=args.seed, anchor=args.anchor,
-                       finish=finish, progress=update, windows=windows)  # fmt: skip
+                       finish=finish, progress=update, windows=windows, polish=not args.no_polish)  # fmt: skip
     seconds = time.perf_counter() - t0
+    polished = student and prior.polish is not None and not args.no_polish
     info: dict[str, Any] = {
         "checkpoint": str(ckpt), "step": step, "motion": motion.name, "frames": chosen, "method": args.method,
         "t": args.t if args.method == "chain" else None, "anchor": args.anchor if args.method == "chain" else None,
         "points": args.points, "sampler": "few-step" if student else args.sampler, "steps": args.steps, "seeds": anim.seeds,
         "seconds_total": seconds, "seconds_per_frame": seconds / len(chosen),
-        "motion_window_s": method.motion_window,
+        "motion_window_s": method.motion_window, "polish_t": prior.polish[1] if polished else None,
     }  # fmt: skip
     if motion.frames is not None:
         info["metrics"] = evaluate_animation(anim.points, [motion.frames[i] for i in chosen], args.points)

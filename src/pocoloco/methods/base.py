@@ -109,6 +109,9 @@ class PointPrior:
     #: a distilled student's grid (``pocoloco distill``): its chains visit only those timesteps
     student_calls: int = 0
     student_renoise: float = 1.0
+    #: (teacher denoiser bound like ``denoiser``, 1-based t): a student whose teacher makes the last
+    #: call (``export-model --polish-with``); its chains end with it (``apps.common.denoise_from``)
+    polish: tuple[nn.Module, int] | None = None
 
 
 @dataclass(frozen=True)

@@ -129,27 +129,31 @@ class PocoLocoMethod(Method):
         self.meta["outfits"] = self.outfits
         return new_id
 
-    def denoiser_for(self, outfit: int | None, code: torch.Tensor | None = None):
-        """The network with ``outfit`` (its code and body shape) bound in, called like a joints-only
-        denoiser (what the apps run); the network itself for a joints-only model."""
+    def denoiser_for(self, outfit: int | None, code: torch.Tensor | None = None, network: torch.nn.Module | None = None):
+        """The network (``network``: another of the same conditioning, e.g. the finishing teacher)
+        with ``outfit`` (its code and body shape) bound in, called like a joints-only denoiser (what
+        the apps run); the network itself for a joints-only model."""
+        model = self.model if network is None else network
         if self.needs_body:
             raise ValueError("this PocoLoco model also needs the posed body (--body-points): completion, editing and "
                              "animation take models conditioned on joints (and outfit) only; use pocoloco sample / eval")  # fmt: skip
         if not self.knows_who_wears_what:
             self.outfit_id(outfit)  # any outfit is a one-line error
-            return OutfitBound(self.model, None) if self.motion_window else self.model  # (its motion is set per pose)
+            return OutfitBound(model, None) if self.motion_window else model  # (its motion is set per pose)
         if outfit is None:
             raise ValueError(f"--outfit is required (this PocoLoco checkpoint knows outfits {', '.join(self.outfit_names())})")
         kw = self.condition(outfit)
-        return OutfitBound(self.model, None if code is not None else kw["outfit"], kw["shape"], code=code)
+        return OutfitBound(model, None if code is not None else kw["outfit"], kw["shape"], code=code)
 
     def point_prior(self, outfit: int | None) -> PointPrior:
         """The apps' hook: the denoiser with ``outfit`` bound in (:meth:`denoiser_for`), its
-        normalisation, schedule and parametrisation."""
+        normalisation, schedule and parametrisation (and a distilled student's finishing teacher,
+        bound the same way)."""
         c = self.config
+        polish = None if self.polish is None else (self.denoiser_for(outfit, network=self.polish[0]), self.polish[1])
         return PointPrior(self.denoiser_for(outfit), self.normalisation, NoiseSchedule.from_kind(c.schedule, c.num_timesteps),
                           c.prediction_type, int(c.denoiser.point_channels), int(c.denoiser.num_joints),
-                          int(c.student_calls), float(c.student_renoise))  # fmt: skip
+                          int(c.student_calls), float(c.student_renoise), polish)  # fmt: skip
 
     def condition(self, outfit: int | None) -> dict[str, Any]:
         """``sample_clouds`` keyword arguments (``outfit``, ``shape``) for outfit id ``outfit``."""
