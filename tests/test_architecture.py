@@ -26,7 +26,7 @@ SRC = ROOT / "src" / "pocoloco"
 #: adapter (``import pocoloco.body`` stays instant; anny parses its assets on first use)
 OPTIONAL_EXTRA_MODULES = {"pocoloco.synth.pipeline", "pocoloco.synth.cloth_sim", "pocoloco.synth.capture",
                           "pocoloco.synth.sdf", "pocoloco.synth.garments", "pocoloco.synth.motion", "pocoloco.synth.aero",
-                          "pocoloco.synth.vbd_chebyshev",
+                          "pocoloco.synth.vbd_chebyshev", "pocoloco.synth.bend_friction",
                           "pocoloco.body.anny_body", "pocoloco.body"}  # fmt: skip
 MAX_LINES = 650
 REASON_MARK = "Why this module is long:"

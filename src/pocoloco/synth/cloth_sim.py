@@ -92,6 +92,10 @@ class ClothSimSettings:
         ``ModelBuilder.color(include_bending=True)``); without it (data v1 / v2) vertices that share
         a bending element are updated in the same parallel pass, which feeds energy into hanging
         cloth (benchmarks/experiments/vbd_energy.py --tube).
+    bend_friction: Coulomb friction moment per unit length in bending, HB [N] (``synth.bend_friction``:
+        half the hysteresis width of Kawabata's bending test); 0 = none (data v1 - v3).
+    bend_friction_stick_angle: the hinge angle [rad] over which that friction builds up (Dahl's
+        stick region; the friction element's stiffness is HB / this).
     chebyshev_rho: Chebyshev acceleration of the VBD sweeps with this spectral radius estimate
         (``synth.vbd_chebyshev``; 0 = newton's plain sweeps, data v1 - v3). Not with self-contact.
     self_contact: newton VBD cloth self-contact (vertex-triangle and edge-edge).
@@ -139,6 +143,8 @@ class ClothSimSettings:
     air_drag_tangential: float = 0.0
     color_bending: bool = False
     chebyshev_rho: float = 0.0
+    bend_friction: float = 0.0
+    bend_friction_stick_angle: float = 0.02
     self_contact: bool = False
     self_contact_margin: float = 0.004
     self_contact_gap: float = 0.012
@@ -415,6 +421,9 @@ def simulate_garment(
         raise ValueError(f"unknown collider {s.collider!r}; expected one of {COLLIDERS}")
     if s.frame not in ("world", "root"):
         raise ValueError(f"frame must be 'world' or 'root', got {s.frame!r}")
+    if s.bend_friction < 0.0 or not s.bend_friction_stick_angle > 0.0:
+        raise ValueError(f"bend_friction must be >= 0 and bend_friction_stick_angle > 0, got {s.bend_friction} "
+                         f"and {s.bend_friction_stick_angle}")  # fmt: skip
     if not 0.0 <= s.chebyshev_rho < 1.0:
         raise ValueError(f"chebyshev_rho must be in [0, 1), got {s.chebyshev_rho}")
     if s.substeps < 1 or s.iterations < 1 or s.fps <= 0:
@@ -486,6 +495,11 @@ def simulate_garment(
 
         drag = AirDrag(garment.faces, model.particle_mass.numpy(), s.air_drag_normal, s.air_drag_tangential,
                        1.0 / (s.fps * s.substeps), device)  # fmt: skip
+    friction = None
+    if s.bend_friction > 0.0:
+        from .bend_friction import BendFriction
+
+        friction = BendFriction(model, s.bend_friction, s.bend_friction_stick_angle, device)
     model.soft_contact_ke = s.contact_ke
     model.soft_contact_kd = s.contact_kd
     model.soft_contact_mu = s.contact_mu
@@ -533,6 +547,8 @@ def simulate_garment(
             drag.apply(a.particle_q, a.particle_qd)
         pipeline.collide(a, contacts)
         solvers[0].step(a, b, control, contacts, dt)
+        if friction is not None:  # the bending friction elements slip to the step's result
+            friction.apply(b.particle_q)
 
     def substep(t: int, alpha: float, body_velocity: np.ndarray | None) -> None:
         """One VBD substep with the body at frame t + alpha (velocity (V, 3) or None)."""
