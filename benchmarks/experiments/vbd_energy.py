@@ -163,12 +163,15 @@ TUBE_VARIANTS = {
     "adaptive initial guess, achiral": {"init": "adaptive", "achiral": True},
     "Chebyshev rho 0.9": {"chebyshev": 0.9},
     "Chebyshev rho 0.9, achiral": {"chebyshev": 0.9, "achiral": True},
+    "cone 0.15 -> 0.3 m, achiral": {"achiral": True, "bottom_radius": 0.3},
+    "cone, achiral, Chebyshev rho 0.9": {"achiral": True, "bottom_radius": 0.3, "chebyshev": 0.9},
 }
 
 
 def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: float = 1e-3, bend_colour: bool = False,
                  symmetric: bool = False, achiral: bool = False, around: int = 48,
-                 rows: int = 24, init: str | None = None, chebyshev: float | None = None) -> dict:  # fmt: skip
+                 rows: int = 24, init: str | None = None, chebyshev: float | None = None,
+                 bottom_radius: float = 0.15) -> dict:  # fmt: skip
     """A tube pinned at its top ring hanging from rest: bottom-ring speed over time and, at the end,
     its spin (mean tangential speed), radial flapping and the centroid's offset / speed (cm, cm/s)."""
     from pocoloco.body.anny_body import quiet_warp
@@ -184,7 +187,8 @@ def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: f
         z = -0.5 * i / (rows - 1)
         for j in range(around):
             t = 2 * np.pi * j / around
-            verts.append(wp.vec3(0.15 * np.cos(t), 0.15 * np.sin(t), z))
+            r = 0.15 + (bottom_radius - 0.15) * i / (rows - 1)  # a cone (a flared skirt) when wider below
+            verts.append(wp.vec3(r * np.cos(t), r * np.sin(t), z))
     faces = []
     for i in range(rows - 1):
         for j in range(around):
