@@ -165,6 +165,9 @@ TUBE_VARIANTS = {
     "Chebyshev rho 0.9, achiral": {"chebyshev": 0.9, "achiral": True},
     "cone 0.15 -> 0.3 m, achiral": {"achiral": True, "bottom_radius": 0.3},
     "cone, achiral, Chebyshev rho 0.9": {"achiral": True, "bottom_radius": 0.3, "chebyshev": 0.9},
+    "cone, achiral, 2x finer": {"achiral": True, "bottom_radius": 0.3, "around": 96, "rows": 48},
+    "cone, achiral, 2x finer, Chebyshev rho 0.9": {"achiral": True, "bottom_radius": 0.3, "around": 96, "rows": 48,
+                                                   "chebyshev": 0.9},
 }
 
 
