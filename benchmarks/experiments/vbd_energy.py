@@ -165,6 +165,8 @@ TUBE_VARIANTS = {
     "Chebyshev rho 0.9, achiral": {"chebyshev": 0.9, "achiral": True},
     "cone 0.15 -> 0.3 m, achiral": {"achiral": True, "bottom_radius": 0.3},
     "cone, achiral, Chebyshev rho 0.9": {"achiral": True, "bottom_radius": 0.3, "chebyshev": 0.9},
+    "cone, achiral, Chebyshev rho 0.9, membrane 1e3, no area term": {"achiral": True, "bottom_radius": 0.3,
+                                                                      "chebyshev": 0.9, "tri_ke": 1e3, "tri_ka": 0.0},
     "cone, achiral, 2x finer": {"achiral": True, "bottom_radius": 0.3, "around": 96, "rows": 48},
     "cone, achiral, 2x finer, Chebyshev rho 0.9": {"achiral": True, "bottom_radius": 0.3, "around": 96, "rows": 48,
                                                    "chebyshev": 0.9},
@@ -174,7 +176,7 @@ TUBE_VARIANTS = {
 def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: float = 1e-3, bend_colour: bool = False,
                  symmetric: bool = False, achiral: bool = False, around: int = 48,
                  rows: int = 24, init: str | None = None, chebyshev: float | None = None,
-                 bottom_radius: float = 0.15) -> dict:  # fmt: skip
+                 bottom_radius: float = 0.15, tri_ke: float = 1e4, tri_ka: float = 1e4) -> dict:  # fmt: skip
     """A tube pinned at its top ring hanging from rest: bottom-ring speed over time and, at the end,
     its spin (mean tangential speed), radial flapping and the centroid's offset / speed (cm, cm/s)."""
     from pocoloco.body.anny_body import quiet_warp
@@ -202,7 +204,7 @@ def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: f
             else:
                 faces += [a, bb, c, bb, d, c]
     b.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
-                     vertices=verts, indices=faces, density=0.15, tri_ke=1e4, tri_ka=1e4, tri_kd=1e-5,
+                     vertices=verts, indices=faces, density=0.15, tri_ke=tri_ke, tri_ka=tri_ka, tri_kd=1e-5,
                      edge_ke=edge_ke, edge_kd=0.0, particle_radius=0.004)  # fmt: skip
     for j in range(around):
         b.particle_mass[j] = 0.0
