@@ -27,6 +27,7 @@ SRC = ROOT / "src" / "pocoloco"
 OPTIONAL_EXTRA_MODULES = {"pocoloco.synth.pipeline", "pocoloco.synth.cloth_sim", "pocoloco.synth.capture",
                           "pocoloco.synth.sdf", "pocoloco.synth.garments", "pocoloco.synth.motion", "pocoloco.synth.aero",
                           "pocoloco.synth.vbd_chebyshev", "pocoloco.synth.bend_friction",
+                          "pocoloco.synth.tension_field",
                           "pocoloco.body.anny_body", "pocoloco.body"}  # fmt: skip
 MAX_LINES = 650
 REASON_MARK = "Why this module is long:"

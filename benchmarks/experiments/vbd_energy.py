@@ -167,6 +167,9 @@ TUBE_VARIANTS = {
     "cone, achiral, Chebyshev rho 0.9": {"achiral": True, "bottom_radius": 0.3, "chebyshev": 0.9},
     "cone, achiral, Chebyshev rho 0.9, membrane 1e3, no area term": {"achiral": True, "bottom_radius": 0.3,
                                                                       "chebyshev": 0.9, "tri_ke": 1e3, "tri_ka": 0.0},
+    "cone, achiral, tension field": {"achiral": True, "bottom_radius": 0.3, "tension_field": True},
+    "cone, achiral, tension field, Chebyshev rho 0.9": {"achiral": True, "bottom_radius": 0.3, "tension_field": True,
+                                                        "chebyshev": 0.9},
     "cone, achiral, 2x finer": {"achiral": True, "bottom_radius": 0.3, "around": 96, "rows": 48},
     "cone, achiral, 2x finer, Chebyshev rho 0.9": {"achiral": True, "bottom_radius": 0.3, "around": 96, "rows": 48,
                                                    "chebyshev": 0.9},
@@ -176,7 +179,8 @@ TUBE_VARIANTS = {
 def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: float = 1e-3, bend_colour: bool = False,
                  symmetric: bool = False, achiral: bool = False, around: int = 48,
                  rows: int = 24, init: str | None = None, chebyshev: float | None = None,
-                 bottom_radius: float = 0.15, tri_ke: float = 1e4, tri_ka: float = 1e4) -> dict:  # fmt: skip
+                 bottom_radius: float = 0.15, tri_ke: float = 1e4, tri_ka: float = 1e4,
+                 tension_field: bool = False) -> dict:  # fmt: skip
     """A tube pinned at its top ring hanging from rest: bottom-ring speed over time and, at the end,
     its spin (mean tangential speed), radial flapping and the centroid's offset / speed (cm, cm/s)."""
     from pocoloco.body.anny_body import quiet_warp
@@ -211,12 +215,19 @@ def hanging_tube(frames: int, iterations: int = 5, substeps: int = 7, edge_ke: f
     b.color(include_bending=bend_colour)
     model = b.finalize(device="cpu")
     solver = _solver(model, iterations, init, chebyshev)
+    tension = None
+    if tension_field:  # the membrane carries no compression (pocoloco.synth.tension_field)
+        from pocoloco.synth.tension_field import TensionField
+
+        tension = TensionField(model, model.device)
     s0, s1, control = model.state(), model.state(), model.control()
     dt = 1.0 / 25.0 / substeps
     speed = []
     t0 = time.perf_counter()
     for _ in range(frames):
         for _ in range(substeps):
+            if tension is not None:
+                tension.apply(s0.particle_q)
             solver.step(s0, s1, control, None, dt)
             s0, s1 = s1, s0
             if symmetric:  # the next substep sweeps the colours in the reverse order

@@ -96,6 +96,9 @@ class ClothSimSettings:
         half the hysteresis width of Kawabata's bending test); 0 = none (data v1 - v3).
     bend_friction_stick_angle: the hinge angle [rad] over which that friction builds up (Dahl's
         stick region; the friction element's stiffness is HB / this).
+    tension_field: the membrane carries no compression (``synth.tension_field``: each triangle's
+        rest shape relaxed along its compressed directions before each step); False = newton's
+        membrane, which resists compression like stretch (data v1 - v3).
     chebyshev_rho: Chebyshev acceleration of the VBD sweeps with this spectral radius estimate
         (``synth.vbd_chebyshev``; 0 = newton's plain sweeps, data v1 - v3). Not with self-contact.
     self_contact: newton VBD cloth self-contact (vertex-triangle and edge-edge).
@@ -145,6 +148,7 @@ class ClothSimSettings:
     chebyshev_rho: float = 0.0
     bend_friction: float = 0.0
     bend_friction_stick_angle: float = 0.02
+    tension_field: bool = False
     self_contact: bool = False
     self_contact_margin: float = 0.004
     self_contact_gap: float = 0.012
@@ -500,6 +504,11 @@ def simulate_garment(
         from .bend_friction import BendFriction
 
         friction = BendFriction(model, s.bend_friction, s.bend_friction_stick_angle, device)
+    tension = None
+    if s.tension_field:
+        from .tension_field import TensionField
+
+        tension = TensionField(model, device)
     model.soft_contact_ke = s.contact_ke
     model.soft_contact_kd = s.contact_kd
     model.soft_contact_mu = s.contact_mu
@@ -545,6 +554,8 @@ def simulate_garment(
         """The substep's kernels: contacts of state a, then one solver step a -> b."""
         if drag is not None:  # air drag first: an implicit velocity update (synth.aero)
             drag.apply(a.particle_q, a.particle_qd)
+        if tension is not None:  # the membrane's rest shapes give way where the step starts compressed
+            tension.apply(a.particle_q)
         pipeline.collide(a, contacts)
         solvers[0].step(a, b, control, contacts, dt)
         if friction is not None:  # the bending friction elements slip to the step's result

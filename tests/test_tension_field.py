@@ -1,0 +1,60 @@
+"""The compression-free membrane: the warp kernel against the NumPy reference, and what the relaxed
+rest shapes do to the membrane's strain."""
+
+import numpy as np
+
+from pocoloco.synth.tension_field import TensionField, relaxed_rest_shapes_reference
+
+
+def _sheet_model(n=6, size=0.2):
+    from pocoloco.body.anny_body import quiet_warp
+
+    quiet_warp()
+    import warp as wp
+
+    import newton
+
+    b = newton.ModelBuilder()
+    xs = np.linspace(0.0, size, n)
+    verts = [wp.vec3(x, y, 0.0) for y in xs for x in xs]
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            faces += [a, a + 1, a + n, a + 1, a + n + 1, a + n]
+    b.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
+                     vertices=verts, indices=faces, density=0.15, tri_ke=1e4, tri_ka=1e4, tri_kd=1e-5,
+                     edge_ke=1e-3, edge_kd=0.0, particle_radius=0.004)  # fmt: skip
+    return b.finalize(device="cpu")
+
+
+def _metric(x, tris, poses):
+    """(T, 2, 2) F^T F of positions x against rest-shape inverses poses."""
+    ds = np.stack([x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]]], axis=2)
+    f = ds @ poses
+    return np.swapaxes(f, 1, 2) @ f
+
+
+def test_kernel_matches_the_reference_and_drops_only_compression():
+    import warp as wp
+
+    model = _sheet_model()
+    tris = model.tri_indices.numpy()
+    original = model.tri_poses.numpy().copy()
+    x0 = model.particle_q.numpy().astype(np.float64)
+    # squeeze x by 20 %, stretch y by 10 %, and jitter: compressed, stretched and mixed triangles
+    rng = np.random.default_rng(0)
+    x = x0 * np.array([0.8, 1.1, 1.0]) + rng.normal(scale=0.001, size=x0.shape)
+    field = TensionField(model, wp.get_device("cpu"))
+    field.apply(wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu"))
+    got = model.tri_poses.numpy()
+    ref = relaxed_rest_shapes_reference(x.astype(np.float32), tris, original)
+    np.testing.assert_allclose(got, ref, atol=2e-3 * np.abs(original).max())
+    before = np.linalg.eigvalsh(_metric(x, tris, original))
+    after = np.linalg.eigvalsh(_metric(x, tris, got.astype(np.float64)))
+    assert (before[:, 0] < 0.95).all()  # every triangle was compressed along x
+    np.testing.assert_allclose(after[:, 0], 1.0, atol=2e-3)  # ... and no longer is
+    np.testing.assert_allclose(after[:, 1], before[:, 1], rtol=2e-3)  # the stretch is kept
+    # a pure stretch leaves the rest shapes as they were; the original is kept for the next step
+    field.apply(wp.array((x0 * np.array([1.1, 1.05, 1.0])).astype(np.float32), dtype=wp.vec3, device="cpu"))
+    np.testing.assert_allclose(model.tri_poses.numpy(), original, rtol=1e-5, atol=1e-6)
