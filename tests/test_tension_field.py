@@ -45,10 +45,10 @@ def test_kernel_matches_the_reference_and_drops_only_compression():
     # squeeze x by 20 %, stretch y by 10 %, and jitter: compressed, stretched and mixed triangles
     rng = np.random.default_rng(0)
     x = x0 * np.array([0.8, 1.1, 1.0]) + rng.normal(scale=0.001, size=x0.shape)
-    field = TensionField(model, wp.get_device("cpu"))
+    field = TensionField(model, wp.get_device("cpu"), min_stretch=0.5)
     field.apply(wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu"))
     got = model.tri_poses.numpy()
-    ref = relaxed_rest_shapes_reference(x.astype(np.float32), tris, original)
+    ref = relaxed_rest_shapes_reference(x.astype(np.float32), tris, original, min_stretch=0.5)
     np.testing.assert_allclose(got, ref, atol=2e-3 * np.abs(original).max())
     before = np.linalg.eigvalsh(_metric(x, tris, original))
     after = np.linalg.eigvalsh(_metric(x, tris, got.astype(np.float64)))
@@ -58,3 +58,18 @@ def test_kernel_matches_the_reference_and_drops_only_compression():
     # a pure stretch leaves the rest shapes as they were; the original is kept for the next step
     field.apply(wp.array((x0 * np.array([1.1, 1.05, 1.0])).astype(np.float32), dtype=wp.vec3, device="cpu"))
     np.testing.assert_allclose(model.tri_poses.numpy(), original, rtol=1e-5, atol=1e-6)
+
+
+def test_a_collapsing_triangle_keeps_resisting():
+    import warp as wp
+
+    model = _sheet_model()
+    tris = model.tri_indices.numpy()
+    original = model.tri_poses.numpy().copy()
+    x = model.particle_q.numpy().astype(np.float64) * np.array([0.3, 1.0, 1.0])  # squeezed to 30 %
+    field = TensionField(model, wp.get_device("cpu"), min_stretch=0.7)
+    field.apply(wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu"))
+    after = np.linalg.eigvalsh(_metric(x, tris, model.tri_poses.numpy().astype(np.float64)))
+    np.testing.assert_allclose(after[:, 0], (0.3 / 0.7) ** 2, rtol=0.05)  # compressed, but only past 0.7
+    np.testing.assert_allclose(model.tri_poses.numpy(), relaxed_rest_shapes_reference(x, tris, original, 0.7),
+                               atol=1e-3 * np.abs(original).max())  # fmt: skip

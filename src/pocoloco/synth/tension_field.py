@@ -29,9 +29,11 @@ def relax_compressed_rest_shapes(
     pos: wp.array[wp.vec3],
     tris: wp.array2d[wp.int32],
     poses_original: wp.array[wp.mat22],
+    min_metric: float,
     poses_out: wp.array[wp.mat22],
 ):
-    """Per triangle: Dm^-1 S (module docstring) from the positions ``pos``."""
+    """Per triangle: Dm^-1 S (module docstring) from the positions ``pos``; a direction compressed
+    below sqrt(min_metric) of its length keeps resisting beyond that."""
     i = wp.tid()
     dm_inv = poses_original[i]
     x0 = pos[tris[i, 0]]
@@ -56,10 +58,10 @@ def relax_compressed_rest_shapes(
     w = wp.vec2(-v[1], v[0])
     s1 = 1.0
     s2 = 1.0
-    if l1 < 1.0 and l1 > 1.0e-8:
-        s1 = 1.0 / wp.sqrt(l1)
-    if l2 < 1.0 and l2 > 1.0e-8:
-        s2 = 1.0 / wp.sqrt(l2)
+    if l1 < 1.0:
+        s1 = 1.0 / wp.sqrt(wp.max(l1, min_metric))
+    if l2 < 1.0:
+        s2 = 1.0 / wp.sqrt(wp.max(l2, min_metric))
     s = wp.mat22(
         s1 * v[0] * v[0] + s2 * w[0] * w[0], s1 * v[0] * v[1] + s2 * w[0] * w[1],
         s1 * v[1] * v[0] + s2 * w[1] * w[0], s1 * v[1] * v[1] + s2 * w[1] * w[1],
@@ -67,22 +69,28 @@ def relax_compressed_rest_shapes(
     poses_out[i] = dm_inv * s
 
 
-def relaxed_rest_shapes_reference(x: np.ndarray, tris: np.ndarray, poses: np.ndarray) -> np.ndarray:
+def relaxed_rest_shapes_reference(x: np.ndarray, tris: np.ndarray, poses: np.ndarray,
+                                  min_stretch: float = 0.0) -> np.ndarray:  # fmt: skip
     """NumPy reference of :func:`relax_compressed_rest_shapes`: (T, 2, 2) Dm^-1 S."""
     x = np.asarray(x, np.float64)
     poses = np.asarray(poses, np.float64)
     ds = np.stack([x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]]], axis=2)  # (T, 3, 2)
     f = ds @ poses
     lam, vec = np.linalg.eigh(np.swapaxes(f, 1, 2) @ f)  # (T, 2), (T, 2, 2) columns
-    s = np.where((lam < 1.0) & (lam > 1e-8), 1.0 / np.sqrt(np.maximum(lam, 1e-30)), 1.0)
+    s = np.where(lam < 1.0, 1.0 / np.sqrt(np.maximum(lam, max(min_stretch**2, 1e-30))), 1.0)
     return poses @ (vec * s[:, None, :]) @ np.swapaxes(vec, 1, 2)
 
 
 class TensionField:
     """Keeps a finalized newton cloth model's membrane free of compression (module docstring):
-    :meth:`apply` before each solver step, with the step's starting positions."""
+    :meth:`apply` before each solver step, with the step's starting positions. ``min_stretch``:
+    a direction compressed below this length ratio resists the rest (a triangle must not collapse
+    to a line: bending alone cannot hold it)."""
 
-    def __init__(self, model, device):  # noqa: ANN001 (newton's types)
+    def __init__(self, model, device, min_stretch: float = 0.7):  # noqa: ANN001 (newton's types)
+        if not 0.0 < min_stretch <= 1.0:
+            raise ValueError(f"tension field: min_stretch must be in (0, 1], got {min_stretch}")
+        self.min_metric = float(min_stretch) ** 2
         self.tris = model.tri_indices
         self.poses = model.tri_poses  # rewritten in place: the solver reads it
         self.original = wp.clone(model.tri_poses)
@@ -90,4 +98,4 @@ class TensionField:
 
     def apply(self, pos) -> None:  # noqa: ANN001 (a warp array)
         wp.launch(relax_compressed_rest_shapes, dim=self.tris.shape[0],
-                  inputs=[pos, self.tris, self.original, self.poses], device=self.device)  # fmt: skip
+                  inputs=[pos, self.tris, self.original, self.min_metric, self.poses], device=self.device)  # fmt: skip
