@@ -4,7 +4,7 @@ distance at a held pose, and the hem's lag and flare while the body moves.
 Each garment kind (on its ``medium`` "_a" subject) performs each motion kind (spin,
 walk, kick, run: 1.6 s of the pipeline's own motion, from the rest pose; ``still``: no
 motion at all, the body held in the rest pose throughout), blends into
-the rest pose in 0.48 s and holds it for ``--hold`` seconds, simulated with the dataset
+the rest pose in 0.48 s and holds it until the last of ``--delays`` (default 4 s), simulated with the dataset
 pipeline's cloth settings under each damping model (``none``: data v1 / v2; ``physical``:
 data v3, ``synth.fabric``). Reported per garment, model and motion:
 
@@ -20,7 +20,8 @@ data v3, ``synth.fabric``). Reported per garment, model and motion:
 - ``seconds_per_frame``: the solver's wall-clock time per frame (1 thread per run).
 
     python benchmarks/bench_settle.py [--garments skirt ...] [--kinds spin walk kick run]
-        [--damping none physical] [--set KEY=VALUE ...] [--workers 2] [--out benchmarks/results/settle.json]
+        [--damping none physical] [--set KEY=VALUE ...] [--delays 0.5 1 2 3 4] [--workers 2]
+        [--out benchmarks/results/settle.json]
 """
 
 from __future__ import annotations
@@ -92,7 +93,8 @@ def run_one(job: dict) -> dict:
     garment = make_garment(subject.garment, body, resolution=config.garment_resolution,
                            tessellation=config.garment_tessellation, **subject.garment_params)  # fmt: skip
     fps = config.fps
-    hold = int(round(max(DELAYS_S) * fps)) + 2
+    delays = job.get("delays", DELAYS_S)
+    hold = int(round(max(delays) * fps)) + 2
     rot, trans, arrive, start = history_then_rest(body, job["kind"], job["seed"], job["frames"], 12, hold, fps)
     posed = body.pose(rot, trans)
     settings = cloth_settings(config, subject.garment)
@@ -109,7 +111,7 @@ def run_one(job: dict) -> dict:
     radius = np.linalg.norm(rel[:, hem, :2], axis=-1).mean(1)  # (T,) hem distance to the pelvis axis
     centroid = np.linalg.norm(rel[:, hem, :2].mean(1), axis=-1)  # (T,) hem centroid's offset
     moving = slice(start, arrive + 1)
-    idx = [arrive + int(round(d * fps)) for d in DELAYS_S]
+    idx = [arrive + int(round(d * fps)) for d in delays]
     return {
         **job,
         "subject": subject.name,
@@ -121,7 +123,7 @@ def run_one(job: dict) -> dict:
         "hem_speed_cm_s": speed.tolist(),
         "arrive": arrive,
         "motion_start": start,
-        **{f"hem_speed_cm_s@{d:g}s": float(speed[i]) for d, i in zip(DELAYS_S, idx)},
+        **{f"hem_speed_cm_s@{d:g}s": float(speed[i]) for d, i in zip(delays, idx)},
         "motion_hem_speed_cm_s": float(speed[moving].mean()),
         "lag_cm": float(centroid[moving].mean() * 100),
         "flare_cm": float((radius[moving] - radius[start]).mean() * 100),
@@ -132,15 +134,15 @@ def run_one(job: dict) -> dict:
     }
 
 
-def summarise(results: list[dict]) -> list[dict]:
+def summarise(results: list[dict], delays: tuple[float, ...] = DELAYS_S) -> list[dict]:
     """One row per (garment, damping): hem speeds and motion measures averaged over motions,
-    history distances averaged over motion pairs."""
+    history distances averaged over motion pairs, at ``delays`` (seconds after the stop)."""
     rows = []
     key = lambda r: (r["garment"], r["damping"])  # noqa: E731
     for (garment, damping), group in itertools.groupby(sorted(results, key=key), key=key):
         group = list(group)
         row = {"garment": garment, "damping": damping, "motions": [r["kind"] for r in group]}
-        for d in DELAYS_S:
+        for d in delays:
             row[f"hem_speed_cm_s@{d:g}s"] = float(np.mean([r[f"hem_speed_cm_s@{d:g}s"] for r in group]))
             row[f"hem_speed_max_cm_s@{d:g}s"] = float(np.max([r[f"hem_speed_cm_s@{d:g}s"] for r in group]))
         for k in ("motion_hem_speed_cm_s", "lag_cm", "flare_cm", "flare_max_cm", "seconds_per_frame",
@@ -148,7 +150,7 @@ def summarise(results: list[dict]) -> list[dict]:
             row[k] = float(np.mean([r[k] for r in group]))
         row["invalid_frames"] = int(sum(r["invalid_frames"] for r in group))
         pairs = list(itertools.combinations(group, 2))
-        for i, d in enumerate(DELAYS_S):
+        for i, d in enumerate(delays):
             dist = [np.linalg.norm(a["garment_at_delays"][i] - b["garment_at_delays"][i], axis=-1).mean() * 100
                     for a, b in pairs]  # fmt: skip
             row[f"history_cm@{d:g}s"] = float(np.mean(dist)) if dist else float("nan")
@@ -173,8 +175,13 @@ def main() -> None:
     ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
                     help="override ClothSimSettings fields, e.g. iterations=15 tri_kd=1.0")
     ap.add_argument("--curves", action="store_true", help="keep each run's hem-speed curve in the JSON")
+    ap.add_argument("--delays", type=float, nargs="+", default=list(DELAYS_S),
+                    help="seconds after the stop at which to report (the body holds the pose until the last)")
     ap.add_argument("--out", default="benchmarks/results/settle.json")
     args = ap.parse_args()
+    delays = tuple(sorted(args.delays))
+    if not delays or delays[0] <= 0:
+        ap.error(f"--delays must be positive seconds, got {args.delays}")
 
     from pocoloco.synth.cloth_sim import ClothSimSettings
 
@@ -187,7 +194,7 @@ def main() -> None:
         default = getattr(ClothSimSettings(), key)
         overrides[key] = value == "True" if isinstance(default, bool) else type(default)(value)
     jobs = [{"garment": g, "damping": d, "kind": k, "seed": args.seed, "frames": args.frames, "set": overrides,
-             "tessellation": args.tessellation}
+             "tessellation": args.tessellation, "delays": delays}
             for g in args.garments for d in args.damping for k in args.kinds]  # fmt: skip
     try:
         from tqdm import tqdm
@@ -200,15 +207,16 @@ def main() -> None:
             print(f"{r['garment']:14s} {r['damping']:9s} {r['kind']:6s} hem +2 s {r['hem_speed_cm_s@2s']:6.2f} cm/s"
                   f"  in motion {r['motion_hem_speed_cm_s']:6.1f} cm/s  invalid {r['invalid_frames']}"
                   f"  {r['seconds_per_frame']:.3f} s/frame", flush=True)  # fmt: skip
-    rows = summarise(results)
-    head = ["garment", "damping"] + [f"v@{d:g}s" for d in DELAYS_S] + [f"hist@{d:g}s" for d in (0.5, 1, 2, 4)] \
+    rows = summarise(results, delays)
+    hist = [d for d in (0.5, 1, 2, 4) if d in delays]
+    head = ["garment", "damping"] + [f"v@{d:g}s" for d in delays] + [f"hist@{d:g}s" for d in hist] \
         + ["v move", "lag", "flare", "s/frame", "invalid"]  # fmt: skip
     print("hem speed relative to the body after the stop (cm/s, mean over motions), garment distance between"
           " histories (cm), in motion: hem speed (cm/s), lag and flare (cm)")
     print(" ".join(f"{h:>9s}" for h in head))
     for r in rows:
-        cells = [r["garment"][:9], r["damping"]] + [f"{r[f'hem_speed_cm_s@{d:g}s']:.2f}" for d in DELAYS_S] \
-            + [f"{r[f'history_cm@{d:g}s']:.2f}" for d in (0.5, 1, 2, 4)] \
+        cells = [r["garment"][:9], r["damping"]] + [f"{r[f'hem_speed_cm_s@{d:g}s']:.2f}" for d in delays] \
+            + [f"{r[f'history_cm@{d:g}s']:.2f}" for d in hist] \
             + [f"{r['motion_hem_speed_cm_s']:.1f}", f"{r['lag_cm']:.2f}", f"{r['flare_cm']:.2f}",
                f"{r['seconds_per_frame']:.3f}", str(r["invalid_frames"])]  # fmt: skip
         print(" ".join(f"{c:>9s}" for c in cells))
@@ -216,7 +224,7 @@ def main() -> None:
              and (args.curves or k != "hem_speed_cm_s")} for r in results]  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"delays_s": DELAYS_S, "kinds": args.kinds, "seed": args.seed, "rows": rows,
+    out.write_text(json.dumps({"delays_s": delays, "kinds": args.kinds, "seed": args.seed, "rows": rows,
                                "runs": runs}, indent=1))  # fmt: skip
     print(f"wrote {out}")
 
