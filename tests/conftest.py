@@ -53,3 +53,34 @@ def run_cli(*args: str, env: dict | None = None):
         env={**os.environ, **(env or {})},
         timeout=600,
     )
+
+
+def grid_faces(rows: int, cols: int) -> list[int]:
+    """Flat triangle indices of a rows x cols vertex grid (row-major), two triangles per quad."""
+    faces = []
+    for i in range(rows - 1):
+        for j in range(cols - 1):
+            a = i * cols + j
+            faces += [a, a + 1, a + cols, a + 1, a + cols + 1, a + cols]
+    return faces
+
+
+def newton_cloth(verts, faces, pinned=(), color: bool = True):
+    """A finalized newton CPU model of one cloth mesh with the data's fabric (0.15 kg/m^2, membrane
+    1e4, bending 1e-3, as ``ClothSimSettings``); ``pinned`` vertices get no mass."""
+    from pocoloco.body.anny_body import quiet_warp
+
+    quiet_warp()
+    import warp as wp
+
+    import newton
+
+    b = newton.ModelBuilder()
+    b.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
+                     vertices=[wp.vec3(*v) for v in verts], indices=faces, density=0.15, tri_ke=1e4, tri_ka=1e4,
+                     tri_kd=1e-5, edge_ke=1e-3, edge_kd=0.0, particle_radius=0.004)  # fmt: skip
+    for j in pinned:
+        b.particle_mass[j] = 0.0
+    if color:
+        b.color()
+    return b.finalize(device="cpu")

@@ -3,35 +3,16 @@ reference, the stiffness it adds, and one-line errors."""
 
 import numpy as np
 import pytest
+from conftest import grid_faces, newton_cloth
 
 from pocoloco.synth.bend_friction import BendFriction, bend_friction_update_reference, dihedral_angles_reference
 
 
 def _curved_sheet_model(n=7, size=0.2):
     """A sheet rolled into a quarter cylinder (its rest hinges bent), 1e-3 bending stiffness."""
-    from pocoloco.body.anny_body import quiet_warp
-
-    quiet_warp()
-    import warp as wp
-
-    import newton
-
-    b = newton.ModelBuilder()
-    verts = []
-    for i in range(n):
-        for j in range(n):
-            phi = 0.5 * np.pi * j / (n - 1)
-            verts.append(wp.vec3(0.15 * np.cos(phi), 0.15 * np.sin(phi), -size * i / (n - 1)))
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a = i * n + j
-            faces += [a, a + 1, a + n, a + 1, a + n + 1, a + n]
-    b.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
-                     vertices=verts, indices=faces, density=0.15, tri_ke=1e4, tri_ka=1e4, tri_kd=1e-5,
-                     edge_ke=1e-3, edge_kd=0.0, particle_radius=0.004)  # fmt: skip
-    b.color()
-    return b.finalize(device="cpu")
+    verts = [(0.15 * np.cos(0.5 * np.pi * j / (n - 1)), 0.15 * np.sin(0.5 * np.pi * j / (n - 1)), -size * i / (n - 1))
+             for i in range(n) for j in range(n)]  # fmt: skip
+    return newton_cloth(verts, grid_faces(n, n))
 
 
 def test_hinge_angles_are_newtons():

@@ -2,30 +2,15 @@
 rest shapes do to the membrane's strain."""
 
 import numpy as np
+from conftest import grid_faces, newton_cloth
 
 from pocoloco.synth.tension_field import TensionField, relaxed_rest_shapes_reference
 
 
 def _sheet_model(n=6, size=0.2):
-    from pocoloco.body.anny_body import quiet_warp
-
-    quiet_warp()
-    import warp as wp
-
-    import newton
-
-    b = newton.ModelBuilder()
+    """A flat sheet in the xy plane."""
     xs = np.linspace(0.0, size, n)
-    verts = [wp.vec3(x, y, 0.0) for y in xs for x in xs]
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a = i * n + j
-            faces += [a, a + 1, a + n, a + 1, a + n + 1, a + n]
-    b.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
-                     vertices=verts, indices=faces, density=0.15, tri_ke=1e4, tri_ka=1e4, tri_kd=1e-5,
-                     edge_ke=1e-3, edge_kd=0.0, particle_radius=0.004)  # fmt: skip
-    return b.finalize(device="cpu")
+    return newton_cloth([(x, y, 0.0) for y in xs for x in xs], grid_faces(n, n), color=False)
 
 
 def _metric(x, tris, poses):

@@ -3,6 +3,7 @@ written out in NumPy, rho = 0 as newton's own solver, and the energy a hanging s
 
 import numpy as np
 import pytest
+from conftest import grid_faces, newton_cloth
 
 from pocoloco.synth.vbd_chebyshev import chebyshev_weights
 
@@ -21,28 +22,9 @@ def test_weights_follow_the_recurrence():
 
 
 def _sheet_model(n=8, size=0.2, kick=0.3):
-    from pocoloco.body.anny_body import quiet_warp
-
-    quiet_warp()
-    import warp as wp
-
-    import newton
-
-    b = newton.ModelBuilder()
+    """A vertical sheet, its top edge pinned, kicked along its normal."""
     xs = np.linspace(0.0, size, n)
-    verts = [wp.vec3(x, 0.0, -z) for z in xs for x in xs]  # vertical, top edge pinned
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a = i * n + j
-            faces += [a, a + 1, a + n, a + 1, a + n + 1, a + n]
-    b.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
-                     vertices=verts, indices=faces, density=0.15, tri_ke=1e4, tri_ka=1e4, tri_kd=1e-5,
-                     edge_ke=1e-3, edge_kd=0.0, particle_radius=0.004)  # fmt: skip
-    for j in range(n):
-        b.particle_mass[j] = 0.0
-    b.color()
-    model = b.finalize(device="cpu")
+    model = newton_cloth([(x, 0.0, -z) for z in xs for x in xs], grid_faces(n, n), pinned=range(n))
     state = model.state()
     qd = state.particle_qd.numpy()
     qd[n:, 1] = kick

@@ -41,14 +41,16 @@ def _solver(model, iterations: int, init: str | None, chebyshev: float | None = 
     or newton's with Chebyshev-accelerated iterations of spectral radius estimate ``chebyshev``."""
     import newton
 
-    if init is not None or chebyshev is not None:
+    if chebyshev is not None:
+        from pocoloco.synth.vbd_chebyshev import SolverVBDChebyshev
+
+        return SolverVBDChebyshev(model, rho=chebyshev, iterations=iterations)
+    if init is not None:
         import sys
 
         sys.path.insert(0, str(Path(__file__).parent))
-        from vbd_init import INIT_MODES, SolverVBDChebyshev, SolverVBDInit
+        from vbd_init import INIT_MODES, SolverVBDInit
 
-        if chebyshev is not None:
-            return SolverVBDChebyshev(model, rho=chebyshev, iterations=iterations)
         return SolverVBDInit(model, init_mode=INIT_MODES[init], iterations=iterations)
     return newton.solvers.SolverVBD(model, iterations=iterations)
 
