@@ -171,7 +171,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=40, help="frames of motion before the blend (25 fps)")
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
-    ap.add_argument("--tessellation", default="isotropic", help="garment tessellation (garments.TESSELLATIONS)")
+    ap.add_argument("--tessellation", default=None,
+                    help="garment tessellation (garments.TESSELLATIONS; default: the pipeline's, data v3's)")
     ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
                     help="override ClothSimSettings fields, e.g. iterations=15 tri_kd=1.0")
     ap.add_argument("--curves", action="store_true", help="keep each run's hem-speed curve in the JSON")
@@ -193,8 +194,11 @@ def main() -> None:
             ap.error(f"--set {item}: expected KEY=VALUE with KEY a ClothSimSettings field")
         default = getattr(ClothSimSettings(), key)
         overrides[key] = value == "True" if isinstance(default, bool) else type(default)(value)
+    from pocoloco.synth.config import SynthConfig
+
+    tessellation = args.tessellation or SynthConfig().garment_tessellation
     jobs = [{"garment": g, "damping": d, "kind": k, "seed": args.seed, "frames": args.frames, "set": overrides,
-             "tessellation": args.tessellation, "delays": delays}
+             "tessellation": tessellation, "delays": delays}
             for g in args.garments for d in args.damping for k in args.kinds]  # fmt: skip
     try:
         from tqdm import tqdm

@@ -163,13 +163,16 @@ def _walk_and_turn(body, t: int, yaw: float = 0.0, shift=(0.0, 0.0, 0.0)):
 
 
 @pytest.mark.slow  # a few seconds once the kernels are compiled
-def test_a_simulation_continues_from_its_final_state_bit_identically(body, skirt):
+@pytest.mark.parametrize("kc_gain", [0.0, 4.0])
+def test_a_simulation_continues_from_its_final_state_bit_identically(body, skirt, kc_gain):
     """Simulating frames 0..T-1 in one call equals simulating 0..m, then m..T-1 from the first call's
-    final state: positions, velocities, the moving root frame's velocity and the air's carry over."""
+    final state: positions, velocities, the moving root frame's velocity and the air's carry over
+    (with the low-KC drag, each vertex's excursion too)."""
     from pocoloco.synth.config import SynthConfig
     from pocoloco.synth.pipeline import cloth_settings
 
-    settings = dataclasses.replace(cloth_settings(SynthConfig(), "skirt"), substeps=3, iterations=3, settle_frames=2)
+    settings = dataclasses.replace(cloth_settings(SynthConfig(), "skirt"), substeps=3, iterations=3, settle_frames=2,
+                                   air_drag_kc_gain=kc_gain)  # fmt: skip
     assert settings.frame == "root" and settings.air_drag_normal > 0  # the state a continuation needs
     posed, _ = _walk_and_turn(body, 7)
     full = simulate_garment(body, skirt, posed, settings)
@@ -179,6 +182,14 @@ def test_a_simulation_continues_from_its_final_state_bit_identically(body, skirt
     np.testing.assert_array_equal(head.vertices, full.vertices[: m + 1])
     np.testing.assert_array_equal(tail.vertices, full.vertices[m:])
     assert np.linalg.norm(head.final.frame_velocity) == pytest.approx(0.75, rel=0.05)
+    if kc_gain > 0.0:  # the excursions are part of the state: without them the drag differs
+        assert head.final.drag_excursion.shape == (len(skirt.rest_vertices), 4)
+        assert np.abs(head.final.drag_excursion[:, 3]).max() > 0.0
+        forgot = simulate_garment(body, skirt, _slice(posed, m, 7), settings,
+                                  settled=dataclasses.replace(head.final, drag_excursion=None))  # fmt: skip
+        assert np.abs(forgot.vertices[-1] - full.vertices[-1]).max() > 1e-6
+    else:
+        assert head.final.drag_excursion is None
     # without the frame's velocity the continuation goes wrong: the cloth would be thrown back
     lost = dataclasses.replace(head.final, frame_velocity=None)
     wrong = simulate_garment(body, skirt, _slice(posed, m, 7), settings, settled=lost)
@@ -186,13 +197,16 @@ def test_a_simulation_continues_from_its_final_state_bit_identically(body, skirt
 
 
 @pytest.mark.slow
-def test_a_turned_state_continues_as_the_turned_motion_would(body, skirt):
+@pytest.mark.parametrize("kc_gain", [0.0, 4.0])
+def test_a_turned_state_continues_as_the_turned_motion_would(body, skirt, kc_gain):
     """The same motion turned about the vertical (and moved): continuing the unturned run's state,
-    turned, gives the turned run's cloth to rounding (the physics has no preferred heading)."""
+    turned, gives the turned run's cloth to rounding (the physics has no preferred heading; the
+    low-KC drag's excursions turn with it)."""
     from pocoloco.synth.config import SynthConfig
     from pocoloco.synth.pipeline import cloth_settings
 
-    settings = dataclasses.replace(cloth_settings(SynthConfig(), "skirt"), substeps=3, iterations=3, settle_frames=2)
+    settings = dataclasses.replace(cloth_settings(SynthConfig(), "skirt"), substeps=3, iterations=3, settle_frames=2,
+                                   air_drag_kc_gain=kc_gain)  # fmt: skip
     straight, _ = _walk_and_turn(body, 6)
     turned, r = _walk_and_turn(body, 6, yaw=0.9, shift=(0.4, -0.2, 0.0))
     m = 3

@@ -422,11 +422,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "transforms, positions within 0.1 mm, ~37%% of the bytes (default: the preset's, float32)")  # fmt: skip
     s.add_argument("--cloth", choices=tuple(CLOTH_VERSIONS), default="v3",
                    help="the cloth of a data version: v3 (achiral mesh, air drag, fabric damping, cloth-skin "
-                        "friction), v2 (isotropic mesh, undamped), v1 (the first grid meshes, world frame), to "
-                        "reproduce older datasets (default: v3)")  # fmt: skip
+                        "friction), v4 (v3 and the drag of small oscillations, accelerated sweeps: hanging cloth "
+                        "comes to rest; the shipped models are trained on v3), v2 (isotropic mesh, undamped), v1 "
+                        "(the first grid meshes, world frame), to reproduce older datasets (default: v3)")  # fmt: skip
     s.add_argument("--cloth-damping", choices=DAMPING_MODELS,
                    help="override the damping alone: none (data v1 / v2: no air, almost no damping); physical "
-                        "(v3: air drag, the fabric's damping and cloth-skin friction, synth.fabric) "
+                        "(v3: air drag, the fabric's damping and cloth-skin friction, synth.fabric); unsteady "
+                        "(v4: physical and the drag of small oscillations) "
                         "(default: that of --cloth)")  # fmt: skip
     g = s.add_argument_group("shards (big datasets; README: Generating big datasets on a cluster)")
     g.add_argument("--shard", metavar="K/N",

@@ -88,6 +88,10 @@ class ClothSimSettings:
     air_drag_normal, air_drag_tangential: drag coefficients (dimensionless) of the cloth's
         motion through still air along its normal and along its plane (``synth.aero``);
         0 = no air (data v1 / v2). ``synth.fabric`` gives physical values per fabric.
+    air_drag_kc_gain, air_drag_kc_width, air_drag_kc_time: the extra pressure drag of small
+        oscillations (``synth.aero``: the drag coefficient grows as KC^(-1/3) below KC ~ 64 /
+        gain^3; the gain [1], a flapping panel's width [m], the excursion's averaging time [s]);
+        gain 0 = the steady drag alone (data v3).
     color_bending: colour the VBD graph with the bending neighbours too (newton's
         ``ModelBuilder.color(include_bending=True)``); without it (data v1 / v2) vertices that share
         a bending element are updated in the same parallel pass, which feeds energy into hanging
@@ -144,6 +148,9 @@ class ClothSimSettings:
     contact_mu: float = 0.05
     air_drag_normal: float = 0.0
     air_drag_tangential: float = 0.0
+    air_drag_kc_gain: float = 0.0
+    air_drag_kc_width: float = 0.3
+    air_drag_kc_time: float = 1.0
     color_bending: bool = False
     chebyshev_rho: float = 0.0
     bend_friction: float = 0.0
@@ -357,15 +364,17 @@ class SettledCloth:
     """Cloth state at a frame (after settling on a sequence's first frame, or at its last frame):
     particle positions and velocities (Vg, 3) float32 in the simulation frame, that frame's body
     vertices (V, 3) in the world (a state is only reused on the same body frame), the
-    simulation frame's world velocity (3,) there (zeros: at rest, or the world frame) and the
+    simulation frame's world velocity (3,) there (zeros: at rest, or the world frame), the
     cloth's rest shape (Vg, 3): the garment skinned to the first frame of the simulation that
-    made the state (its triangles' rest shapes, bending rest angles and masses come from it)."""
+    made the state (its triangles' rest shapes, bending rest angles and masses come from it),
+    and the low-KC air drag's excursions (Vg, 4) (``aero.AirDrag.excursion_state``; None: off)."""
 
     positions: np.ndarray
     velocities: np.ndarray
     first_frame: np.ndarray
     frame_velocity: np.ndarray | None = None
     rest_positions: np.ndarray | None = None
+    drag_excursion: np.ndarray | None = None
 
     def turned(self, rotation: np.ndarray, first_frame: np.ndarray) -> SettledCloth:
         """The same state with the body turned by ``rotation`` (3, 3) about the vertical (and moved):
@@ -376,8 +385,11 @@ class SettledCloth:
         r = np.asarray(rotation, dtype=np.float64)
         fv = np.zeros(3) if self.frame_velocity is None else self.frame_velocity
         rest = None if self.rest_positions is None else (self.rest_positions @ r.T).astype(np.float32)
+        exc = None
+        if self.drag_excursion is not None:
+            exc = np.concatenate([self.drag_excursion[:, :3] @ r.T, self.drag_excursion[:, 3:]], 1).astype(np.float32)
         return SettledCloth((self.positions @ r.T).astype(np.float32), (self.velocities @ r.T).astype(np.float32),
-                            first_frame, (r @ fv).astype(np.float64), rest)  # fmt: skip
+                            first_frame, (r @ fv).astype(np.float64), rest, exc)  # fmt: skip
 
 
 def _vbd_solver(model, s: ClothSimSettings, extra: dict):  # noqa: ANN001, ANN202 (newton's types)
@@ -498,7 +510,8 @@ def simulate_garment(
         from .aero import AirDrag
 
         drag = AirDrag(garment.faces, model.particle_mass.numpy(), s.air_drag_normal, s.air_drag_tangential,
-                       1.0 / (s.fps * s.substeps), device)  # fmt: skip
+                       1.0 / (s.fps * s.substeps), device, kc_gain=s.air_drag_kc_gain,
+                       kc_width=s.air_drag_kc_width, kc_time=s.air_drag_kc_time)  # fmt: skip
     friction = None
     if s.bend_friction > 0.0:
         from .bend_friction import BendFriction
@@ -599,12 +612,16 @@ def simulate_garment(
             frame_velocity[0] = settled.frame_velocity
             if drag is not None:
                 drag.set_air_velocity(-frame_velocity[0])
+        if drag is not None and settled.drag_excursion is not None:
+            drag.set_excursion_state(settled.drag_excursion)
     else:
         for _ in range(s.settle_frames):
             for _ in range(s.substeps):
                 substep(0, 0.0, None)
+    kc_state = (lambda: drag.excursion_state()) if drag is not None and s.air_drag_kc_gain > 0.0 else (lambda: None)
     settled_out = SettledCloth(state0.particle_q.numpy().copy(), state0.particle_qd.numpy().copy(),
-                               world.vertices[0].copy(), frame_velocity[0].copy(), np.array(rest, np.float32))  # fmt: skip
+                               world.vertices[0].copy(), frame_velocity[0].copy(), np.array(rest, np.float32),
+                               kc_state())  # fmt: skip
 
     out = np.zeros((T, len(x0), 3), dtype=np.float32)
     stats: list[ClothFrameStats] = []
@@ -643,6 +660,7 @@ def simulate_garment(
             progress(t)
     n = max(T - 1, 1)
     final = SettledCloth(state0.particle_q.numpy().copy(), state0.particle_qd.numpy().copy(),
-                         world.vertices[-1].copy(), frame_velocity[-1].copy(), np.array(rest, np.float32))  # fmt: skip
+                         world.vertices[-1].copy(), frame_velocity[-1].copy(), np.array(rest, np.float32),
+                         kc_state())  # fmt: skip
     return ClothSequence(out, garment.faces.copy(), stats, sim_time / n, cpu_time / n, resets, s, settled_out,
                          self_contact_off_from, final)  # fmt: skip

@@ -53,7 +53,8 @@ class SynthConfig(Config):
     move the body from the rest pose into the motion and ``warmup_frames``
     of motion that let the cloth pick up momentum; neither is stored.
 
-    Generation settings (data v3; ``CLOTH_VERSIONS["v2"]`` / ``["v1"]`` restore the earlier pipelines'):
+    Generation settings (data v3; ``CLOTH_VERSIONS["v2"]`` / ``["v1"]`` restore the earlier pipelines',
+    ``["v4"]`` gives the v4 cloth):
     garment_tessellation: ``"isotropic_achiral"`` (v3: rings of ~2.2 cm / resolution edges joined as a
         checkerboard of quads with alternating diagonals, no preferred twist), ``"isotropic"`` (v2: the
         same rings zipped with diagonals that all lean one way, which makes a hanging tube twist and
@@ -70,10 +71,14 @@ class SynthConfig(Config):
         visible (``capture.possibly_visible_faces``).
     cloth_damping: what takes energy out of the cloth (``synth.fabric``): ``"physical"`` (v3: air
         drag, the fabric's bending and membrane damping and cloth-skin friction, per garment kind's
-        fabric) or ``"none"`` (v1 / v2: no air, almost no damping). With the achiral mesh a skirt on a
-        still body settles to ~10 cm/s of small, smooth motion (v2: 30-40 cm/s of swing); newton VBD
-        keeps feeding a little energy into hanging cloth, so it does not reach full rest
-        (docs/lab/synthetic-data.md, "Does the cloth come to rest?").
+        fabric), ``"unsteady"`` (v4: the same and the extra drag of small oscillations,
+        ``synth.aero``) or ``"none"`` (v1 / v2: no air, almost no damping). With the achiral mesh
+        and ``"physical"`` a skirt on a still body settles to ~10 cm/s of small, smooth flapping
+        (v2: 30-40 cm/s of swing): newton VBD keeps feeding a little energy into hanging cloth and
+        steady quadratic drag vanishes for small motions; the v4 cloth's low-KC drag takes it out
+        (docs/lab/synthetic-data.md, "Does the cloth come to rest?", "The drag of small oscillations").
+    cloth_chebyshev_rho: Chebyshev acceleration of the VBD sweeps (``ClothSimSettings.chebyshev_rho``;
+        v1 - v3: 0, v4: 0.9).
     self_intersection_every: count cloth self-intersections (crossing triangle
         pairs) on every this-many-th stored frame for the dataset card; 0 = never.
 
@@ -107,6 +112,7 @@ class SynthConfig(Config):
     cloth_substeps: int = 7
     cloth_iterations: int = 5
     cloth_damping: str = "physical"
+    cloth_chebyshev_rho: float = 0.0
     capture_cull_hidden_faces: bool = True
     self_intersection_every: int = 10
     motion_kinds: tuple[str, ...] = CLASSIC_MOTION_KINDS
@@ -125,21 +131,26 @@ SYNTH_V1: dict = {
     "capture_cull_hidden_faces": False,
     "self_intersection_every": 0,
     "cloth_damping": "none",
+    "cloth_chebyshev_rho": 0.0,
 }
 
 
 #: overrides that reproduce data v2 (the isotropic mesh, undamped cloth)
 SYNTH_V2: dict = {"garment_tessellation": "isotropic", "cloth_damping": "none"}
 
+#: the v4 cloth: v3's, with the drag of small oscillations and Chebyshev-accelerated sweeps (a
+#: hanging skirt comes to rest; docs/lab/synthetic-data.md, "The drag of small oscillations")
+SYNTH_V4: dict = {"cloth_damping": "unsteady", "cloth_chebyshev_rho": 0.9}
+
 #: the cloth of each data version, as overrides of the current defaults (v3)
-CLOTH_VERSIONS: dict[str, dict] = {"v3": {}, "v2": SYNTH_V2, "v1": SYNTH_V1}
+CLOTH_VERSIONS: dict[str, dict] = {"v3": {}, "v2": SYNTH_V2, "v1": SYNTH_V1, "v4": SYNTH_V4}
 
 
 def cloth_version(config: SynthConfig) -> str:
-    """``"v3"`` / ``"v2"`` / ``"v1"``: the data version whose cloth settings ``config`` has, or
-    ``"custom"`` when they match none (a run with individual settings changed)."""
+    """``"v4"`` / ``"v3"`` / ``"v2"`` / ``"v1"``: the data version whose cloth settings ``config``
+    has, or ``"custom"`` when they match none (a run with individual settings changed)."""
     base = SynthConfig()
-    for name in ("v3", "v2", "v1"):
+    for name in ("v4", "v3", "v2", "v1"):
         ref = dataclasses.replace(base, **CLOTH_VERSIONS[name])
         if all(getattr(config, k) == getattr(ref, k) for k in _CLOTH_FIELDS):
             return name

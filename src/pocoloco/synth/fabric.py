@@ -6,19 +6,21 @@ swung at 30-40 cm/s seconds after the body stopped, so each frame's garment depe
 on an unbounded past. A real skirt loses its swing to three things, each modelled here:
 
 - **the air** (``synth.aero``): quadratic pressure drag along the cloth's normal and
-  skin-friction drag along its plane, relative to still air;
+  skin-friction drag along its plane, relative to still air; under the ``"unsteady"``
+  model also the extra pressure drag of small oscillations (low Keulegan-Carpenter number);
 - **the fabric's internal friction** in bending (the hysteresis of Kawabata's bending
   test): a viscous damping of the dihedral angle's rate, newton VBD's ``edge_kd``;
 - **friction against the body**: the Coulomb coefficient of cloth on skin.
 
 ``FABRICS`` holds the settings per fabric; ``GARMENT_FABRIC`` says which fabric each
-garment kind is made of; ``DAMPING_MODELS`` names the two ways a dataset can be
-simulated (``"physical"``, data v3; ``"none"``, v1 / v2's settings, for reproduction).
+garment kind is made of; ``DAMPING_MODELS`` names the ways a dataset can be simulated
+(``"physical"``, data v3: steady drag; ``"unsteady"``, the v4 cloth: steady and low-KC drag;
+``"none"``, v1 / v2's settings, for reproduction).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,16 @@ class Fabric:
     friction: dynamic Coulomb coefficient of cloth sliding on the body. Cotton on skin
         measures 0.25-0.79 across body regions (Temel et al., *Tribology Letters* 2022); the
         low end, since a garment mostly slides over other clothing or hair: 0.3.
+    drag_kc_gain: how much more pressure drag a small oscillation meets than a steady stream at
+        Keulegan-Carpenter number 1 (``synth.aero``: the factor is gain * KC^(-1/3), at least 1).
+        A sharp-edged plate sheds vortices from its edges every half cycle: Graham's low-KC
+        theory (*J. Fluid Mech.* 97, 1980) gives C_d ~ 8 KC^(-1/3) for a flat plate against its
+        steady ~2, a gain of 4. Used by the ``"unsteady"`` damping model only.
+    drag_kc_width: the plate width D of the Keulegan-Carpenter number KC = 2 pi A / D [m]: the
+        width of the panel that flaps as one; a skirt's hem flaps in lobes ~0.3 m wide
+        (four to six around a 1.5-2 m hem; ``benchmarks/experiments/cloth_rest_diagnostics.py``).
+    drag_kc_time: the time over which a vertex's excursion and its amplitude are averaged [s]:
+        about a period of the motion it measures (the hanging skirt's flapping is 0.75-1.25 Hz).
     """
 
     name: str
@@ -55,7 +67,13 @@ class Fabric:
     bend_damping: float
     membrane_damping: float
     friction: float
+    drag_kc_gain: float = 0.0
+    drag_kc_width: float = 0.3
+    drag_kc_time: float = 1.0
 
+
+#: the excursion's averaging time of the fabrics here [s]
+KC_TIME = 1.0
 
 #: v1 / v2's settings: no air, almost no damping, slippery contact (for reproducing old data)
 UNDAMPED = Fabric("undamped", drag_normal=0.0, drag_tangential=0.0, bend_damping=0.0, membrane_damping=1.0e-5,
@@ -63,7 +81,7 @@ UNDAMPED = Fabric("undamped", drag_normal=0.0, drag_tangential=0.0, bend_damping
 
 #: a light woven cotton (lawn, poplin, voile: 100-150 g/m^2, the data's 0.15 kg/m^2)
 COTTON = Fabric("cotton", drag_normal=1.0, drag_tangential=0.02, bend_damping=1.0e-4, membrane_damping=1.0e-2,
-                friction=0.3)  # fmt: skip
+                friction=0.3, drag_kc_gain=4.0, drag_kc_width=0.3, drag_kc_time=KC_TIME)  # fmt: skip
 
 FABRICS: dict[str, Fabric] = {f.name: f for f in (UNDAMPED, COTTON)}
 
@@ -77,8 +95,9 @@ GARMENT_FABRIC: dict[str, str] = {
     "wide_trousers": "cotton",
 }
 
-#: "physical": each garment's fabric (data v3); "none": v1 / v2's undamped cloth
-DAMPING_MODELS: tuple[str, ...] = ("physical", "none")
+#: "physical": each garment's fabric, steady drag (data v3); "unsteady": the same and the drag of
+#: small oscillations (the v4 cloth); "none": v1 / v2's undamped cloth
+DAMPING_MODELS: tuple[str, ...] = ("physical", "none", "unsteady")
 
 
 def fabric_for(kind: str, damping: str) -> Fabric:
@@ -87,4 +106,5 @@ def fabric_for(kind: str, damping: str) -> Fabric:
         raise ValueError(f"unknown cloth damping model {damping!r}; expected one of {DAMPING_MODELS}")
     if damping == "none":
         return UNDAMPED
-    return FABRICS[GARMENT_FABRIC.get(kind, "cotton")]
+    fabric = FABRICS[GARMENT_FABRIC.get(kind, "cotton")]
+    return fabric if damping == "unsteady" else replace(fabric, drag_kc_gain=0.0)

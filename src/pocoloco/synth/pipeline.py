@@ -303,7 +303,9 @@ def cloth_settings(config: SynthConfig, garment_kind: str = "skirt"):
     return ClothSimSettings(fps=config.fps, substeps=config.cloth_substeps, iterations=config.cloth_iterations,
                             self_contact=config.cloth_self_contact, frame=config.cloth_frame,
                             tri_kd=fabric.membrane_damping, edge_kd=fabric.bend_damping, contact_mu=fabric.friction,
-                            air_drag_normal=fabric.drag_normal, air_drag_tangential=fabric.drag_tangential)  # fmt: skip
+                            air_drag_normal=fabric.drag_normal, air_drag_tangential=fabric.drag_tangential,
+                            air_drag_kc_gain=fabric.drag_kc_gain, air_drag_kc_width=fabric.drag_kc_width,
+                            air_drag_kc_time=fabric.drag_kc_time, chebyshev_rho=config.cloth_chebyshev_rho)  # fmt: skip
 
 
 def write_subject(config: SynthConfig, out: Path, subject: SubjectSpec) -> None:
