@@ -94,8 +94,9 @@ def manifest() -> str:
         name = path.name
         command = _recorded(path)
         where = ""
+        quoted = re.compile(rf"(?<![\w-]){re.escape(name)}(?![\w-])")  # the name itself, not inside another
         for heading, lines in sections:
-            hits = [i for i, line in enumerate(lines) if name in line]
+            hits = [i for i, line in enumerate(lines) if quoted.search(line)]
             if not hits:
                 continue
             where = where or heading

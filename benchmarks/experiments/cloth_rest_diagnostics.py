@@ -9,8 +9,15 @@ moves, simulated with the pipeline's cloth settings plus overrides, and three nu
 A physical garment with nothing driving it can only lose energy: a hem that speeds up on a still
 body (``--damping none``, contact off) is energy the solver puts in.
 
+Over the last 4 s it also says where and how the hem moves (``where``): its mean speed by distance
+to the body (does the contact with the legs move it, or the free cloth?), its rms speed radially
+(about the pelvis axis), tangentially and vertically, how much neighbouring hem vertices move
+together (velocity cosine along hem edges: near 1 a smooth mode, below 0 mesh-scale jitter), and
+the frequencies that hold most of its position variance.
+
     python benchmarks/experiments/cloth_rest_diagnostics.py --tessellation isotropic_achiral \
         --damping none --set contact_ke=0 contact_kd=0 [--seconds 8] --out OUT.json
+    python benchmarks/experiments/cloth_rest_diagnostics.py --cloth v4 --out OUT.json   # a data version's cloth
 """
 
 from __future__ import annotations
@@ -29,6 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cloth", default=None, help="a data version's cloth (synth.config.CLOTH_VERSIONS); "
+                    "replaces --tessellation and --damping")  # fmt: skip
     ap.add_argument("--tessellation", default="isotropic_achiral")
     ap.add_argument("--damping", default="physical")
     ap.add_argument("--garment", default="skirt", help="garment kind (its medium '_a' subject)")
@@ -44,7 +53,7 @@ def main() -> None:
 
     from pocoloco.body import AnnyBody
     from pocoloco.synth.cloth_sim import ClothSimSettings, simulate_garment
-    from pocoloco.synth.config import MEDIUM_SUBJECTS, SynthConfig
+    from pocoloco.synth.config import CLOTH_VERSIONS, MEDIUM_SUBJECTS, SynthConfig
     from pocoloco.synth.garments import make_garment
     from pocoloco.synth.pipeline import cloth_settings
 
@@ -55,6 +64,9 @@ def main() -> None:
         overrides[key] = value == "True" if isinstance(default, bool) else type(default)(value)
     subject = next(s for s in MEDIUM_SUBJECTS if s.name == SUBJECT_OF_KIND[args.garment])
     config = SynthConfig(cloth_damping=args.damping, garment_tessellation=args.tessellation)
+    if args.cloth is not None:
+        config = dataclasses.replace(SynthConfig(), **CLOTH_VERSIONS[args.cloth])
+        args.tessellation, args.damping = config.garment_tessellation, config.cloth_damping
     body = AnnyBody(subject.phenotype)
     garment = make_garment(subject.garment, body, resolution=config.garment_resolution,
                            tessellation=args.tessellation, **subject.garment_params)  # fmt: skip
@@ -77,16 +89,59 @@ def main() -> None:
     for t in range(step, len(speed), step // 2):
         rows.append({"t_s": t / fps, "speed_cm_s": float(speed[t]), "net_1s_cm": float(net[min(t, len(net) - 1)]),
                      "lag1_cos": float(cos[min(t, len(cos) - 1)].mean())})  # fmt: skip
+    where = hem_breakdown(seq.vertices, garment, hem, posed.vertices[-1], posed.joints[-1, 0], fps)
     result = {"garment": args.garment, "subject": subject.name, "tessellation": args.tessellation,
-              "damping": args.damping, "set": overrides, "seconds_per_frame": seq.seconds_per_frame,
-              "wall_s": wall, "invalid_frames": int((~seq.valid).sum()), "rows": rows}  # fmt: skip
+              "damping": args.damping, "cloth": args.cloth, "set": overrides,
+              "command": " ".join(["python", "benchmarks/experiments/cloth_rest_diagnostics.py", *sys.argv[1:]]),
+              "seconds_per_frame": seq.seconds_per_frame, "wall_s": wall,
+              "invalid_frames": int((~seq.valid).sum()), "rows": rows, "where": where}  # fmt: skip
     print(f"{args.garment} {args.tessellation} {args.damping} {overrides}: {seq.seconds_per_frame:.3f} s/frame")
     for r in rows:
         print(f"  t {r['t_s']:4.1f} s  speed {r['speed_cm_s']:6.2f} cm/s  net over 1 s {r['net_1s_cm']:5.2f} cm"
               f"  lag-1 cos {r['lag1_cos']:5.2f}")  # fmt: skip
+    print("  last 4 s: hem speed by distance to the body (cm: cm/s, vertices) "
+          + ", ".join(f"{k}: {v['speed_cm_s']:.1f} ({v['vertices']})" for k, v in where["by_distance_cm"].items()))
+    print(f"  rms radial / tangential / vertical {where['radial_rms_cm_s']:.1f} / {where['tangential_rms_cm_s']:.1f} / "
+          f"{where['vertical_rms_cm_s']:.1f} cm/s; neighbour cosine {where['neighbour_cosine']:.2f}; "
+          f"frequencies {where['top_frequencies_hz']} Hz hold {where['top_share']:.0%} of the variance")  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result))
+
+
+def hem_breakdown(x: np.ndarray, garment, hem: np.ndarray, body: np.ndarray, pelvis: np.ndarray, fps: float,
+                  seconds: float = 4.0) -> dict:
+    """Where and how the hem moves over the last ``seconds``: x (T, Vg, 3) cloth, hem (H,) indices,
+    body (V, 3) and pelvis (3,) at the held pose (the body does not move)."""
+    from scipy.spatial import cKDTree
+
+    x = x[-int(seconds * fps):, hem].astype(np.float64)  # (t, H, 3)
+    v = np.diff(x, axis=0) * fps * 100  # cm/s
+    speed = np.linalg.norm(v, axis=-1).mean(0)  # (H,)
+    dist, _ = cKDTree(body).query(x[-1])
+    bands = {"0-1": (0, 0.01), "1-2": (0.01, 0.02), "2-4": (0.02, 0.04), ">4": (0.04, np.inf)}
+    by_distance = {k: {"vertices": int(((dist >= a) & (dist < b)).sum()),
+                       "speed_cm_s": float(speed[(dist >= a) & (dist < b)].mean()) if ((dist >= a) & (dist < b)).any()
+                       else float("nan")} for k, (a, b) in bands.items()}  # fmt: skip
+    r = x[:-1, :, :2] - pelvis[:2]
+    rn = r / np.linalg.norm(r, axis=-1, keepdims=True)
+    tn = np.stack([-rn[..., 1], rn[..., 0]], -1)
+    vr, vt = (v[..., :2] * rn).sum(-1), (v[..., :2] * tn).sum(-1)
+    faces = garment.faces
+    edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1), axis=0)
+    on_hem = np.isin(edges, hem).all(1)
+    pos = {int(h): i for i, h in enumerate(hem)}
+    e = np.array([[pos[int(a)], pos[int(b)]] for a, b in edges[on_hem]])
+    va, vb = v[:, e[:, 0]], v[:, e[:, 1]]
+    cos = (va * vb).sum(-1) / (np.linalg.norm(va, axis=-1) * np.linalg.norm(vb, axis=-1) + 1e-9)
+    xc = x - x.mean(0)
+    power = (np.abs(np.fft.rfft(xc, axis=0)) ** 2).sum((1, 2))
+    freqs = np.fft.rfftfreq(len(xc), 1 / fps)
+    top = np.argsort(power[1:])[::-1][:5] + 1
+    return {"by_distance_cm": by_distance, "radial_rms_cm_s": float(np.sqrt((vr**2).mean())),
+            "tangential_rms_cm_s": float(np.sqrt((vt**2).mean())), "vertical_rms_cm_s": float(np.sqrt((v[..., 2] ** 2).mean())),
+            "neighbour_cosine": float(cos.mean()), "top_frequencies_hz": [round(float(freqs[i]), 2) for i in top],
+            "top_share": float(power[top].sum() / power[1:].sum())}  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -1,12 +1,14 @@
-"""A skirt through a spin and a stop, data v2's cloth beside v3's: the GIF of issue 39.
+"""A skirt through a spin and a stop, data v2's cloth beside v3's and the v4 cloth's: the GIF of issue 39.
 
 The ``medium`` subject ``skirt_a`` spins (the pipeline's own motion, 1.6 s from the rest pose),
 blends into the rest pose and holds it; the same body motion is simulated with the v2 cloth
-(isotropic mesh, undamped) and the v3 cloth (checkerboard mesh, physical damping), and every
+(isotropic mesh, undamped), the v3 cloth (checkerboard mesh, physical damping) and the v4 cloth
+(v3 and the drag of small oscillations, Chebyshev sweeps), and every
 ``--stride``-th frame is drawn front-on, body in skin and garment in blue, with the hem's speed
 relative to the body in each panel's title.
 
-    python benchmarks/experiments/settle_gif.py [--hold 2.0] [--stride 4] --out docs/images/settle_spin_v2_v3.gif
+    python benchmarks/experiments/settle_gif.py [--hold 2.0] [--stride 4] [--versions v2 v3 v4] \
+        --out docs/images/settle_spin_v2_v3_v4.gif
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ def main() -> None:
     ap.add_argument("--hold", type=float, default=2.0, help="seconds held after the stop")
     ap.add_argument("--stride", type=int, default=4, help="draw every k-th frame")
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--versions", nargs="+", default=["v2", "v3", "v4"], help="cloth versions, one panel each")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
 
@@ -51,7 +54,7 @@ def main() -> None:
     rot, trans, arrive, start = history_then_rest(body, "spin", args.seed, 40, 12, int(args.hold * fps), fps)
     posed = body.pose(rot, trans)
     runs = {}
-    for version in ("v2", "v3"):
+    for version in args.versions:
         config = dataclasses.replace(SynthConfig(), **CLOTH_VERSIONS[version])
         garment = make_garment(subject.garment, body, resolution=config.garment_resolution,
                                tessellation=config.garment_tessellation, **subject.garment_params)  # fmt: skip
@@ -78,7 +81,8 @@ def main() -> None:
               (w.min() + w.max()) / 2 - half, (w.min() + w.max()) / 2 + half)  # fmt: skip
     images = []
     for t in frames:
-        fig = new_figure(5.0, 2.8, 72)
+        k = len(runs)
+        fig = new_figure(2.5 * k, 2.8, 72)
         fig.patch.set_facecolor("white")
         for i, version in enumerate(runs):
             verts, faces, speed = runs[version]
@@ -87,11 +91,11 @@ def main() -> None:
             pts = np.concatenate([bv[body_idx], gv])
             nrm = np.concatenate([bn[body_idx], gn])
             col = np.concatenate([np.repeat(LABEL_COLORS[:1], len(body_idx), 0), np.repeat(LABEL_COLORS[1:2], len(gv), 0)])
-            ax = fig.add_axes((i * 0.5, 0.0, 0.5, 0.86))
+            ax = fig.add_axes((i / k, 0.0, 1 / k, 0.86))
             render_points(ax, pts, colors=col, normals=nrm, view="front", extent=extent, cull=False)
             phase = "moving" if t <= arrive else f"stopped {(t - arrive) / fps:.1f} s"
-            name = "v2 (undamped)" if version == "v2" else "v3 (damped)"
-            fig.text(i * 0.5 + 0.25, 0.95, f"{name}: hem {speed[t]:.0f} cm/s", ha="center", va="top", fontsize=8)
+            name = {"v1": "v1 undamped", "v2": "v2 undamped", "v3": "v3 damped", "v4": "v4 + unsteady drag"}[version]
+            fig.text((i + 0.5) / k, 0.95, f"{name}\nhem {speed[t]:.0f} cm/s", ha="center", va="top", fontsize=7)
             fig.text(0.5, 0.02, phase, ha="center", va="bottom", fontsize=8)
         fig.canvas.draw()
         rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]
