@@ -51,6 +51,11 @@ penetration above thresholds are marked invalid with a reason. After a
 the last valid cloth state (zero velocity) and continues, so later frames may
 recover; each frame is still judged on its own. ``reset_count`` in the
 result says how often this happened.
+
+Why this module is long: it is the one simulation loop every dataset is made with, and the
+settings it reads, each documented with the measurement that chose its value; the optional
+forces and solver changes live in their own modules (``aero``, ``bend_friction``,
+``tension_field``, ``vbd_chebyshev``).
 """
 
 from __future__ import annotations
@@ -618,10 +623,13 @@ def simulate_garment(
         for _ in range(s.settle_frames):
             for _ in range(s.substeps):
                 substep(0, 0.0, None)
-    kc_state = (lambda: drag.excursion_state()) if drag is not None and s.air_drag_kc_gain > 0.0 else (lambda: None)
-    settled_out = SettledCloth(state0.particle_q.numpy().copy(), state0.particle_qd.numpy().copy(),
-                               world.vertices[0].copy(), frame_velocity[0].copy(), np.array(rest, np.float32),
-                               kc_state())  # fmt: skip
+    def snapshot(t: int) -> SettledCloth:
+        """The cloth's state now, on body frame t (the low-KC drag's excursions with it, if on)."""
+        kc = drag.excursion_state() if drag is not None and s.air_drag_kc_gain > 0.0 else None
+        return SettledCloth(state0.particle_q.numpy().copy(), state0.particle_qd.numpy().copy(),
+                            world.vertices[t].copy(), frame_velocity[t].copy(), np.array(rest, np.float32), kc)  # fmt: skip
+
+    settled_out = snapshot(0)
 
     out = np.zeros((T, len(x0), 3), dtype=np.float32)
     stats: list[ClothFrameStats] = []
@@ -659,8 +667,6 @@ def simulate_garment(
         if progress is not None:
             progress(t)
     n = max(T - 1, 1)
-    final = SettledCloth(state0.particle_q.numpy().copy(), state0.particle_qd.numpy().copy(),
-                         world.vertices[-1].copy(), frame_velocity[-1].copy(), np.array(rest, np.float32),
-                         kc_state())  # fmt: skip
+    final = snapshot(T - 1)
     return ClothSequence(out, garment.faces.copy(), stats, sim_time / n, cpu_time / n, resets, s, settled_out,
                          self_contact_off_from, final)  # fmt: skip
