@@ -52,8 +52,10 @@ class Fabric:
     drag_kc_gain: how much more pressure drag a small oscillation meets than a steady stream at
         Keulegan-Carpenter number 1 (``synth.aero``: the factor is gain * KC^(-1/3), at least 1).
         A sharp-edged plate sheds vortices from its edges every half cycle: Graham's low-KC
-        theory (*J. Fluid Mech.* 97, 1980) gives C_d ~ 8 KC^(-1/3) for a flat plate against its
-        steady ~2, a gain of 4. Used by the ``"unsteady"`` damping model only.
+        theory (*J. Fluid Mech.* 97, 1980) gives the KC^(-1/3) law; flat-plate data put it at the
+        order of C_d ~ 8 KC^(-1/3) against a steady ~2, a gain of 4 (the constant as recalled, not
+        re-checked: 1.26x it changes the settle benchmark by less than its noise). Used by the
+        ``"unsteady"`` damping model only.
     drag_kc_width: the plate width D of the Keulegan-Carpenter number KC = 2 pi A / D [m]: the
         width of the panel that flaps as one; a skirt's hem flaps in lobes ~0.3 m wide
         (four to six around a 1.5-2 m hem; ``benchmarks/experiments/cloth_rest_diagnostics.py``).
