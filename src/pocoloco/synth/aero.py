@@ -26,14 +26,15 @@ Keulegan-Carpenter number KC = 2 pi A / D (Graham, *J. Fluid Mech.* 97, 1980, th
 sharp-edged bodies at low KC, against Keulegan & Carpenter's 1958 plate measurements; the
 reason offshore heave plates damp). The coefficient, C_d ~ 8 KC^(-1/3) against a steady ~2 (a
 gain of 4 at KC = 1), is the order of that plate data as recalled, not re-checked here: a
-gain 1.26x larger changes the settle benchmark by less than its noise (docs/lab/synthetic-data.md). A hanging hem that flaps by a centimetre is such a plate. Here
+gain 1.26x larger changes the settle benchmark by less than its noise
+(docs/lab/synthetic-data.md). A hanging hem that flaps by a centimetre is such a plate. Here
 each vertex keeps its *excursion* relative to the air, e (a leaky integral of its velocity
 relative to the air over ``kc_time``: the displacement about its recent mean position;
 steady motion at speed U gives U * kc_time, a large KC), and the running mean of |e|^2; a
 triangle's amplitude is A = sqrt(2 <|e|^2>) over its vertices, and its normal coefficient
 is ``c_normal * clip(kc_gain * KC^(-1/3), 1, kc_gain * KC_MIN^(-1/3))``: the steady value
 for large excursions, more for small ones, held below KC_MIN (0.1, where viscous terms take
-over and the law has no data). ``excursion_update_reference`` and the ``amplitude`` argument
+over and the law has no data). ``excursion_update_reference`` and the ``mean_square`` argument
 of ``drag_velocity_update_reference`` are the NumPy references.
 """
 
