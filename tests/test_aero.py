@@ -125,6 +125,8 @@ def test_warp_low_kc_drag_matches_the_reference():
 
 
 def test_low_kc_factor_follows_the_plate_law_between_its_limits():
+    import warp as wp
+
     width, gain = 0.3, 4.0
     amp = lambda kc: kc * width / (2 * np.pi)  # noqa: E731
     np.testing.assert_allclose(kc_drag_factor(amp(1.0), width, gain), gain)  # KC = 1: the gain itself
@@ -135,8 +137,6 @@ def test_low_kc_factor_follows_the_plate_law_between_its_limits():
     np.testing.assert_allclose(kc_drag_factor(np.array([0.0, amp(KC_MIN / 10)]), width, gain), [cap, cap])
     np.testing.assert_array_equal(kc_drag_factor(np.array([0.0, 1.0]), width, 0.0), [1.0, 1.0])  # off
     with pytest.raises(ValueError, match="low-KC"):
-        import warp as wp
-
         AirDrag(np.zeros((1, 3), int), np.ones(3), 1.0, 0.0, 0.01, wp.get_device("cpu"), kc_gain=4.0, kc_width=0.0)
 
 

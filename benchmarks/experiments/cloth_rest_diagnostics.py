@@ -115,23 +115,23 @@ def hem_breakdown(x: np.ndarray, garment, hem: np.ndarray, body: np.ndarray, pel
     body (V, 3) and pelvis (3,) at the held pose (the body does not move)."""
     from scipy.spatial import cKDTree
 
+    from pocoloco.synth.cloth_sim import mesh_edges
+
     x = x[-int(seconds * fps):, hem].astype(np.float64)  # (t, H, 3)
     v = np.diff(x, axis=0) * fps * 100  # cm/s
     speed = np.linalg.norm(v, axis=-1).mean(0)  # (H,)
     dist, _ = cKDTree(body).query(x[-1])
     bands = {"0-1": (0, 0.01), "1-2": (0.01, 0.02), "2-4": (0.02, 0.04), ">4": (0.04, np.inf)}
-    by_distance = {k: {"vertices": int(((dist >= a) & (dist < b)).sum()),
-                       "speed_cm_s": float(speed[(dist >= a) & (dist < b)].mean()) if ((dist >= a) & (dist < b)).any()
-                       else float("nan")} for k, (a, b) in bands.items()}  # fmt: skip
+    by_distance = {}
+    for name, (a, b) in bands.items():
+        band = (dist >= a) & (dist < b)
+        by_distance[name] = {"vertices": int(band.sum()), "speed_cm_s": float(speed[band].mean()) if band.any() else float("nan")}
     r = x[:-1, :, :2] - pelvis[:2]
     rn = r / np.linalg.norm(r, axis=-1, keepdims=True)
     tn = np.stack([-rn[..., 1], rn[..., 0]], -1)
     vr, vt = (v[..., :2] * rn).sum(-1), (v[..., :2] * tn).sum(-1)
-    faces = garment.faces
-    edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1), axis=0)
-    on_hem = np.isin(edges, hem).all(1)
-    pos = {int(h): i for i, h in enumerate(hem)}
-    e = np.array([[pos[int(a)], pos[int(b)]] for a, b in edges[on_hem]])
+    edges = mesh_edges(garment.faces)
+    e = np.searchsorted(hem, edges[np.isin(edges, hem).all(1)])  # hem edges as positions in hem (sorted)
     va, vb = v[:, e[:, 0]], v[:, e[:, 1]]
     cos = (va * vb).sum(-1) / (np.linalg.norm(va, axis=-1) * np.linalg.norm(vb, axis=-1) + 1e-9)
     xc = x - x.mean(0)
