@@ -3,7 +3,7 @@
 # score it against its teacher (resumable: every step skips what is done).
 #   DATA=~/.cache/pocoloco/data/medium_v3 RUNS=~/.cache/pocoloco/runs/fast bash scripts/fast_medium_v3.sh
 # Needs the teacher's own report (REF: `bench quality` of the shipped models on the same data,
-# scripts/finetune_medium_v3.sh's quality_finetuned).
+# CLOTH=v3 scripts/finetune_medium.sh's quality_finetuned).
 set -euo pipefail
 PL=${PL:-.venv/bin/pocoloco}
 DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v3}

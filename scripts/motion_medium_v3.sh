@@ -5,7 +5,7 @@
 # pose-only models on the same frames (benchmarks/motion_gain.py, paired per frame). Every step
 # resumes where a killed run stopped: rerun the script.
 #
-#   bash scripts/motion_medium_v3.sh       # ~2 h on a 2-core CPU (needs scripts/finetune_medium_v3.sh's data
+#   bash scripts/motion_medium_v3.sh       # ~2 h on a 2-core CPU (needs CLOTH=v3 scripts/finetune_medium.sh's data
 #                                          # and its quality_finetuned reports of the shipped models)
 #
 # Needs `bash scripts/setup.sh` first.
@@ -16,7 +16,7 @@ PL=.venv/bin/pocoloco
 RUNS=${RUNS:-$HOME/.cache/pocoloco/runs}
 OUT=$RUNS/v3motion
 DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v3}
-SHIPPED=${SHIPPED:-$RUNS/v3/quality_finetuned}   # the shipped models' bench quality (finetune_medium_v3.sh)
+SHIPPED=${SHIPPED:-$RUNS/v3/quality_finetuned}   # the shipped models' bench quality (finetune_medium.sh (CLOTH=v3))
 MIN_POCOLOCO=${MIN_POCOLOCO:-80}
 MIN_POP=${MIN_POP:-35}
 mkdir -p "$OUT"

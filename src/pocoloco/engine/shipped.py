@@ -8,7 +8,7 @@ trained on the ``medium`` synthetic dataset (14 outfits, 7 garment kinds) on one
 (EMA weights); ``assets/pop_medium`` POP (``small`` preset) trained on ``medium``, 10,000 steps on
 one CPU thread; ``assets/closet_medium`` CloSET (``small`` preset) trained on ``medium``, 10,000
 steps on one CPU thread; the peers' raw weights (they keep no EMA). All three were then fine-tuned
-on ``medium`` made with the data-v3 cloth (``scripts/finetune_medium_v3.sh``: 40 / 15 / 25 CPU
+on ``medium`` made with the data-v3 cloth (``CLOTH=v3 scripts/finetune_medium.sh``: 40 / 15 / 25 CPU
 minutes). ``assets/hybrid_medium`` the hybrid of
 the two (``default:pop`` + ``default``): its free-region maps and a link to each, no weights of its own
 (``pocoloco hybrid --link``). ``assets/pocoloco_fast_medium`` (``default:fast``, issue 42) a

@@ -1,23 +1,25 @@
 #!/usr/bin/env bash
-# Carry the shipped `medium` models over to data v3 (issue 39, damped cloth): make `medium` v3, score
-# the shipped (v2-trained) models on it, fine-tune each from its shipped weights on a clock, assemble
+# Carry the shipped `medium` models over to a new cloth version (issue 39): make `medium` with that
+# cloth, score the shipped models on it, fine-tune each from its shipped weights on a clock, assemble
 # the hybrid of the two fine-tuned networks, and score those on the same frames. Every step resumes
 # where a killed run stopped: rerun the script.
 #
-#   bash scripts/finetune_medium_v3.sh     # ~2.5 h on a 2-core CPU: 4 / 2 / 1 sequences per subject
-#   TRAIN_SEQUENCES=24 TEST_SEQUENCES=8 HELDOUT_SEQUENCES=2 MIN_POCOLOCO=120 bash scripts/finetune_medium_v3.sh
-#                                          # all of medium (the v3 cloth makes it ~4 h here), longer
+#   bash scripts/finetune_medium.sh            # the v4 cloth; ~2.5 h on a 2-core CPU: 4 / 2 / 1 sequences per subject
+#   CLOTH=v3 bash scripts/finetune_medium.sh   # the v2 -> v3 carry-over of 2026-11-29 (from the v2 weights then shipped)
+#   TRAIN_SEQUENCES=24 TEST_SEQUENCES=8 HELDOUT_SEQUENCES=2 MIN_POCOLOCO=120 bash scripts/finetune_medium.sh
+#                                              # all of medium (~4 h of generation here), longer
 #
 # Two jobs run side by side (one thread each): PocoLoco on one core, POP then CloSET on the other.
 # Each fine-tune runs on a time budget with a warm-stable-decay schedule, so it ends cooled down.
-# The comparison (`benchmarks/compare_quality.py`, paired per frame) is written to $RUNS/v3/*.md.
+# The comparison (`benchmarks/compare_quality.py`, paired per frame) is written to $RUNS/*.md (RUNS ends in the cloth version).
 # Needs `bash scripts/setup.sh` first.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=.venv/bin/python
 PL=.venv/bin/pocoloco
-RUNS=${RUNS:-$HOME/.cache/pocoloco/runs}/v3
-DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v3}
+CLOTH=${CLOTH:-v4}                          # a key of pocoloco.synth.config.CLOTH_VERSIONS
+RUNS=${RUNS:-$HOME/.cache/pocoloco/runs}/$CLOTH
+DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_$CLOTH}
 TRAIN_SEQUENCES=${TRAIN_SEQUENCES:-4}       # of medium's 24 per subject
 TEST_SEQUENCES=${TEST_SEQUENCES:-2}         # of 8
 HELDOUT_SEQUENCES=${HELDOUT_SEQUENCES:-1}   # of 2
@@ -26,8 +28,8 @@ MIN_POP=${MIN_POP:-15}
 MIN_CLOSET=${MIN_CLOSET:-25}
 mkdir -p "$RUNS"
 
-# 1. the data: medium's subjects, motions and captures with the v3 cloth (a dataset can grow later)
-$PL data synth --preset medium --train-sequences "$TRAIN_SEQUENCES" --test-sequences "$TEST_SEQUENCES" \
+# 1. the data: medium's subjects, motions and captures with that cloth (a dataset can grow later)
+$PL data synth --preset medium --cloth "$CLOTH" --train-sequences "$TRAIN_SEQUENCES" --test-sequences "$TEST_SEQUENCES" \
   --heldout-sequences "$HELDOUT_SEQUENCES" --workers 2 --frame-storage compact --out "$DATA"
 
 # 2. the shipped models on it (before anything replaces them: default:hybrid links default and default:pop)
@@ -56,7 +58,7 @@ POCO=$!
 PEERS=$!
 wait $POCO $PEERS
 
-# 4. the hybrid of the two fine-tuned networks, its maps learnt on v3 (the shipped recipe)
+# 4. the hybrid of the two fine-tuned networks, its maps learnt on the new data (the shipped recipe)
 [ -d "$RUNS/hybrid/checkpoints" ] || $PL hybrid --attached "$RUNS/pop" --free "$RUNS/pocoloco" --data "$DATA" \
   --generator-share 0.5 --inside-tolerance 0.01 --trust 0.03 --out "$RUNS/hybrid"
 
@@ -70,4 +72,4 @@ for split in test heldout; do
       > "$RUNS/compare_${split}_$model.md"
   done
 done
-echo "finetune_medium_v3: done ($RUNS)"
+echo "finetune_medium ($CLOTH): done ($RUNS)"
