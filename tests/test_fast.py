@@ -259,6 +259,12 @@ def test_a_teacher_finishes_a_polished_student(latent_teacher, tiny_student, tin
     with pytest.raises(ValueError, match="has changed since the export") as e:
         load_method(out)
     assert "\n" not in str(e.value)
+    # the error's advice, from the exported student itself: export it again with --polish-with
+    assert main(["export-model", "--ckpt", str(out), "--polish-with", str(teacher_copy), "--out",
+                 str(tmp_path / "relinked")]) == 0  # fmt: skip
+    relinked = load_method(tmp_path / "relinked")
+    assert relinked.polish is not None and relinked.polish[1] == 20  # --polish-t's default
+    assert main(["export-model", "--ckpt", str(out), "--out", str(tmp_path / "stale")]) == 2  # not without it
 
 
 def test_distill_from_a_training_pack(latent_teacher, tiny_dataset, tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -13,8 +14,8 @@ from pocoloco.apps.meshing import estimate_normals, mesh_from_points
 from pocoloco.body.surface import write_uv_map
 from pocoloco.data.poses import load_joints
 from pocoloco.data.published import CLOUD_CHECK_HELP, check_cloud, read_ply
-from pocoloco.engine.checkpoint import WEIGHTS_DTYPES, export_for_sampling, resolve_checkpoint
-from pocoloco.methods import load_method
+from pocoloco.engine.checkpoint import WEIGHTS_DTYPES, export_for_sampling, load_checkpoint, resolve_checkpoint
+from pocoloco.methods import method_class
 from pocoloco.methods.pocoloco.method import DEFAULT_POLISH_T, polish_link
 from pocoloco.viz.render import (
     VIEWS,
@@ -166,7 +167,11 @@ def cmd_view(args: argparse.Namespace) -> None:
 def cmd_export_model(args: argparse.Namespace) -> None:
     """A small sampling-only copy of a checkpoint (how the shipped models were made)."""
     ckpt = resolve_checkpoint(args.ckpt)
-    buffers = [name for name, b in load_method(ckpt).model.named_buffers() if b.is_floating_point()]
+    ck = load_checkpoint(ckpt, expect_model=None, training_state=False)
+    if args.polish_with:  # re-linking: the old link may name a teacher that has changed since
+        ck = dataclasses.replace(ck, meta={k: v for k, v in ck.meta.items() if k != "polish"})
+    model = method_class(ck.model_kind).from_checkpoint(ck).model
+    buffers = [name for name, b in model.named_buffers() if b.is_floating_point()]
     if args.polish_t is not None and not args.polish_with:
         raise ValueError("--polish-t goes with --polish-with (the teacher that makes the last call)")
     extra = {}
