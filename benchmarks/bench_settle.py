@@ -88,7 +88,9 @@ def run_one(job: dict) -> dict:
     from pocoloco.synth.pipeline import cloth_settings
 
     subject = next(s for s in MEDIUM_SUBJECTS if s.name == SUBJECT_OF_KIND[job["garment"]])
-    config = SynthConfig(cloth_damping=job["damping"], garment_tessellation=job.get("tessellation", "isotropic"))
+    # plain sweeps unless --set chebyshev_rho=... (the v4 default's 0.9 would change what --damping means)
+    config = SynthConfig(cloth_damping=job["damping"], garment_tessellation=job.get("tessellation", "isotropic"),
+                         cloth_chebyshev_rho=0.0)  # fmt: skip
     body = AnnyBody(subject.phenotype)
     garment = make_garment(subject.garment, body, resolution=config.garment_resolution,
                            tessellation=config.garment_tessellation, **subject.garment_params)  # fmt: skip

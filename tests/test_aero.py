@@ -181,7 +181,7 @@ def test_old_cards_read_as_undamped():
     assert config_of_card(card).cloth_damping == "physical"
     del card["cloth_damping"]  # a card written before the field existed
     assert config_of_card(card).cloth_damping == "none"
-    assert SynthConfig().cloth_damping == "physical"  # data v3
+    assert SynthConfig().cloth_damping == "unsteady"  # data v4
 
 
 def test_cloth_versions_name_the_data_each_reproduces():
@@ -190,19 +190,23 @@ def test_cloth_versions_name_the_data_each_reproduces():
     from pocoloco.synth.config import CLOTH_VERSIONS, SYNTH_PRESETS, SynthConfig, cloth_version, config_of_card
     from pocoloco.synth.pipeline import cloth_settings
 
-    assert cloth_version(SynthConfig()) == "v3"
-    assert all(cloth_version(c) == "v3" for c in SYNTH_PRESETS.values())
-    v4 = dataclasses.replace(SynthConfig(), **CLOTH_VERSIONS["v4"])
-    settings = cloth_settings(v4, "skirt")
+    assert cloth_version(SynthConfig()) == "v4"
+    assert all(cloth_version(c) == "v4" for c in SYNTH_PRESETS.values())
+    settings = cloth_settings(SynthConfig(), "skirt")
     assert settings.air_drag_kc_gain > 1.0 and settings.chebyshev_rho == 0.9
-    v3 = cloth_settings(SynthConfig(), "skirt")
-    assert v3.air_drag_kc_gain == 0.0 and v3.chebyshev_rho == 0.0  # data v3 unchanged
-    assert dataclasses.replace(settings, air_drag_kc_gain=0.0, chebyshev_rho=0.0) == v3
+    v3_config = dataclasses.replace(SynthConfig(), **CLOTH_VERSIONS["v3"])
+    assert (v3_config.cloth_damping, v3_config.cloth_chebyshev_rho) == ("physical", 0.0)
+    v3 = cloth_settings(v3_config, "skirt")
+    assert v3.air_drag_kc_gain == 0.0 and v3.chebyshev_rho == 0.0  # data v3 reproduced
+    assert dataclasses.replace(settings, air_drag_kc_gain=0.0, chebyshev_rho=0.0) == v3  # v4 = v3 + these two
+    card = v3_config.to_dict()
+    del card["cloth_chebyshev_rho"]  # a v3 card, written before the field existed
+    assert cloth_version(config_of_card(card)) == "v3"
     for name, overrides in CLOTH_VERSIONS.items():
         assert cloth_version(dataclasses.replace(SynthConfig(), **overrides)) == name
     v2 = dataclasses.replace(SynthConfig(), **CLOTH_VERSIONS["v2"])
     assert (v2.garment_tessellation, v2.cloth_damping) == ("isotropic", "none")
     card = v2.to_dict()
-    del card["cloth_damping"]  # a v2 card, written before the field existed
+    del card["cloth_damping"], card["cloth_chebyshev_rho"]  # a v2 card, written before the fields existed
     assert cloth_version(config_of_card(card)) == "v2"
     assert cloth_version(dataclasses.replace(SynthConfig(), cloth_substeps=9)) == "custom"

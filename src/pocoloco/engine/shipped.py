@@ -8,14 +8,15 @@ trained on the ``medium`` synthetic dataset (14 outfits, 7 garment kinds) on one
 (EMA weights); ``assets/pop_medium`` POP (``small`` preset) trained on ``medium``, 10,000 steps on
 one CPU thread; ``assets/closet_medium`` CloSET (``small`` preset) trained on ``medium``, 10,000
 steps on one CPU thread; the peers' raw weights (they keep no EMA). All three were then fine-tuned
-on ``medium`` made with the data-v3 cloth (``CLOTH=v3 scripts/finetune_medium.sh``: 40 / 15 / 25 CPU
-minutes). ``assets/hybrid_medium`` the hybrid of
+on a quarter of ``medium`` made with the data-v3 cloth, then on one made with the data-v4 cloth
+(``scripts/finetune_medium.sh``: 40 / 15 / 25 CPU minutes each time). ``assets/hybrid_medium`` the hybrid of
 the two (``default:pop`` + ``default``): its free-region maps and a link to each, no weights of its own
 (``pocoloco hybrid --link``). ``assets/pocoloco_fast_medium`` (``default:fast``, issue 42) a
-student distilled from ``default`` (``pocoloco distill``, ``scripts/fast_medium_v3.sh``) that samples
+student distilled from ``default`` (``pocoloco distill``; docs/lab/fast.md) that samples
 in 1 to 4 network calls, its default 4 of which the last is ``default``'s (``export-model --polish-with``), stored as per-row int8; ``assets/hybrid_fast_medium``
 (``default:hybrid-fast``) the hybrid with that student as its free-region generator (``default:pop``
-+ ``default:fast``, ``default:hybrid``'s maps, linked like it). How each was trained and its evaluation are in README.md ("The default
++ ``default:fast``, ``default:hybrid``'s maps, linked like it). A new ``default`` means a new
+``default:fast`` (its teacher must be the very network it makes the last call with). How each was trained and its evaluation are in README.md ("The default
 model", "POP and CloSET"). Written by :func:`pocoloco.engine.checkpoint.export_for_sampling`
 (``pocoloco export-model``).
 """
