@@ -83,14 +83,15 @@ def run_one(job: dict) -> dict:
     torch.set_num_threads(1)
     from pocoloco.body import AnnyBody
     from pocoloco.synth.cloth_sim import simulate_garment
-    from pocoloco.synth.config import MEDIUM_SUBJECTS, SynthConfig
+    from pocoloco.synth.config import CLOTH_VERSIONS, MEDIUM_SUBJECTS, SynthConfig
     from pocoloco.synth.garments import make_garment
     from pocoloco.synth.pipeline import cloth_settings
 
     subject = next(s for s in MEDIUM_SUBJECTS if s.name == SUBJECT_OF_KIND[job["garment"]])
-    # plain sweeps unless --set chebyshev_rho=... (the v4 default's 0.9 would change what --damping means)
-    config = SynthConfig(cloth_damping=job["damping"], garment_tessellation=job.get("tessellation", "isotropic"),
-                         cloth_chebyshev_rho=0.0)  # fmt: skip
+    # the v3 cloth (plain sweeps unless --set chebyshev_rho=...) with this run's damping and mesh: what
+    # --damping meant before v4 became the default
+    config = dataclasses.replace(SynthConfig(), **{**CLOTH_VERSIONS["v3"], "cloth_damping": job["damping"],
+                                                   "garment_tessellation": job.get("tessellation", "isotropic")})  # fmt: skip
     body = AnnyBody(subject.phenotype)
     garment = make_garment(subject.garment, body, resolution=config.garment_resolution,
                            tessellation=config.garment_tessellation, **subject.garment_params)  # fmt: skip

@@ -63,8 +63,9 @@ def main() -> None:
         default = getattr(ClothSimSettings(), key)
         overrides[key] = value == "True" if isinstance(default, bool) else type(default)(value)
     subject = next(s for s in MEDIUM_SUBJECTS if s.name == SUBJECT_OF_KIND[args.garment])
-    # plain sweeps unless --set chebyshev_rho=... or --cloth v4 (as the stored runs were made)
-    config = SynthConfig(cloth_damping=args.damping, garment_tessellation=args.tessellation, cloth_chebyshev_rho=0.0)
+    # the v3 cloth with --damping and --tessellation (plain sweeps unless --set chebyshev_rho=...), or --cloth's
+    config = dataclasses.replace(SynthConfig(), **{**CLOTH_VERSIONS["v3"], "cloth_damping": args.damping,
+                                                   "garment_tessellation": args.tessellation})  # fmt: skip
     if args.cloth is not None:
         config = dataclasses.replace(SynthConfig(), **CLOTH_VERSIONS[args.cloth])
         args.tessellation, args.damping = config.garment_tessellation, config.cloth_damping

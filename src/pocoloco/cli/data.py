@@ -14,7 +14,7 @@ from pathlib import Path
 
 from pocoloco.cli.common import console, progress_bar
 from pocoloco.utils.atomic import exclusive_lock, output_folder
-from pocoloco.synth.config import CLOTH_VERSIONS, SYNTH_PRESETS, cloth_version, config_of_card, synth_preset
+from pocoloco.synth.config import CLOTH_VERSIONS, CURRENT_CLOTH, SYNTH_PRESETS, cloth_version, config_of_card, synth_preset
 from pocoloco.synth.fabric import DAMPING_MODELS
 from pocoloco.synth.histories import HistoriesSpec, make_histories
 from pocoloco.synth.motion_windows import write_motion_histories
@@ -78,7 +78,7 @@ def cmd_data_synth(args: argparse.Namespace) -> None:
 
     _check_synth_modes(args)
     shard = _parse_shard(args.shard) if args.shard is not None else None  # --shard '' is an error, not "no shard"
-    config = dataclasses.replace(synth_preset(args.preset), **CLOTH_VERSIONS[getattr(args, "cloth", "v4")])
+    config = dataclasses.replace(synth_preset(args.preset), **CLOTH_VERSIONS[getattr(args, "cloth", CURRENT_CLOTH)])
     overrides = {
         k: v
         for k, v in dict(
@@ -420,12 +420,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--frame-storage", choices=FRAME_STORAGES,
                    help="float32: exact, uncompressed frame files; compact: deflated, float16 normals and skinning "
                         "transforms, positions within 0.1 mm, ~37%% of the bytes (default: the preset's, float32)")  # fmt: skip
-    s.add_argument("--cloth", choices=tuple(CLOTH_VERSIONS), default="v4",
+    s.add_argument("--cloth", choices=tuple(CLOTH_VERSIONS), default=CURRENT_CLOTH,
                    help="the cloth of a data version: v4 (achiral mesh, air drag with the drag of small "
                         "oscillations, fabric damping, cloth-skin friction, accelerated sweeps: hanging cloth comes "
                         "to rest; the shipped models are trained on it), v3 (steady drag only, plain sweeps), v2 "
                         "(isotropic mesh, undamped), v1 (the first grid meshes, world frame), to reproduce older "
-                        "datasets (default: v4)")  # fmt: skip
+                        "datasets (default: %(default)s)")  # fmt: skip
     s.add_argument("--cloth-damping", choices=DAMPING_MODELS,
                    help="override the damping alone: none (data v1 / v2: no air, almost no damping); physical "
                         "(v3: air drag, the fabric's damping and cloth-skin friction, synth.fabric); unsteady "

@@ -146,6 +146,9 @@ SYNTH_V2: dict = {**SYNTH_V3, "garment_tessellation": "isotropic", "cloth_dampin
 #: drag of small oscillations and Chebyshev-accelerated sweeps, in which a hanging skirt comes to rest)
 CLOTH_VERSIONS: dict[str, dict] = {"v4": {}, "v3": SYNTH_V3, "v2": SYNTH_V2, "v1": SYNTH_V1}
 
+#: the data version ``SynthConfig()`` makes (its overrides in CLOTH_VERSIONS are empty)
+CURRENT_CLOTH: str = next(name for name, overrides in CLOTH_VERSIONS.items() if not overrides)
+
 
 def cloth_version(config: SynthConfig) -> str:
     """``"v4"`` / ``"v3"`` / ``"v2"`` / ``"v1"``: the data version whose cloth settings ``config``
