@@ -58,3 +58,25 @@ def test_a_collapsing_triangle_keeps_resisting():
     np.testing.assert_allclose(after[:, 0], (0.3 / 0.7) ** 2, rtol=0.05)  # compressed, but only past 0.7
     np.testing.assert_allclose(model.tri_poses.numpy(), relaxed_rest_shapes_reference(x, tris, original, 0.7),
                                atol=1e-3 * np.abs(original).max())  # fmt: skip
+
+
+def test_a_softened_membrane_keeps_a_share_of_the_compressive_strain():
+    import warp as wp
+
+    model = _sheet_model()
+    tris = model.tri_indices.numpy()
+    original = model.tri_poses.numpy().copy()
+    x = model.particle_q.numpy().astype(np.float64) * np.array([0.9, 1.1, 1.0])  # 10 % shorter along x
+    field = TensionField(model, wp.get_device("cpu"), min_stretch=0.7, compression=0.09)
+    field.apply(wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu"))
+    got = model.tri_poses.numpy()
+    np.testing.assert_allclose(got, relaxed_rest_shapes_reference(x, tris, original, 0.7, compression=0.09),
+                               atol=1e-3 * np.abs(original).max())  # fmt: skip
+    after = np.sqrt(np.linalg.eigvalsh(_metric(x, tris, got.astype(np.float64))))
+    np.testing.assert_allclose(after[:, 0], 1.0 - 0.3 * 0.1, rtol=2e-3)  # the strain scaled by sqrt(0.09)
+    np.testing.assert_allclose(after[:, 1], 1.1, rtol=2e-3)  # the stretch untouched
+    # compression=1 is newton's membrane: the rest shapes stay as they were
+    fresh = _sheet_model()
+    TensionField(fresh, wp.get_device("cpu"), compression=1.0).apply(
+        wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu"))
+    np.testing.assert_allclose(fresh.tri_poses.numpy(), original, rtol=1e-5, atol=1e-6)

@@ -108,6 +108,10 @@ class ClothSimSettings:
     tension_field: the membrane carries no compression (``synth.tension_field``: each triangle's
         rest shape relaxed along its compressed directions before each step); False = newton's
         membrane, which resists compression like stretch (data v1 - v3).
+    tension_field_compression: with ``tension_field``, the share of the membrane's stiffness a
+        compressed direction keeps (0: none; a softened post-buckling response between 0 and 1).
+    tension_field_min_stretch: with ``tension_field``, the length ratio below which a compressed
+        direction resists again (so that no triangle collapses to a line).
     chebyshev_rho: Chebyshev acceleration of the VBD sweeps with this spectral radius estimate
         (``synth.vbd_chebyshev``; 0 = newton's plain sweeps, data v1 - v3). Not with self-contact.
     self_contact: newton VBD cloth self-contact (vertex-triangle and edge-edge).
@@ -161,6 +165,8 @@ class ClothSimSettings:
     bend_friction: float = 0.0
     bend_friction_stick_angle: float = 0.02
     tension_field: bool = False
+    tension_field_compression: float = 0.0
+    tension_field_min_stretch: float = 0.7
     self_contact: bool = False
     self_contact_margin: float = 0.004
     self_contact_gap: float = 0.012
@@ -526,7 +532,8 @@ def simulate_garment(
     if s.tension_field:
         from .tension_field import TensionField
 
-        tension = TensionField(model, device)
+        tension = TensionField(model, device, min_stretch=s.tension_field_min_stretch,
+                               compression=s.tension_field_compression)  # fmt: skip
     model.soft_contact_ke = s.contact_ke
     model.soft_contact_kd = s.contact_kd
     model.soft_contact_mu = s.contact_mu

@@ -30,10 +30,12 @@ def relax_compressed_rest_shapes(
     tris: wp.array2d[wp.int32],
     poses_original: wp.array[wp.mat22],
     min_metric: float,
+    keep: float,
     poses_out: wp.array[wp.mat22],
 ):
     """Per triangle: Dm^-1 S (module docstring) from the positions ``pos``; a direction compressed
-    below sqrt(min_metric) of its length keeps resisting beyond that."""
+    below sqrt(min_metric) of its length keeps resisting beyond that; ``keep`` scales the strain a
+    compressed direction still shows (its stiffness scales as keep^2; 0: none)."""
     i = wp.tid()
     dm_inv = poses_original[i]
     x0 = pos[tris[i, 0]]
@@ -59,9 +61,11 @@ def relax_compressed_rest_shapes(
     s1 = 1.0
     s2 = 1.0
     if l1 < 1.0:
-        s1 = 1.0 / wp.sqrt(wp.max(l1, min_metric))
+        c1 = wp.sqrt(wp.max(l1, min_metric))
+        s1 = (1.0 - keep * (1.0 - c1)) / c1
     if l2 < 1.0:
-        s2 = 1.0 / wp.sqrt(wp.max(l2, min_metric))
+        c2 = wp.sqrt(wp.max(l2, min_metric))
+        s2 = (1.0 - keep * (1.0 - c2)) / c2
     s = wp.mat22(
         s1 * v[0] * v[0] + s2 * w[0] * w[0], s1 * v[0] * v[1] + s2 * w[0] * w[1],
         s1 * v[1] * v[0] + s2 * w[1] * w[0], s1 * v[1] * v[1] + s2 * w[1] * w[1],
@@ -70,14 +74,16 @@ def relax_compressed_rest_shapes(
 
 
 def relaxed_rest_shapes_reference(x: np.ndarray, tris: np.ndarray, poses: np.ndarray,
-                                  min_stretch: float = 0.0) -> np.ndarray:  # fmt: skip
+                                  min_stretch: float = 0.0, compression: float = 0.0) -> np.ndarray:  # fmt: skip
     """NumPy reference of :func:`relax_compressed_rest_shapes`: (T, 2, 2) Dm^-1 S."""
     x = np.asarray(x, np.float64)
     poses = np.asarray(poses, np.float64)
     ds = np.stack([x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]]], axis=2)  # (T, 3, 2)
     f = ds @ poses
     lam, vec = np.linalg.eigh(np.swapaxes(f, 1, 2) @ f)  # (T, 2), (T, 2, 2) columns
-    s = np.where(lam < 1.0, 1.0 / np.sqrt(np.maximum(lam, max(min_stretch**2, 1e-30))), 1.0)
+    c = np.sqrt(np.maximum(lam, max(min_stretch**2, 1e-30)))
+    keep = np.sqrt(compression)
+    s = np.where(lam < 1.0, (1.0 - keep * (1.0 - c)) / c, 1.0)
     return poses @ (vec * s[:, None, :]) @ np.swapaxes(vec, 1, 2)
 
 
@@ -85,12 +91,17 @@ class TensionField:
     """Keeps a finalized newton cloth model's membrane free of compression (module docstring):
     :meth:`apply` before each solver step, with the step's starting positions. ``min_stretch``:
     a direction compressed below this length ratio resists the rest (a triangle must not collapse
-    to a line: bending alone cannot hold it)."""
+    to a line: bending alone cannot hold it). ``compression``: the share of the membrane's stiffness
+    a compressed direction keeps (0: none, tension field theory; between 0 and 1 a softened,
+    post-buckling response, as in Choi & Ko's buckling model, SIGGRAPH 2002)."""
 
-    def __init__(self, model, device, min_stretch: float = 0.7):  # noqa: ANN001 (newton's types)
+    def __init__(self, model, device, min_stretch: float = 0.7, compression: float = 0.0):  # noqa: ANN001
         if not 0.0 < min_stretch <= 1.0:
             raise ValueError(f"tension field: min_stretch must be in (0, 1], got {min_stretch}")
+        if not 0.0 <= compression <= 1.0:
+            raise ValueError(f"tension field: compression must be in [0, 1], got {compression}")
         self.min_metric = float(min_stretch) ** 2
+        self.keep = float(np.sqrt(compression))
         self.tris = model.tri_indices
         self.poses = model.tri_poses  # rewritten in place: the solver reads it
         self.original = wp.clone(model.tri_poses)
@@ -98,4 +109,4 @@ class TensionField:
 
     def apply(self, pos) -> None:  # noqa: ANN001 (a warp array)
         wp.launch(relax_compressed_rest_shapes, dim=self.tris.shape[0],
-                  inputs=[pos, self.tris, self.original, self.min_metric, self.poses], device=self.device)  # fmt: skip
+                  inputs=[pos, self.tris, self.original, self.min_metric, self.keep, self.poses], device=self.device)  # fmt: skip
