@@ -47,14 +47,14 @@ quality "$RUNS/quality_shipped" --ckpt-pocoloco default --ckpt-pop default:pop -
 resume() { [ -f "$1/checkpoints/latest" ] && echo --resume || true; }
 nice $PL train --data "$DATA" --init-from default --out "$RUNS/pocoloco" $(resume "$RUNS/pocoloco") \
   --batch-size 32 --lr 3e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POCOLOCO" \
-  --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$RUNS/pocoloco.log" 2>&1 &
+  --ckpt-every 250 --sample-every 0 --threads 1 > "$RUNS/pocoloco.log" 2>&1 &
 POCO=$!
 ( nice $PL train --model pop --data "$DATA" --init-from default:pop --out "$RUNS/pop" $(resume "$RUNS/pop") \
     --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POP" \
-    --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$RUNS/pop.log" 2>&1
+    --ckpt-every 250 --sample-every 0 --threads 1 > "$RUNS/pop.log" 2>&1
   nice $PL train --model closet --data "$DATA" --init-from default:closet --out "$RUNS/closet" $(resume "$RUNS/closet") \
     --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_CLOSET" \
-    --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$RUNS/closet.log" 2>&1 ) &
+    --ckpt-every 250 --sample-every 0 --threads 1 > "$RUNS/closet.log" 2>&1 ) &
 PEERS=$!
 wait $POCO $PEERS
 

@@ -29,11 +29,11 @@ $PL data motion-history "$DATA"
 resume() { [ -f "$1/checkpoints/latest" ] && echo --resume || true; }
 nice $PL train --data "$DATA" --init-from default --motion-window 2.0 --out "$OUT/pocoloco" $(resume "$OUT/pocoloco") \
   --batch-size 32 --lr 3e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POCOLOCO" \
-  --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$OUT/pocoloco.log" 2>&1 &
+  --ckpt-every 250 --sample-every 0 --threads 1 > "$OUT/pocoloco.log" 2>&1 &
 POCO=$!
 nice $PL train --model pop --data "$DATA" --init-from default:pop --motion-window 2.0 --out "$OUT/pop" $(resume "$OUT/pop") \
   --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POP" \
-  --ckpt-every 250 --sample-every 0 --threads 1 --no-progress > "$OUT/pop.log" 2>&1 &
+  --ckpt-every 250 --sample-every 0 --threads 1 > "$OUT/pop.log" 2>&1 &
 POP=$!
 wait $POCO $POP
 
@@ -42,7 +42,7 @@ for scale in 10 30; do
   run=$OUT/pilot_lr$scale
   nice $PL train --data "$DATA" --init-from "$OUT/pocoloco" --motion-window 2.0 --motion-lr-scale $scale \
     --ema-decay 0.995 --out "$run" $(resume "$run") --batch-size 32 --lr 3e-4 --lr-schedule wsd --steps 100000 \
-    --decay-steps 30000 --time-budget 30 --ckpt-every 100 --sample-every 0 --threads 1 --no-progress \
+    --decay-steps 30000 --time-budget 30 --ckpt-every 100 --sample-every 0 --threads 1 \
     > "$run.log" 2>&1 &
 done
 wait

@@ -27,13 +27,13 @@ $PL data synth --preset unseen --workers 2 --frame-storage compact --out "$DATA/
 resume() { [ -f "$1/checkpoints/latest" ] && echo --resume || true; }
 nice $PL train --data "$DATA/medium" --out "$RUNS/medium_pocoloco" $(resume "$RUNS/medium_pocoloco") \
   --preset latent_small --bf16 --outfit-codes --body-shape --steps "$STEPS_POCOLOCO" --ckpt-every 250 \
-  --threads 1 --no-progress > "$RUNS/medium_pocoloco.log" 2>&1 &
+  --threads 1 > "$RUNS/medium_pocoloco.log" 2>&1 &
 POCO=$!
 ( nice $PL train --model pop --data "$DATA/medium" --preset small --out "$RUNS/medium_pop" $(resume "$RUNS/medium_pop") \
-    --steps "$STEPS_POP" --ckpt-every 500 --sample-every 0 --threads 1 --no-progress > "$RUNS/medium_pop.log" 2>&1
+    --steps "$STEPS_POP" --ckpt-every 500 --sample-every 0 --threads 1 > "$RUNS/medium_pop.log" 2>&1
   nice $PL train --model closet --data "$DATA/medium" --preset small --out "$RUNS/medium_closet" \
     $(resume "$RUNS/medium_closet") --steps "$STEPS_CLOSET" --ckpt-every 500 --sample-every 0 --threads 1 \
-    --no-progress > "$RUNS/medium_closet.log" 2>&1 ) &
+    > "$RUNS/medium_closet.log" 2>&1 ) &
 PEERS=$!
 wait $POCO $PEERS
 

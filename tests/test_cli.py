@@ -188,3 +188,43 @@ def test_bf16_is_on_by_default_only_where_it_runs_natively(tmp_path, monkeypatch
     assert main([*base, "--bf16", "--out", str(tmp_path / "b")]) == 0
     a, b = (json.loads((tmp_path / d / "sample.json").read_text()) for d in ("a", "b"))
     assert a["bf16"] is False and b["bf16"] is True
+
+
+def test_progress_in_a_log_is_a_plain_line_every_interval(monkeypatch, capsys):
+    """stderr not a terminal (a job's log): no bar, a line at most every LOG_PROGRESS_EVERY_S seconds
+    with done / total, elapsed and time left, and a last line at the end; a short job writes nothing;
+    training's bar (resumed at a step) estimates the time left from this run's steps."""
+    from pocoloco.cli import common
+    from pocoloco.engine.trainer import ProgressBar
+    from pocoloco.utils import progress
+
+    now = [0.0]
+    monkeypatch.setattr(progress, "now", lambda: now[0])
+    monkeypatch.setattr(progress, "stderr_is_terminal", lambda: False)
+    monkeypatch.setattr(common, "stderr_is_terminal", lambda: False)
+    with common.progress_bar("frames", total=1000) as update:
+        for done in range(0, 1001, 100):  # 100 frames every 25 s
+            update(done)
+            now[0] += 25.0
+    lines = capsys.readouterr().err.strip().splitlines()
+    # printed at 75 s (300 frames) and at 150 s (600 frames), then 75 s later at 225 s (900), then the end
+    assert lines[0] == "frames: 300 / 1,000 (30 %), 1:15 elapsed, ~2:55 left"
+    assert lines[1] == "frames: 600 / 1,000 (60 %), 2:30 elapsed, ~1:40 left"
+    assert lines[2] == "frames: 900 / 1,000 (90 %), 3:45 elapsed, ~0:25 left"
+    assert lines[-1].startswith("frames: 1,000 / 1,000 (100 %), 4:35 elapsed") and len(lines) == 4
+    now[0] = 0.0
+    with common.progress_bar("eval") as update:  # shorter than the interval: silent
+        update(5, total=10)
+        now[0] += 30.0
+        update(10)
+    assert capsys.readouterr().err == ""
+    monkeypatch.setattr("pocoloco.engine.trainer.stderr_is_terminal", lambda: False)
+    now[0] = 0.0
+    bar = ProgressBar(True, start=4000, total=10000)  # resumed at step 4,000
+    for _ in range(3000):
+        now[0] += 0.0625  # 16 steps/s
+        bar.advance(0.25)
+    bar.close()
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[0] == "train: 4,960 / 10,000 (50 %), 1:00 elapsed, ~5:15 left, loss 0.2500", lines
+    assert lines[-1].startswith("train: 7,000 / 10,000 (70 %), 3:08 elapsed") and len(lines) == 4

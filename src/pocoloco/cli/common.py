@@ -18,6 +18,7 @@ from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods import Method, load_method
 from pocoloco.utils.atomic import output_folder
+from pocoloco.utils.progress import LogProgress, stderr_is_terminal
 from pocoloco.utils.hardware import bf16_is_fast
 
 __all__ = ["EXIT_USER_ERROR", "MAX_SEED", "USER_ERRORS", "add_any_pose_argument", "check_seeds", "add_bf16_argument", "add_even_argument", "resolve_bf16", "add_app_arguments", "add_device_argument", "add_threads_argument",
@@ -187,7 +188,13 @@ def load_method_from_args(args: argparse.Namespace, expect: str | tuple[str, ...
 
 @contextmanager
 def progress_bar(label: str, total: int | None = None, loss: bool = False, transient: bool = True):
-    """A rich progress bar; yields ``update(done, total=None, **fields)``."""
+    """A rich progress bar on a terminal (stderr); in a log a plain line every minute instead
+    (``utils.progress.LogProgress``). Yields ``update(done, total=None, **fields)``."""
+    if not stderr_is_terminal():
+        log = LogProgress(label, total, loss)
+        yield log.update
+        log.finish()
+        return
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -201,7 +208,9 @@ def progress_bar(label: str, total: int | None = None, loss: bool = False, trans
     if loss:
         columns.append(TextColumn("loss {task.fields[loss]}"))
     columns += [TimeElapsedColumn(), TimeRemainingColumn()]
-    with Progress(*columns, transient=transient) as bar:
+    from rich.console import Console
+
+    with Progress(*columns, transient=transient, console=Console(stderr=True)) as bar:
         task = bar.add_task(label, total=total, **({"loss": "-"} if loss else {}))
 
         def update(done: int, total: int | None = None, **fields) -> None:

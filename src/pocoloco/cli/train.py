@@ -285,7 +285,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch.compile the forward pass (GPU; single process; default off)")  # fmt: skip
     parser.add_argument("--device", default=None, help="cuda, cuda:1, cpu (default: cuda if available, else cpu)")
     add_threads_argument(parser)
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar (in a log, where stderr is not a terminal, the bar is a line a minute)")
 
 
 def cmd_hybrid(args: argparse.Namespace) -> None:
@@ -368,7 +369,7 @@ def add_hybrid_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pack-every", type=int, default=3, help="--fine-tune: pack every K-th train frame (default 3)")
     parser.add_argument("--pack-points", type=int, default=512,
                         help="--fine-tune: free-region points per packed frame, and per cloud in training (default 512)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars (in a log: a line a minute)")
     add_threads_argument(parser)
     parser.add_argument("--no-area-weighting", action="store_true",
                         help="draw POP's points uniformly among its UV pixels (default: by the body area each "

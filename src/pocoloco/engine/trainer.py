@@ -62,6 +62,7 @@ from pocoloco.data.dataset import Normalisation
 from pocoloco.engine import checkpoint as ckpt_io
 from pocoloco.utils.atomic import write_json_atomic
 from pocoloco.utils.hardware import available_memory_bytes
+from pocoloco.utils.progress import LogProgress, stderr_is_terminal
 from pocoloco.viz.render import plot_curves
 
 __all__ = [
@@ -366,27 +367,36 @@ class Logger:
 
 
 class ProgressBar:
-    """A rich progress bar with the loss (or nothing)."""
+    """A rich progress bar with the loss on a terminal, plain lines in a log
+    (``utils.progress.LogProgress``), or nothing."""
 
     def __init__(self, enabled: bool, start: int, total: int):
-        self.bar = None
+        self.bar = self.log = None
         if not enabled:
             return
+        if not stderr_is_terminal():
+            self.log = LogProgress("train", total, loss=True, done=start)
+            return
         from rich import progress as rp
+        from rich.console import Console
 
         self.bar = rp.Progress(rp.TextColumn("train"), rp.BarColumn(), rp.MofNCompleteColumn(),
                                rp.TextColumn("loss {task.fields[loss]}"), rp.TimeElapsedColumn(),
-                               rp.TimeRemainingColumn())  # fmt: skip
+                               rp.TimeRemainingColumn(), console=Console(stderr=True))  # fmt: skip
         self.bar.start()
         self.task = self.bar.add_task("train", total=total, completed=start, loss="-")
 
     def advance(self, loss: float) -> None:
         if self.bar is not None:
             self.bar.update(self.task, advance=1, loss=f"{loss:.4f}")
+        elif self.log is not None:
+            self.log.update(self.log.done + 1, loss=f"{loss:.4f}")
 
     def close(self) -> None:
         if self.bar is not None:
             self.bar.stop()
+        elif self.log is not None:
+            self.log.finish()
 
 
 # ------------------------------------------------------------------------------ distributed

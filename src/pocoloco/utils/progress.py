@@ -1,0 +1,69 @@
+"""Progress for a log: what a long job prints when stderr is not a terminal.
+
+A rich progress bar draws nothing into a file, so a job started with ``nohup ... > job.log`` would
+say nothing until it ends. :class:`LogProgress` writes a plain line instead, at most every
+``LOG_PROGRESS_EVERY_S`` seconds (``frames: 1,234 / 19,040 (6 %), 12:34 elapsed, ~3:05:10 left``),
+and a last one at the end if it wrote any; a job shorter than the interval writes nothing.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+#: seconds between two progress lines in a log
+LOG_PROGRESS_EVERY_S = 60.0
+
+
+def now() -> float:
+    """The clock the progress lines use (monotonic seconds; replaced in tests)."""
+    return time.monotonic()
+
+
+def stderr_is_terminal() -> bool:
+    return sys.stderr.isatty()
+
+
+def duration(seconds: float) -> str:
+    """``1:02:03`` from an hour on, ``2:03`` below."""
+    s = int(round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
+class LogProgress:
+    """Plain progress lines on stderr (module docstring). ``update(done, total=None, **fields)``;
+    a ``loss`` field is shown when ``loss``; :meth:`finish` writes the last line if any was written."""
+
+    def __init__(self, label: str, total: int | None = None, loss: bool = False, done: int = 0):
+        self.label, self.total, self.loss = label, total, loss
+        self.start = self.last = now()
+        self.first = self.done = done  # the time left is estimated from the work done in this run
+        self.fields: dict = {}
+        self.printed = False
+
+    def line(self) -> str:
+        elapsed = now() - self.start
+        text = f"{self.label}: {self.done:,}"
+        if self.total:
+            text += f" / {self.total:,} ({100.0 * self.done / self.total:.0f} %)"
+        text += f", {duration(elapsed)} elapsed"
+        if self.total and self.first < self.done < self.total:
+            text += f", ~{duration(elapsed * (self.total - self.done) / (self.done - self.first))} left"
+        if self.loss and "loss" in self.fields:
+            text += f", loss {self.fields['loss']}"
+        return text
+
+    def update(self, done: int, total: int | None = None, **fields) -> None:
+        self.done = done
+        self.total = total if total is not None else self.total
+        self.fields.update(fields)
+        if now() - self.last >= LOG_PROGRESS_EVERY_S:
+            self.emit()
+
+    def emit(self) -> None:
+        print(self.line(), file=sys.stderr, flush=True)
+        self.last, self.printed = now(), True
+
+    def finish(self) -> None:
+        if self.printed:
+            self.emit()
