@@ -218,6 +218,12 @@ def test_progress_in_a_log_is_a_plain_line_every_interval(monkeypatch, capsys):
         now[0] += 30.0
         update(10)
     assert capsys.readouterr().err == ""
+    now[0] = 0.0
+    with common.progress_bar("frames", total=1000) as update:  # resumed: 500 done before, counted at once
+        update(500)
+        now[0] += 60.0
+        update(600)  # 100 frames in 60 s: 400 left take 4 min
+    assert capsys.readouterr().err.splitlines()[0] == "frames: 600 / 1,000 (60 %), 1:00 elapsed, ~4:00 left"
     monkeypatch.setattr("pocoloco.engine.trainer.stderr_is_terminal", lambda: False)
     now[0] = 0.0
     bar = ProgressBar(True, start=4000, total=10000)  # resumed at step 4,000

@@ -34,10 +34,13 @@ class LogProgress:
     """Plain progress lines on stderr (module docstring). ``update(done, total=None, **fields)``;
     a ``loss`` field is shown when ``loss``; :meth:`finish` writes the last line if any was written."""
 
-    def __init__(self, label: str, total: int | None = None, loss: bool = False, done: int = 0):
+    def __init__(self, label: str, total: int | None = None, loss: bool = False, done: int | None = None):
         self.label, self.total, self.loss = label, total, loss
         self.start = self.last = now()
-        self.first = self.done = done  # the time left is estimated from the work done in this run
+        self.done = done or 0
+        # the time left is estimated from the work done since the first count (a resumed job
+        # reports what it had finished before as done at once)
+        self.first, self.first_time = done, self.start
         self.fields: dict = {}
         self.printed = False
 
@@ -47,13 +50,16 @@ class LogProgress:
         if self.total:
             text += f" / {self.total:,} ({100.0 * self.done / self.total:.0f} %)"
         text += f", {duration(elapsed)} elapsed"
-        if self.total and self.first < self.done < self.total:
-            text += f", ~{duration(elapsed * (self.total - self.done) / (self.done - self.first))} left"
+        if self.total and self.first is not None and self.first < self.done < self.total:
+            rate = (self.done - self.first) / max(now() - self.first_time, 1e-9)
+            text += f", ~{duration((self.total - self.done) / rate)} left"
         if self.loss and "loss" in self.fields:
             text += f", loss {self.fields['loss']}"
         return text
 
     def update(self, done: int, total: int | None = None, **fields) -> None:
+        if self.first is None:
+            self.first, self.first_time = done, now()
         self.done = done
         self.total = total if total is not None else self.total
         self.fields.update(fields)
