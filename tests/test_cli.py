@@ -200,7 +200,6 @@ def test_progress_in_a_log_is_a_plain_line_every_interval(monkeypatch, capsys):
 
     now = [0.0]
     monkeypatch.setattr(progress, "now", lambda: now[0])
-    monkeypatch.setattr(progress, "stderr_is_terminal", lambda: False)
     monkeypatch.setattr(common, "stderr_is_terminal", lambda: False)
     with common.progress_bar("frames", total=1000) as update:
         for done in range(0, 1001, 100):  # 100 frames every 25 s
