@@ -195,12 +195,11 @@ def test_progress_in_a_log_is_a_plain_line_every_interval(monkeypatch, capsys):
     with done / total, elapsed and time left, and a last line at the end; a short job writes nothing;
     training's bar (resumed at a step) estimates the time left from this run's steps."""
     from pocoloco.cli import common
-    from pocoloco.engine.trainer import ProgressBar
     from pocoloco.utils import progress
 
     now = [0.0]
     monkeypatch.setattr(progress, "now", lambda: now[0])
-    monkeypatch.setattr(common, "stderr_is_terminal", lambda: False)
+    monkeypatch.setattr(progress, "stderr_is_terminal", lambda: False)
     with common.progress_bar("frames", total=1000) as update:
         for done in range(0, 1001, 100):  # 100 frames every 25 s
             update(done)
@@ -223,13 +222,22 @@ def test_progress_in_a_log_is_a_plain_line_every_interval(monkeypatch, capsys):
         now[0] += 60.0
         update(600)  # 100 frames in 60 s: 400 left take 4 min
     assert capsys.readouterr().err.splitlines()[0] == "frames: 600 / 1,000 (60 %), 1:00 elapsed, ~4:00 left"
-    monkeypatch.setattr("pocoloco.engine.trainer.stderr_is_terminal", lambda: False)
     now[0] = 0.0
-    bar = ProgressBar(True, start=4000, total=10000)  # resumed at step 4,000
+    bar = progress.Progress("train", 10000, loss=True, done=4000)  # training's bar, resumed at step 4,000
     for _ in range(3000):
         now[0] += 0.0625  # 16 steps/s
-        bar.advance(0.25)
+        bar.advance(loss="0.2500")
     bar.close()
     lines = capsys.readouterr().err.strip().splitlines()
     assert lines[0] == "train: 4,960 / 10,000 (50 %), 1:00 elapsed, ~5:15 left, loss 0.2500", lines
     assert lines[-1].startswith("train: 7,000 / 10,000 (70 %), 3:08 elapsed") and len(lines) == 4
+    monkeypatch.setattr(progress, "stderr_is_terminal", lambda: True)  # a terminal: the rich bar
+    with progress.Progress("train", 10, loss=True, done=4) as bar:
+        bar.advance(loss="0.5")
+        bar.update(8, total=12)
+        assert bar.bar.tasks[0].completed == 8 and bar.bar.tasks[0].total == 12 and bar.done == 8
+    assert bar.bar is None
+    capsys.readouterr()
+    with progress.Progress("off", 10, enabled=False) as bar:  # disabled (another rank): nothing at all
+        bar.advance()
+    assert capsys.readouterr().err == ""

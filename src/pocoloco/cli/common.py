@@ -10,7 +10,6 @@ import re
 import sys
 import warnings
 from contextlib import contextmanager
-from typing import Any
 
 import torch
 
@@ -18,7 +17,7 @@ from pocoloco.diffusion.samplers import SAMPLER_STEPS
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods import Method, load_method
 from pocoloco.utils.atomic import output_folder
-from pocoloco.utils.progress import LogProgress, stderr_is_terminal
+from pocoloco.utils.progress import Progress
 from pocoloco.utils.hardware import bf16_is_fast
 
 __all__ = ["EXIT_USER_ERROR", "MAX_SEED", "USER_ERRORS", "add_any_pose_argument", "check_seeds", "add_bf16_argument", "add_even_argument", "resolve_bf16", "add_app_arguments", "add_device_argument", "add_threads_argument",
@@ -189,34 +188,9 @@ def load_method_from_args(args: argparse.Namespace, expect: str | tuple[str, ...
 @contextmanager
 def progress_bar(label: str, total: int | None = None, loss: bool = False, transient: bool = True):
     """A rich progress bar on a terminal (stderr); in a log a plain line every minute instead
-    (``utils.progress.LogProgress``). Yields ``update(done, total=None, **fields)``."""
-    if not stderr_is_terminal():
-        log = LogProgress(label, total, loss)
-        yield log.update
-        log.finish()
-        return
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    columns: list[Any] = [TextColumn(label), BarColumn(), MofNCompleteColumn()]
-    if loss:
-        columns.append(TextColumn("loss {task.fields[loss]}"))
-    columns += [TimeElapsedColumn(), TimeRemainingColumn()]
-    from rich.console import Console
-
-    with Progress(*columns, transient=transient, console=Console(stderr=True)) as bar:
-        task = bar.add_task(label, total=total, **({"loss": "-"} if loss else {}))
-
-        def update(done: int, total: int | None = None, **fields) -> None:
-            bar.update(task, completed=done, **({"total": total} if total is not None else {}), **fields)
-
-        yield update
+    (``utils.progress.Progress``). Yields ``update(done, total=None, **fields)``."""
+    with Progress(label, total, loss=loss, transient=transient) as bar:
+        yield bar.update
 
 
 # ------------------------------------------------------------------------------------- the apps

@@ -62,7 +62,7 @@ from pocoloco.data.dataset import Normalisation
 from pocoloco.engine import checkpoint as ckpt_io
 from pocoloco.utils.atomic import write_json_atomic
 from pocoloco.utils.hardware import available_memory_bytes
-from pocoloco.utils.progress import LogProgress, stderr_is_terminal
+from pocoloco.utils.progress import Progress
 from pocoloco.viz.render import plot_curves
 
 __all__ = [
@@ -70,7 +70,6 @@ __all__ = [
     "EMA",
     "Logger",
     "LoopSettings",
-    "ProgressBar",
     "TrainResult",
     "TrainingTask",
     "check_run_folder",
@@ -366,39 +365,6 @@ class Logger:
             self.tb.close()
 
 
-class ProgressBar:
-    """A rich progress bar with the loss on a terminal, plain lines in a log
-    (``utils.progress.LogProgress``), or nothing."""
-
-    def __init__(self, enabled: bool, start: int, total: int):
-        self.bar = self.log = None
-        if not enabled:
-            return
-        if not stderr_is_terminal():
-            self.log = LogProgress("train", total, loss=True, done=start)
-            return
-        from rich import progress as rp
-        from rich.console import Console
-
-        self.bar = rp.Progress(rp.TextColumn("train"), rp.BarColumn(), rp.MofNCompleteColumn(),
-                               rp.TextColumn("loss {task.fields[loss]}"), rp.TimeElapsedColumn(),
-                               rp.TimeRemainingColumn(), console=Console(stderr=True))  # fmt: skip
-        self.bar.start()
-        self.task = self.bar.add_task("train", total=total, completed=start, loss="-")
-
-    def advance(self, loss: float) -> None:
-        if self.bar is not None:
-            self.bar.update(self.task, advance=1, loss=f"{loss:.4f}")
-        elif self.log is not None:
-            self.log.update(self.log.done + 1, loss=f"{loss:.4f}")
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.stop()
-        elif self.log is not None:
-            self.log.finish()
-
-
 # ------------------------------------------------------------------------------ distributed
 def dist_info() -> tuple[int, int]:
     """(rank, world size); (0, 1) outside ``torch.distributed``."""
@@ -639,7 +605,7 @@ def train(
     def autocast():
         return torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
 
-    bar = ProgressBar(progress and rank == 0, start_step, config.steps)
+    bar = Progress("train", config.steps, loss=True, done=start_step, transient=False, enabled=progress and rank == 0)
     last_ckpt, saved_step, loss_val, t0, step = None, None, float("nan"), time.perf_counter(), start_step
     stopped_by_budget = False
     clock_decay = time_budget_s is not None and config.lr_schedule == "wsd"
@@ -693,7 +659,7 @@ def train(
                     if log_fn is not None:
                         log_fn(rec)
             if rank == 0:
-                bar.advance(loss_val)
+                bar.advance(loss=f"{loss_val:.4f}")
                 if config.sample_every and done % config.sample_every == 0:
                     task.preview(model if ema is None else ema.module, done, out, device)
                     logger.plot(out / "loss.png")

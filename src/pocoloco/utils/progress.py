@@ -1,15 +1,18 @@
-"""Progress for a log: what a long job prints when stderr is not a terminal.
+"""Progress of long work: a rich bar on a terminal, plain lines in a log.
 
-A rich progress bar draws nothing into a file, so a job started with ``nohup ... > job.log`` would
-say nothing until it ends. :class:`LogProgress` writes a plain line instead, at most every
-``LOG_PROGRESS_EVERY_S`` seconds (``frames: 1,234 / 19,040 (6 %), 12:34 elapsed, ~3:05:10 left``),
-and a last one at the end if it wrote any; a job shorter than the interval writes nothing.
+:class:`Progress` is what every long command and the training loop use. On a terminal it draws a
+rich bar on stderr. A rich bar draws nothing into a file, so a job started with
+``nohup ... > job.log`` would say nothing until it ends; where stderr is not a terminal
+:class:`LogProgress` writes a plain line instead, at most every ``LOG_PROGRESS_EVERY_S`` seconds
+(``frames: 1,234 / 19,040 (6 %), 12:34 elapsed, ~3:05:10 left``), and a last one at the end if it
+wrote any; a job shorter than the interval writes nothing.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from typing import Any
 
 #: seconds between two progress lines in a log
 LOG_PROGRESS_EVERY_S = 60.0
@@ -73,3 +76,58 @@ class LogProgress:
     def finish(self) -> None:
         if self.printed:
             self.emit()
+
+
+class Progress:
+    """Progress of one long piece of work: a rich bar on a terminal (stderr), :class:`LogProgress`
+    lines where stderr is not a terminal, nothing when not ``enabled``.
+
+    ``update(done, total=None, **fields)`` sets the count (and any column's field: ``loss``, shown
+    when ``loss``); ``advance(**fields)`` counts one more; ``close()`` (or leaving the ``with``
+    block) ends it. ``done``: the count before this run (a resumed job), shown at once.
+    ``transient``: the bar disappears from the terminal at the end.
+    """
+
+    def __init__(self, label: str, total: int | None = None, loss: bool = False, done: int = 0,
+                 transient: bool = True, enabled: bool = True):  # fmt: skip
+        self.done = done
+        self.bar: Any = None
+        self.log: LogProgress | None = None
+        if not enabled:
+            return
+        if not stderr_is_terminal():
+            self.log = LogProgress(label, total, loss, done=done if done else None)
+            return
+        from rich import progress as rp
+        from rich.console import Console
+
+        columns: list[Any] = [rp.TextColumn(label), rp.BarColumn(), rp.MofNCompleteColumn()]
+        if loss:
+            columns.append(rp.TextColumn("loss {task.fields[loss]}"))
+        columns += [rp.TimeElapsedColumn(), rp.TimeRemainingColumn()]
+        self.bar = rp.Progress(*columns, transient=transient, console=Console(stderr=True))
+        self.bar.start()
+        self.task = self.bar.add_task(label, total=total, completed=done, **({"loss": "-"} if loss else {}))
+
+    def update(self, done: int, total: int | None = None, **fields) -> None:
+        self.done = done
+        if self.bar is not None:
+            self.bar.update(self.task, completed=done, **({"total": total} if total is not None else {}), **fields)
+        elif self.log is not None:
+            self.log.update(done, total, **fields)
+
+    def advance(self, **fields) -> None:
+        self.update(self.done + 1, **fields)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+        elif self.log is not None:
+            self.log.finish()
+        self.bar = self.log = None
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
