@@ -316,6 +316,12 @@ def test_resume_repairs_damaged_frames_byte_for_byte_and_a_failed_finalize_keeps
     assert err.count("damaged frame file(s)") == len({truncated.parent, missing.parent, corrupt.parent}), err
     assert _frame_digests(data) == _frame_digests(tiny_dataset)
     assert _card_without_run_facts(data) == _card_without_run_facts(tiny_dataset)
+    # over a finished dataset: what was done before is reported in one count (a log's time-left
+    # estimate starts from it), and every sequence's record comes back, in job order
+    calls: list[tuple[int, int]] = []
+    records = synthesize_shard(synth_preset("tiny"), data, 1, 1, workers=2, progress=lambda d, t: calls.append((d, t)))
+    assert len(calls) == 1 and calls[0][0] == calls[0][1] == sum(r["num_frames"] for r in records), calls
+    assert [r["name"] for r in records] == [j.name for j in list_jobs(synth_preset("tiny"))]
 
 
 def test_one_writer_per_dataset_shards_share_it(tmp_path, capsys):

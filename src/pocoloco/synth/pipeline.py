@@ -589,8 +589,16 @@ def synthesize_shard(
         if progress:
             progress(done, total)
 
+    # a resumed run reports what it finished before in one count, before any new frame (a log's
+    # time-left estimate starts from it), and reads those sequences' records here
+    layout = DatasetLayout(out)
+    finished = {i: run_sequence(config, out, jobs[i]) for i in indices
+                if layout.sequence_meta_path(jobs[i].subject.name, jobs[i].split, jobs[i].name).exists()}  # fmt: skip
+    if finished:
+        tick(len(finished) * config.frames_per_sequence)
+    todo = [i for i in indices if i not in finished]
     if workers <= 1:
-        records = [run_sequence(config, out, jobs[i], progress=tick) for i in indices]
+        records = [finished[i] if i in finished else run_sequence(config, out, jobs[i], progress=tick) for i in indices]
     else:
         import multiprocessing as mp
 
@@ -599,8 +607,8 @@ def synthesize_shard(
         with ProcessPoolExecutor(
             max_workers=workers, mp_context=ctx, initializer=init_worker, initargs=(os.getpid(), queue)
         ) as pool:
-            futures = [pool.submit(_worker, config.to_dict(), str(out), i) for i in indices]
-            pending = set(futures)
+            futures = {i: pool.submit(_worker, config.to_dict(), str(out), i) for i in todo}
+            pending = set(futures.values())
             while pending:
                 while not queue.empty():
                     tick(queue.get())
@@ -609,7 +617,7 @@ def synthesize_shard(
                     f.result()  # raises a worker's error at once
                 pending -= finished
                 time.sleep(0.2)
-            records = [f.result() for f in futures]  # in job order, whichever finished first
+            records = [finished[i] if i in finished else futures[i].result() for i in indices]  # in job order
         while not queue.empty():
             tick(queue.get())
     for subject in config.subjects:  # each sequence writes its own subject's file; the others here
