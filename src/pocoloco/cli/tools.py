@@ -168,17 +168,18 @@ def cmd_export_model(args: argparse.Namespace) -> None:
     """A small sampling-only copy of a checkpoint (how the shipped models were made)."""
     ckpt = resolve_checkpoint(args.ckpt)
     ck = load_checkpoint(ckpt, expect_model=None, training_state=False)
+    unlinked = ck
     if args.polish_with:  # re-linking: the old link may name a teacher that has changed since
-        ck = dataclasses.replace(ck, meta={k: v for k, v in ck.meta.items() if k != "polish"})
-    model = method_class(ck.model_kind).from_checkpoint(ck).model
+        unlinked = dataclasses.replace(ck, meta={k: v for k, v in ck.meta.items() if k != "polish"})
+    model = method_class(ck.model_kind).from_checkpoint(unlinked).model
     buffers = [name for name, b in model.named_buffers() if b.is_floating_point()]
     if args.polish_t is not None and not args.polish_with:
         raise ValueError("--polish-t goes with --polish-with (the teacher that makes the last call)")
     extra = {}
     if args.polish_with:
         t = DEFAULT_POLISH_T if args.polish_t is None else args.polish_t
-        extra["polish"] = polish_link(ckpt, args.polish_with, t)
-    out = export_for_sampling(ckpt, args.out, use_ema=not args.raw_weights, dtype=args.dtype,
+        extra["polish"] = polish_link(unlinked, args.polish_with, t)
+    out = export_for_sampling(ck, args.out, use_ema=not args.raw_weights, dtype=args.dtype,
                               keep_float32=buffers, extra_meta=extra)  # geometry buffers (templates, UV queries) stay float32
     size = sum(f.stat().st_size for f in out.iterdir())
     weights = json.loads((out / "meta.json").read_text(encoding="utf-8"))["weights"]  # raw if the model keeps no EMA

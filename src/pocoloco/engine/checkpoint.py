@@ -507,7 +507,7 @@ def _load_one(ckpt: Path, expect_model: str | None, expect_preset: str | None, m
     )  # fmt: skip
 
 
-def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema: bool = True,
+def export_for_sampling(path: str | os.PathLike | Checkpoint, out: str | os.PathLike, use_ema: bool = True,
                         dtype: str = "float32", keep_float32: Collection[str] = (),
                         extra_meta: Mapping[str, Any] | None = None) -> Path:
     """Write a small sampling-only copy of a checkpoint: ``meta.json`` + one ``model.safetensors``.
@@ -515,6 +515,8 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
     The weights are the EMA weights (``use_ema``, if the checkpoint has them) or the raw ones; no
     optimiser or RNG state, so it cannot be resumed. Written atomically (temporary folder, rename).
     This is how the models shipped in ``pocoloco/assets`` were made. Returns ``out``.
+
+    path: a checkpoint (file, folder or run) or one already loaded (:func:`load_checkpoint`).
 
     dtype: storage dtype of the floating tensors, ``"float32"``, ``"float16"`` (half the bytes;
         loading casts back to float32; with ``"float16"``, int64 buffers whose values fit are stored
@@ -530,7 +532,7 @@ def export_for_sampling(path: str | os.PathLike, out: str | os.PathLike, use_ema
 
     if dtype not in WEIGHTS_DTYPES:
         raise ValueError(f"weights dtype {dtype!r}: choose one of {', '.join(WEIGHTS_DTYPES)}")
-    ck = load_checkpoint(path, expect_model=None, training_state=False)
+    ck = path if isinstance(path, Checkpoint) else load_checkpoint(path, expect_model=None, training_state=False)
     state = ck.ema_state if (use_ema and ck.ema_state is not None) else ck.model_state
     if dtype != "float32":
         keep = set(keep_float32)

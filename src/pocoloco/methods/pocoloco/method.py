@@ -290,11 +290,17 @@ def _polishing_teacher(ck: Checkpoint, config: PocoLocoTrainConfig, device: str)
     return teacher.model, int(t)
 
 
-def polish_link(student: str | Path, teacher: str, t: int = DEFAULT_POLISH_T) -> dict[str, Any]:
+def polish_link(student: str | Path | Checkpoint, teacher: str, t: int = DEFAULT_POLISH_T) -> dict[str, Any]:
     """The ``meta["polish"]`` entry that makes ``teacher`` finish a distilled ``student``'s clouds at
     1-based step ``t`` (``pocoloco export-model --polish-with``): the teacher's name (``default`` for
-    a shipped model, else its folder's absolute path), its meta.json digest and t; checked as at load."""
-    ck = load_checkpoint(student, expect_model="pocoloco", training_state=False)
+    a shipped model, else its folder's absolute path), its meta.json digest and t; checked as at load.
+    ``student``: its path or its loaded checkpoint."""
+    if isinstance(student, Checkpoint):
+        if student.model_kind != "pocoloco":
+            raise ValueError(f"{student.path / META_FILE}: checkpoint is of model {student.model_kind!r}, expected 'pocoloco'")
+        ck = student
+    else:
+        ck = load_checkpoint(student, expect_model="pocoloco", training_state=False)
     config = PocoLocoTrainConfig.from_dict(ck.config)
     if not config.student_calls:
         raise ValueError(f"{student}: --polish-with is for a distilled model (pocoloco distill); this one is a "
