@@ -35,6 +35,7 @@ import torch
 from pocoloco.apps.fitting import fit_outfit
 from pocoloco.data import format as fmt
 from pocoloco.data.published import export_frame
+from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.evaluation.evaluate import EvalSettings, evaluate
 from pocoloco.methods import load_method
 from pocoloco.utils.atomic import write_json_atomic
@@ -70,7 +71,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--subjects", nargs="+", help="default: every subject of --data")
-    ap.add_argument("--ckpt-pocoloco", help="PocoLoco trained with --outfit-codes (run folder or checkpoint)")
+    ap.add_argument("--ckpt-pocoloco", help="PocoLoco trained with --outfit-codes (run folder, checkpoint or 'default')")
     ap.add_argument("--ckpt-pop", help="POP run folder or checkpoint")
     ap.add_argument("--ckpt-hybrid", help="hybrid checkpoint (pocoloco hybrid): fits one scan, as POP")
     ap.add_argument("--scans", type=int, nargs="+", default=[1, 3], help="numbers of scans fitted (POP: 1 only)")
@@ -86,8 +87,8 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    models = {k: v for k, v in (("pocoloco", args.ckpt_pocoloco), ("pop", args.ckpt_pop), ("hybrid", args.ckpt_hybrid))
-              if v}  # fmt: skip
+    models = {k: resolve_ckpt_arg(v) for k, v in (("pocoloco", args.ckpt_pocoloco), ("pop", args.ckpt_pop),
+                                                    ("hybrid", args.ckpt_hybrid)) if v}  # shipped names: default, default:pop, ...
     if not models:
         raise SystemExit("error: give --ckpt-pocoloco, --ckpt-pop and / or --ckpt-hybrid")
     card = fmt.read_card(args.data)
