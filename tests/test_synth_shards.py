@@ -316,12 +316,18 @@ def test_resume_repairs_damaged_frames_byte_for_byte_and_a_failed_finalize_keeps
     assert err.count("damaged frame file(s)") == len({truncated.parent, missing.parent, corrupt.parent}), err
     assert _frame_digests(data) == _frame_digests(tiny_dataset)
     assert _card_without_run_facts(data) == _card_without_run_facts(tiny_dataset)
-    # over a finished dataset: what was done before is reported in one count (a log's time-left
-    # estimate starts from it), and every sequence's record comes back, in job order
+    # a resume with one sequence left (its mark removed): what was done before is reported in one
+    # count before any new frame (a log's time-left estimate starts from it), the rest is made by
+    # the workers, and every sequence's record comes back, in job order, with the same bytes
+    tiny = synth_preset("tiny")
+    jobs = list_jobs(tiny)
+    layout.sequence_meta_path(jobs[-1].subject.name, jobs[-1].split, jobs[-1].name).unlink()
     calls: list[tuple[int, int]] = []
-    records = synthesize_shard(synth_preset("tiny"), data, 1, 1, workers=2, progress=lambda d, t: calls.append((d, t)))
-    assert len(calls) == 1 and calls[0][0] == calls[0][1] == sum(r["num_frames"] for r in records), calls
-    assert [r["name"] for r in records] == [j.name for j in list_jobs(synth_preset("tiny"))]
+    records = synthesize_shard(tiny, data, 1, 1, workers=2, progress=lambda d, t: calls.append((d, t)))
+    total = len(jobs) * tiny.frames_per_sequence
+    assert calls[0] == (total - tiny.frames_per_sequence, total) and calls[-1] == (total, total), calls
+    assert [r["name"] for r in records] == [j.name for j in jobs]
+    assert _frame_digests(data) == _frame_digests(tiny_dataset)
 
 
 def test_one_writer_per_dataset_shards_share_it(tmp_path, capsys):

@@ -592,13 +592,14 @@ def synthesize_shard(
     # a resumed run reports what it finished before in one count, before any new frame (a log's
     # time-left estimate starts from it), and reads those sequences' records here
     layout = DatasetLayout(out)
-    finished = {i: run_sequence(config, out, jobs[i]) for i in indices
-                if layout.sequence_meta_path(jobs[i].subject.name, jobs[i].split, jobs[i].name).exists()}  # fmt: skip
-    if finished:
-        tick(len(finished) * config.frames_per_sequence)
-    todo = [i for i in indices if i not in finished]
+    done_before = {i: run_sequence(config, out, jobs[i]) for i in indices
+                   if layout.sequence_meta_path(jobs[i].subject.name, jobs[i].split, jobs[i].name).exists()}  # fmt: skip
+    if done_before:
+        tick(len(done_before) * config.frames_per_sequence)
+    todo = [i for i in indices if i not in done_before]
     if workers <= 1:
-        records = [finished[i] if i in finished else run_sequence(config, out, jobs[i], progress=tick) for i in indices]
+        records = [done_before[i] if i in done_before else run_sequence(config, out, jobs[i], progress=tick)
+                   for i in indices]  # fmt: skip
     else:
         import multiprocessing as mp
 
@@ -617,7 +618,7 @@ def synthesize_shard(
                     f.result()  # raises a worker's error at once
                 pending -= finished
                 time.sleep(0.2)
-            records = [finished[i] if i in finished else futures[i].result() for i in indices]  # in job order
+            records = [done_before[i] if i in done_before else futures[i].result() for i in indices]  # in job order
         while not queue.empty():
             tick(queue.get())
     for subject in config.subjects:  # each sequence writes its own subject's file; the others here

@@ -303,7 +303,7 @@ def polish_link(student: str | Path | Checkpoint, teacher: str, t: int = DEFAULT
         ck = load_checkpoint(student, expect_model="pocoloco", training_state=False)
     config = PocoLocoTrainConfig.from_dict(ck.config)
     if not config.student_calls:
-        raise ValueError(f"{student}: --polish-with is for a distilled model (pocoloco distill); this one is a "
+        raise ValueError(f"{ck.path}: --polish-with is for a distilled model (pocoloco distill); this one is a "
                          f"diffusion model")  # fmt: skip
     teacher_ck = load_checkpoint(resolve_ckpt_arg(teacher), expect_model="pocoloco", training_state=False)
     entry = {**link_to(teacher_ck.path, teacher_ck.meta, "export it first"), "t": int(t)}
