@@ -354,14 +354,28 @@ def hybrid_with_codes(hybrid, tiny_dataset, tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("generator", ["joints only", "outfit codes"])
+def _linked(hybrid, root):
+    """A hybrid linking float32 exports of ``hybrid``'s two networks (``pocoloco hybrid --link``)."""
+    copy = load_method(hybrid)
+    for part, kind in (("attached", "pop"), ("free", "pocoloco")):
+        assert main(["export-model", "--ckpt", copy.config.sources[part], "--out", str(root / kind),
+                     "--dtype", "float32"]) == 0  # fmt: skip
+    assert main(["hybrid", "--attached", str(root / "pop"), "--free", str(root / "pocoloco"), "--data",
+                 str(copy.meta["data"]), "--maps", str(hybrid / "maps.npz"), "--link", "--no-progress", "--out",
+                 str(root / "linked")]) == 0  # fmt: skip
+    return root / "linked"
+
+
+@pytest.mark.parametrize("generator", ["joints only", "outfit codes", "linked"])
 def test_fit_adds_an_outfit_to_both_networks_and_the_maps(generator, hybrid, hybrid_with_codes, tiny_dataset, tmp_path,
                                                           capsys):  # fmt: skip
     """pocoloco fit on the hybrid: POP's features fitted to the scan, the generator's code (when it
     has outfit codes) to the scan's free-region points; the map from the scan's labels (the outfit
     codes case), else the start's (the mean map), with the scan's own free share; the new
-    checkpoint samples the outfit."""
-    ckpt = hybrid if generator == "joints only" else hybrid_with_codes
+    checkpoint samples the outfit. A linked hybrid's fit is saved as a copy of both networks (its
+    POP is no longer the linked one's)."""
+    ckpt = {"joints only": hybrid, "outfit codes": hybrid_with_codes}.get(generator)
+    ckpt = ckpt or _linked(hybrid, tmp_path / "sources")
     labelled = generator == "outfit codes"
     s, seq, path = _frame(tiny_dataset, "skirt")
     fr = read_frame(path)
@@ -391,6 +405,9 @@ def test_fit_adds_an_outfit_to_both_networks_and_the_maps(generator, hybrid, hyb
         assert not torch.allclose(codes[-1], old.model.free.who.outfit_embed.weight.mean(0))  # fitted from the mean
     else:
         assert new.free.outfit_names() == []
+    assert ("linked" in new.meta, new.meta.get("unlinked_from")) == (
+        (False, {"attached": str(tmp_path / "sources" / "pop"), "free": str(tmp_path / "sources" / "pocoloco")})
+        if generator == "linked" else (False, None))  # fmt: skip
     assert main(["sample", "--ckpt", str(out), "--outfit", "new_skirt", "--joints", spec, "--num", "2", "--points",
                  "200", "--steps", "2", "--no-render", "--out", str(tmp_path / "s")]) == 0  # fmt: skip
 

@@ -301,10 +301,14 @@ class Method(ABC):
     def save(self, root: str | Path, extra: dict[str, Any] | None = None) -> Path:
         """Write the model as a new checkpoint (weights only, no training state) into the
         checkpoints folder ``root``, atomically; ``extra``: more ``meta.json`` entries."""
-        keep = {k: v for k, v in self.meta.items() if k not in _META_OWN}
+        keep = {k: v for k, v in self._meta_to_save().items() if k not in _META_OWN}
         return save_checkpoint(root, self.step, model_kind=self.kind, preset=self.config.preset,
                                config=self.config.to_dict(), normalisation=self.normalisation,
                                model_state=self.model.state_dict(), extra={**keep, **(extra or {})})  # fmt: skip
+
+    def _meta_to_save(self) -> dict[str, Any]:
+        """The ``meta.json`` entries :meth:`save` carries over from this model's own."""
+        return self.meta
 
     # ---------------------------------------------------------------------------- predicting
     @abstractmethod

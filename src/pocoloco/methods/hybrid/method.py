@@ -297,6 +297,16 @@ class HybridMethod(Method):
             code = fit.features
         return HybridFit(HybridCode(attached.features, code, np.asarray(init.vertex_share, np.float32), share), losses)
 
+    def _meta_to_save(self) -> dict[str, Any]:
+        """A saved hybrid holds both networks' weights: a linked one (``pocoloco hybrid --link``) is
+        saved as a copy, since its networks (a fitted outfit's code, say) are no longer the linked
+        checkpoints' (``unlinked_from`` names those)."""
+        linked = self.meta.get("linked")
+        if not linked:
+            return self.meta
+        return {**{k: v for k, v in self.meta.items() if k != "linked"},
+                "unlinked_from": {part: ref.get("ckpt") for part, ref in linked.items()}}
+
     def add_outfit(self, code: HybridCode, entry: dict[str, Any]) -> int:
         """Append a fitted outfit to both networks and the maps; returns its id."""
         new_id = self.attached.add_outfit(code.attached, dict(entry))
