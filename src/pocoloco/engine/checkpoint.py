@@ -65,6 +65,7 @@ __all__ = [
     "CorruptCheckpointError",
     "WEIGHTS_DTYPES",
     "capture_rng_state",
+    "check_model_kind",
     "latest_checkpoint",
     "clean_stale_temporaries",
     "checkpoint_candidates",
@@ -465,13 +466,19 @@ def clean_stale_temporaries(root: str | os.PathLike) -> list[Path]:
     return stale
 
 
+def check_model_kind(ckpt: str | os.PathLike, kind: str, expected: str, hint: str = "") -> None:
+    """One-line error when the checkpoint folder ``ckpt`` holds model ``kind``, not ``expected``;
+    ``hint`` (the option it came from, say) is appended in parentheses."""
+    if kind != expected:
+        more = f" ({hint})" if hint else ""
+        raise ValueError(f"{Path(ckpt) / META_FILE}: checkpoint is of model {kind!r}, expected {expected!r}{more}")
+
+
 def _load_one(ckpt: Path, expect_model: str | None, expect_preset: str | None, map_location,
               training_state: bool) -> Checkpoint:  # fmt: skip
     meta = read_meta(ckpt)
-    if expect_model is not None and meta["model_kind"] != expect_model:
-        raise ValueError(
-            f"{ckpt / META_FILE}: checkpoint is of model {meta['model_kind']!r}, expected {expect_model!r}"
-        )
+    if expect_model is not None:
+        check_model_kind(ckpt, meta["model_kind"], expect_model)
     if expect_preset is not None and meta["preset"] != expect_preset:
         raise ValueError(f"{ckpt / META_FILE}: checkpoint is of preset {meta['preset']!r}, expected {expect_preset!r}")
     try:

@@ -23,7 +23,7 @@ from typing import Any
 
 from pocoloco.data.format import DatasetLayout, read_card
 from pocoloco.engine.checkpoint import (
-    META_FILE,
+    check_model_kind,
     read_meta,
     resolve_checkpoint,
 )
@@ -79,9 +79,7 @@ def _check_kind(key: str, ckpt) -> Path:
     path = resolve_checkpoint(resolve_ckpt_arg(ckpt))  # "default" = the shipped PocoLoco model
     meta = read_meta(path)
     title, kind, decomposition = QUALITY_ROWS[key]
-    if meta["model_kind"] != kind:
-        raise ValueError(f"{path / META_FILE}: checkpoint is of model {meta['model_kind']!r}, expected {kind!r} "
-                         f"(--ckpt-{key.replace('_', '-')})")  # fmt: skip
+    check_model_kind(path, meta["model_kind"], kind, f"--ckpt-{key.replace('_', '-')}")
     if decomposition is not None:
         has = bool(meta["config"].get("net", {}).get("decomposition", True))
         if has != decomposition:

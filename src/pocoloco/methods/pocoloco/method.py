@@ -26,7 +26,7 @@ from pocoloco.data.poses import (
 from pocoloco.diffusion.few_step import polished_grid, sampling_grid
 from pocoloco.diffusion.schedules import NoiseSchedule
 
-from pocoloco.engine.checkpoint import META_FILE, Checkpoint, load_checkpoint, one_line
+from pocoloco.engine.checkpoint import META_FILE, Checkpoint, check_model_kind, load_checkpoint, one_line
 from pocoloco.engine.links import link_to, load_linked
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.engine.trainer import TrainingTask
@@ -296,8 +296,7 @@ def polish_link(student: str | Path | Checkpoint, teacher: str, t: int = DEFAULT
     a shipped model, else its folder's absolute path), its meta.json digest and t; checked as at load.
     ``student``: its path or its loaded checkpoint."""
     if isinstance(student, Checkpoint):
-        if student.model_kind != "pocoloco":
-            raise ValueError(f"{student.path / META_FILE}: checkpoint is of model {student.model_kind!r}, expected 'pocoloco'")
+        check_model_kind(student.path, student.model_kind, "pocoloco")
         ck = student
     else:
         ck = load_checkpoint(student, expect_model="pocoloco", training_state=False)
