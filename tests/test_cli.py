@@ -231,12 +231,30 @@ def test_progress_in_a_log_is_a_plain_line_every_interval(monkeypatch, capsys):
     lines = capsys.readouterr().err.strip().splitlines()
     assert lines[0] == "train: 4,960 / 10,000 (50 %), 1:00 elapsed, ~5:15 left, loss 0.2500", lines
     assert lines[-1].startswith("train: 7,000 / 10,000 (70 %), 3:08 elapsed") and len(lines) == 4
+    now[0] = 0.0
+    bar = progress.Progress("train", 100000, done=4000, deadline_s=600.0)  # --time-budget 10: the clock decides
+    for _ in range(1000):
+        now[0] += 0.0625
+        bar.advance()
+    bar.close()
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[0] == "train: 4,960 / 100,000 (5 %), 1:00 elapsed, ~9:00 left (time budget)", lines
     monkeypatch.setattr(progress, "stderr_is_terminal", lambda: True)  # a terminal: the rich bar
     with progress.Progress("train", 10, loss=True, done=4) as bar:
         bar.advance(loss="0.5")
         bar.update(8, total=12)
         assert bar.bar.tasks[0].completed == 8 and bar.bar.tasks[0].total == 12 and bar.done == 8
     assert bar.bar is None
+    now[0] = 0.0
+    with progress.Progress("train", 100000, deadline_s=600.0) as bar:  # the bar's time left, capped the same way
+        column = bar.bar.columns[-1]
+        task = bar.bar.tasks[0]
+        now[0] = 60.0
+        assert column.render(task).plain == "9:00 (budget)"  # no count yet: the clock's
+        monkeypatch.setattr(type(task), "time_remaining", property(lambda t: 30.0))
+        assert column.render(task).plain == "0:30"  # the count's estimate is the sooner
+        monkeypatch.setattr(type(task), "time_remaining", property(lambda t: 7200.0))
+        assert column.render(task).plain == "9:00 (budget)"
     capsys.readouterr()
     with progress.Progress("off", 10, enabled=False) as bar:  # disabled (another rank): nothing at all
         bar.advance()

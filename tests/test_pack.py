@@ -252,15 +252,29 @@ def test_time_budget_stops_with_a_checkpoint_and_an_export(tiny_pack, tmp_path, 
     path, _ = tiny_pack
     run = tmp_path / "run"
     argv = ["train", "--data", str(path), "--out", str(run), "--preset", "latent_tiny", "--steps", "1000", "--no-progress",
-            "--device", "cpu", "--threads", "1", "--sample-every", "0", "--ckpt-every", "0", "--time-budget", "0.0001"]  # fmt: skip
+            "--device", "cpu", "--threads", "1", "--sample-every", "0", "--ckpt-every", "0", "--lr-schedule", "wsd",
+            "--decay-steps", "1000", "--time-budget", "0.0001"]  # fmt: skip
     assert cli_main(argv) == 0
     out = capsys.readouterr().out
     assert "time budget reached" in out
     ck = ckpt_io.load_checkpoint(run)
     assert ck.step == 1  # the first step already passes a 6 ms budget
     assert json.loads((run / "model" / "meta.json").read_text())["step"] == 1
-    assert cli_main([*argv[:-1], "0.0001", "--resume"]) == 0  # resumes, one more step, the export replaced
+    spent = ck.meta["train_seconds"]
+    assert spent > 0.0
+    capsys.readouterr()
+    # the budget is the whole run's: a resume with the same one has nothing left (one line, nothing written)
+    assert cli_main([*argv, "--resume"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("pocoloco: error: ") and "larger --time-budget" in err[-1] and "Traceback" not in "".join(err), err
+    assert ckpt_io.load_checkpoint(run).step == 1
+    # a budget 0.1 ms longer: one more step, the clock going on from the checkpoint's
+    assert cli_main([*argv[:-1], f"{(spent + 1e-4) / 60}", "--resume"]) == 0
     assert json.loads((run / "model" / "meta.json").read_text())["step"] == 2
+    assert ckpt_io.load_checkpoint(run).meta["train_seconds"] > spent
+    first, resumed = (json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines())
+    assert first["step"] == 1 and first["lr"] == pytest.approx(5e-4)  # warm-up step 1 of 2; the clock not begun
+    assert resumed["step"] == 2 and resumed["lr"] < 0.05e-3  # the clock's decay nearly done (a fresh clock: 1e-3)
     assert cli_main([*argv[:-1], "-1", "--resume"]) == 2
 
 

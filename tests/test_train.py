@@ -68,6 +68,8 @@ def test_lr_wsd_on_the_clock_takes_the_lower_of_steps_and_time():
     assert lr_at(c, 90, 0.1) == pytest.approx(0.5)  # faster machine: the step count decides
     const = dataclasses.replace(c, lr_schedule="constant")
     assert lr_at(const, 10, 0.99) == 1.0  # only wsd runs on the clock
+    warm = dataclasses.replace(c, warmup_steps=10)
+    assert lr_at(warm, 4, 0.0) == 0.5 and lr_at(warm, 4, 0.95) == pytest.approx(0.25)  # a budget spent in warm-up
 
 
 def test_ema_decay_warmup():

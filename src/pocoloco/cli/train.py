@@ -278,7 +278,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "(Adam's rule), linearly, or not at all (default sqrt)")  # fmt: skip
     parser.add_argument("--time-budget", type=float, metavar="MINUTES",
                         help="stop after this many minutes of training (a leased machine): the last step's checkpoint "
-                             "is written and the model exported as usual; with --lr-schedule wsd the decay also runs on "
+                             "is written and the model exported as usual; the whole run's minutes (--resume goes on with "
+                             "those its checkpoint records); with --lr-schedule wsd the decay also runs on "
                              "this clock (the last decay-steps/steps share of the budget), so the run ends cooled down "
                              "on a slower machine too; other schedules run to --steps (default: none)")  # fmt: skip
     parser.add_argument("--compile", action="store_true",
@@ -451,7 +452,7 @@ def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
                         "training batches (default 0)")  # fmt: skip
     parser.add_argument("--resume", action="store_true", help="continue the run in --out (pairs and training)")
     parser.add_argument("--time-budget", type=float, default=None, help="stop training after this many minutes "
-                        "(the learning rate cools down on the clock)")  # fmt: skip
+                        "of the whole run, --resume included (the learning rate cools down on the clock)")  # fmt: skip
     parser.add_argument("--device", default=None, help="cpu / cuda (default: cuda if available)")
     add_threads_argument(parser)
 

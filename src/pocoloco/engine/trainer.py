@@ -137,23 +137,22 @@ def lr_at(config: LoopSettings, step: int, time_share: float | None = None) -> f
 
     ``time_share`` (share of a time budget used so far, wsd only): the decay also runs on the
     clock, over the same share of the budget as ``decay_steps`` is of ``steps``, and the lower of
-    the two rates is taken, so a run on a machine slower than planned still ends cooled down."""
-    warmup = config.warmup_steps
+    the two rates is taken, so a run on a machine slower than planned still ends cooled down (in its
+    warm-up too)."""
+    warmup, schedule = config.warmup_steps, config.lr_schedule
+    # the clock's rate (wsd with a time budget): level, then linear to 0 over the last decay share
+    clock = (config.lr * min(1.0, max(1.0 - time_share, 0.0) * config.steps / config.decay_steps)
+             if schedule == "wsd" and time_share is not None else math.inf)  # fmt: skip
     if warmup and step < warmup:
-        return config.lr * (step + 1) / warmup
-    schedule = config.lr_schedule
+        return min(config.lr * (step + 1) / warmup, clock)
     if schedule == "cosine":
         span = max(config.steps - warmup, 1)
         progress = min(max(step - warmup, 0) / span, 1.0)
         return config.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
     if schedule == "wsd":
-        lr = config.lr
         start = config.steps - config.decay_steps
-        if step >= start:
-            lr = config.lr * max(config.steps - step, 0) / config.decay_steps
-        if time_share is not None:
-            lr = min(lr, config.lr * min(1.0, max(1.0 - time_share, 0.0) * config.steps / config.decay_steps))
-        return lr
+        by_steps = config.lr * max(config.steps - step, 0) / config.decay_steps if step >= start else config.lr
+        return min(by_steps, clock)
     return config.lr
 
 
@@ -498,8 +497,9 @@ def train(
         device: where to train (the caller chooses; with DDP the process's device). On CUDA,
             matmuls and convolutions run in TF32 and the logged floats are read from the device
             only at log steps (no host synchronisation per step).
-        time_budget_s: stop after the first step that ends this many seconds after the loop
-            started (model building and data loading excluded), with the usual final checkpoint.
+        time_budget_s: stop after the first step that ends this many seconds of training into
+            the run (model building and data loading excluded; a resume counts the seconds its
+            checkpoint records, ``meta['train_seconds']``), with the usual final checkpoint.
             With the ``wsd`` schedule the decay also runs on this clock (:func:`lr_at`), so the
             run ends cooled down whether the machine is faster or slower than ``steps`` assumed;
             other schedules run to ``config.steps`` (choose ``steps`` to fit).
@@ -540,6 +540,12 @@ def train(
         start_step = ck.step
         if start_step > config.steps:
             raise ValueError(f"{ck.path}: checkpoint is at step {start_step}, past --steps {config.steps}")
+    # seconds this run trained before (a resume): the time budget is the whole run's, so a resumed
+    # warm-stable-decay schedule goes on where its clock stopped
+    spent_before = float(ck.meta.get("train_seconds", 0.0)) if ck is not None else 0.0
+    if time_budget_s is not None and spent_before >= time_budget_s:
+        raise ValueError(f"{ck.path}: the run has trained {spent_before / 60:.3g} min, its whole --time-budget of "
+                         f"{time_budget_s / 60:g} min; give a larger --time-budget to train on")  # fmt: skip
 
     need, free = task.step_bytes(), available_memory_bytes(device)
     if need is not None and free is not None and need > TRAIN_MEMORY_SHARE * free:
@@ -596,7 +602,7 @@ def train(
             ema_state=None if ema is None else ema.state_dict(), optimizer_state=optimizer.state_dict(),
             rng_state=ckpt_io.capture_rng_state(),
             extra={"world_size": world, "data": data, **({"init_from": init_source} if init_source else {}),
-                   **task.checkpoint_extra(model)},
+                   "train_seconds": round(spent_before + time.perf_counter() - t0, 3), **task.checkpoint_extra(model)},
             keep=config.keep_checkpoints,
         )  # fmt: skip
 
@@ -605,11 +611,12 @@ def train(
     def autocast():
         return torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
 
-    bar = Progress("train", config.steps, loss=True, done=start_step, transient=False, enabled=progress and rank == 0)
+    bar = Progress("train", config.steps, loss=True, done=start_step, transient=False, enabled=progress and rank == 0,
+                   deadline_s=None if time_budget_s is None else time_budget_s - spent_before)  # fmt: skip
     last_ckpt, saved_step, loss_val, t0, step = None, None, float("nan"), time.perf_counter(), start_step
     stopped_by_budget = False
     clock_decay = time_budget_s is not None and config.lr_schedule == "wsd"
-    time_share = 0.0 if clock_decay else None
+    time_share = spent_before / time_budget_s if clock_decay else None
     model.train()
     try:
         for step, batch in zip(range(start_step, config.steps), loader, strict=True):
@@ -627,7 +634,7 @@ def train(
             decay_now = ema.update(model, step) if ema is not None else None
             done = step + 1
             if time_budget_s is not None and not stopped_by_budget:
-                spent = torch.tensor(time.perf_counter() - t0, dtype=torch.float64)
+                spent = torch.tensor(spent_before + time.perf_counter() - t0, dtype=torch.float64)
                 if world > 1:  # every rank stops at the same step, with the same learning rate
                     spent = spent.to(device)
                     dist.all_reduce(spent, op=dist.ReduceOp.MAX)
