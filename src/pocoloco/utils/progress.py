@@ -160,9 +160,7 @@ def _budgeted_time_remaining(deadline: float) -> Any:
 
     class BudgetedTimeRemaining(ProgressColumn):
         def render(self, task) -> Text:
-            left, by_clock = time_left(task.time_remaining, deadline)
-            if left is None:
-                return Text("-:--:--", style="progress.remaining")
+            left, by_clock = time_left(task.time_remaining, deadline)  # never None: there is a deadline
             return Text(duration(left) + (" (budget)" if by_clock else ""), style="progress.remaining")
 
     return BudgetedTimeRemaining()
