@@ -43,18 +43,23 @@ quality() {  # quality OUT [--ckpt-... CKPT]...: both splits, the standard frame
 quality "$RUNS/quality_shipped" --ckpt-pocoloco default --ckpt-pop default:pop --ckpt-closet default:closet \
   --ckpt-hybrid default:hybrid
 
-# 3. the fine-tunes, side by side; each from the shipped weights, its cool-down on the clock
-resume() { [ -f "$1/checkpoints/latest" ] && echo --resume || true; }
-nice $PL train --data "$DATA" --init-from default --out "$RUNS/pocoloco" $(resume "$RUNS/pocoloco") \
-  --batch-size 32 --lr 3e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POCOLOCO" \
-  --ckpt-every 250 --sample-every 0 --threads 1 > "$RUNS/pocoloco.log" 2>&1 &
+# 3. the fine-tunes, side by side; each from the shipped weights, its cool-down on the clock (a budget
+#    is the whole run's: a killed run resumes with the minutes it had left; a finished one, its model/
+#    exported, is kept)
+fine_tune() {  # fine_tune RUN LOG TRAIN_ARGS...
+  local run=$1 log=$2; shift 2
+  [ -d "$run/model" ] && return 0
+  local again=(); [ -f "$run/checkpoints/latest" ] && again=(--resume)
+  nice $PL train "$@" --out "$run" "${again[@]}" --lr-schedule wsd --steps 100000 --decay-steps 30000 \
+    --ckpt-every 250 --sample-every 0 --threads 1 > "$log" 2>&1
+}
+fine_tune "$RUNS/pocoloco" "$RUNS/pocoloco.log" --data "$DATA" --init-from default --batch-size 32 --lr 3e-4 \
+  --time-budget "$MIN_POCOLOCO" &
 POCO=$!
-( nice $PL train --model pop --data "$DATA" --init-from default:pop --out "$RUNS/pop" $(resume "$RUNS/pop") \
-    --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POP" \
-    --ckpt-every 250 --sample-every 0 --threads 1 > "$RUNS/pop.log" 2>&1
-  nice $PL train --model closet --data "$DATA" --init-from default:closet --out "$RUNS/closet" $(resume "$RUNS/closet") \
-    --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_CLOSET" \
-    --ckpt-every 250 --sample-every 0 --threads 1 > "$RUNS/closet.log" 2>&1 ) &
+( fine_tune "$RUNS/pop" "$RUNS/pop.log" --model pop --data "$DATA" --init-from default:pop --lr 1e-4 \
+    --time-budget "$MIN_POP"
+  fine_tune "$RUNS/closet" "$RUNS/closet.log" --model closet --data "$DATA" --init-from default:closet --lr 1e-4 \
+    --time-budget "$MIN_CLOSET" ) &
 PEERS=$!
 wait $POCO $PEERS
 
