@@ -3,7 +3,7 @@
 # (--motion-window 2.0, from their shipped pose-only weights, on a clock), then score them with each
 # frame's own window, none (rest) and another frame's (shuffled), and compare with the shipped
 # pose-only models on the same frames (benchmarks/motion_gain.py, paired per frame). Every step
-# resumes where a killed run stopped: rerun the script.
+# resumes where a killed run stopped (with the time budget it had left; a finished run is kept): rerun the script.
 #
 #   bash scripts/motion_medium_v3.sh       # ~2 h on a 2-core CPU (needs CLOTH=v3 scripts/finetune_medium.sh's data
 #                                          # and its quality_finetuned reports of the shipped models)
@@ -27,11 +27,11 @@ $PL data motion-history "$DATA"
 # 2. the fine-tunes, side by side, one thread each (the PocoLoco run measured in docs/lab/motion.md was
 #    stopped by hand at step 1,000, 62 min in, when a probe showed its samples did not move with the window)
 resume() { [ -f "$1/checkpoints/latest" ] && echo --resume || true; }
-nice $PL train --data "$DATA" --init-from default --motion-window 2.0 --out "$OUT/pocoloco" $(resume "$OUT/pocoloco") \
+[ -d "$OUT/pocoloco/model" ] || nice $PL train --data "$DATA" --init-from default --motion-window 2.0 --out "$OUT/pocoloco" $(resume "$OUT/pocoloco") \
   --batch-size 32 --lr 3e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POCOLOCO" \
   --ckpt-every 250 --sample-every 0 --threads 1 > "$OUT/pocoloco.log" 2>&1 &
 POCO=$!
-nice $PL train --model pop --data "$DATA" --init-from default:pop --motion-window 2.0 --out "$OUT/pop" $(resume "$OUT/pop") \
+[ -d "$OUT/pop/model" ] || nice $PL train --model pop --data "$DATA" --init-from default:pop --motion-window 2.0 --out "$OUT/pop" $(resume "$OUT/pop") \
   --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MIN_POP" \
   --ckpt-every 250 --sample-every 0 --threads 1 > "$OUT/pop.log" 2>&1 &
 POP=$!
@@ -40,7 +40,7 @@ wait $POCO $POP
 # 2b. the PocoLoco pilots from it: the motion encoder's learning rate x10 and x30, EMA 0.995, 30 min each
 for scale in 10 30; do
   run=$OUT/pilot_lr$scale
-  nice $PL train --data "$DATA" --init-from "$OUT/pocoloco" --motion-window 2.0 --motion-lr-scale $scale \
+  [ -d "$run/model" ] || nice $PL train --data "$DATA" --init-from "$OUT/pocoloco" --motion-window 2.0 --motion-lr-scale $scale \
     --ema-decay 0.995 --out "$run" $(resume "$run") --batch-size 32 --lr 3e-4 --lr-schedule wsd --steps 100000 \
     --decay-steps 30000 --time-budget 30 --ckpt-every 100 --sample-every 0 --threads 1 \
     > "$run.log" 2>&1 &
