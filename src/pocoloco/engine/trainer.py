@@ -547,6 +547,10 @@ def train(
         raise ValueError(f"{ck.path}: the run has trained {spent_before / 60:.3g} min, its whole --time-budget of "
                          f"{time_budget_s / 60:g} min; give a larger --time-budget to train on")  # fmt: skip
 
+    def trained_seconds() -> float:
+        """This run's training clock: the seconds before a resume and those since the loop began (t0)."""
+        return spent_before + time.perf_counter() - t0
+
     need, free = task.step_bytes(), available_memory_bytes(device)
     if need is not None and free is not None and need > TRAIN_MEMORY_SHARE * free:
         fits = TRAIN_MEMORY_SHARE * free / need
@@ -602,7 +606,7 @@ def train(
             ema_state=None if ema is None else ema.state_dict(), optimizer_state=optimizer.state_dict(),
             rng_state=ckpt_io.capture_rng_state(),
             extra={"world_size": world, "data": data, **({"init_from": init_source} if init_source else {}),
-                   "train_seconds": round(spent_before + time.perf_counter() - t0, 3), **task.checkpoint_extra(model)},
+                   "train_seconds": round(trained_seconds(), 3), **task.checkpoint_extra(model)},
             keep=config.keep_checkpoints,
         )  # fmt: skip
 
@@ -634,7 +638,7 @@ def train(
             decay_now = ema.update(model, step) if ema is not None else None
             done = step + 1
             if time_budget_s is not None and not stopped_by_budget:
-                spent = torch.tensor(spent_before + time.perf_counter() - t0, dtype=torch.float64)
+                spent = torch.tensor(trained_seconds(), dtype=torch.float64)
                 if world > 1:  # every rank stops at the same step, with the same learning rate
                     spent = spent.to(device)
                     dist.all_reduce(spent, op=dist.ReduceOp.MAX)
