@@ -298,6 +298,28 @@ def test_distill_from_a_training_pack(latent_teacher, tiny_dataset, tmp_path):
     assert m.config.student_calls == 4 and m.predict(m.load_pose("demo:skirt"), 32, outfit=0).points.shape == (1, 32, 3)
 
 
+def test_distill_resume_after_a_kill_while_making_pairs(latent_teacher, tiny_dataset, tmp_path, capsys):
+    """A run killed before its first student checkpoint (pairs made, or half made) goes on with
+    ``--resume``: the pairs are kept, the student starts from the teacher; ``--resume`` into an
+    empty folder is still a one-line error."""
+    from pocoloco.cli import main
+    from pocoloco.methods.pocoloco.distill import prepare_distillation
+
+    out = tmp_path / "d"
+    prepare_distillation(latent_teacher, tiny_dataset, out, pairs=3, pair_points=32, teacher_steps=4)
+    stamp = (out / "pairs" / "shard_00000.npz").stat().st_mtime_ns
+    args = ["distill", "--ckpt", str(latent_teacher), "--data", str(tiny_dataset), "--pairs", "3", "--pair-points",
+            "32", "--teacher-steps", "4", "--steps", "2", "--batch-size", "2", "--threads", "1", "--device", "cpu",
+            "--resume"]  # fmt: skip
+    assert main([*args, "--out", str(out)]) == 0
+    assert "no student checkpoint yet" in " ".join(capsys.readouterr().err.split())
+    assert (out / "pairs" / "shard_00000.npz").stat().st_mtime_ns == stamp
+    assert (out / "model" / "meta.json").is_file()
+    assert main([*args, "--out", str(tmp_path / "empty")]) != 0
+    err = " ".join(capsys.readouterr().err.split())
+    assert "--resume but no checkpoint" in err and "Traceback" not in err
+
+
 def test_distill_refuses_bad_teachers_and_settings(latent_teacher, tiny_run, tiny_dataset, tmp_path):
     from pocoloco.methods.pocoloco.distill import PairSettings, distill
 

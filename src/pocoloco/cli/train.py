@@ -408,8 +408,13 @@ def cmd_distill(args: argparse.Namespace) -> None:
                                    "student_renoise": args.renoise}.items() if v is not None}  # fmt: skip
     out = output_folder(args.out)
     with exclusive_lock(out, "pocoloco distill"):
-        check_run_folder(out, args.resume)
         log = console(stderr=True).print
+        resume = args.resume
+        if resume and latest_checkpoint(Path(out) / "checkpoints") is None and (Path(out) / "pairs").is_dir():
+            # killed while making the teacher pairs: they resume shard by shard, the student starts afresh
+            log(f"{args.out}: no student checkpoint yet; the teacher pairs resume and the student starts from the teacher")
+            resume = False
+        check_run_folder(out, resume)
         log(f"[bold]pocoloco distill[/] teacher={args.ckpt} calls={args.calls} device={device} "
             f"threads={torch.get_num_threads()}" + (f" budget={args.time_budget:g} min" if args.time_budget else "")
             + f" -> {args.out}")  # fmt: skip
@@ -418,9 +423,9 @@ def cmd_distill(args: argparse.Namespace) -> None:
                                         pair_points=args.pair_points, teacher_sampler=args.teacher_sampler,
                                         teacher_steps=args.teacher_steps, seed=args.seed, device=device,
                                         pair_progress=lambda d, n: update(d, n), **overrides)  # fmt: skip
-        result = run_training(task, out, device=device, resume=args.resume, progress=True,
+        result = run_training(task, out, device=device, resume=resume, progress=True,
                               time_budget_s=None if args.time_budget is None else 60.0 * args.time_budget,
-                              export_to=Path(out) / "model", init_from=None if args.resume else task.teacher)  # fmt: skip
+                              export_to=Path(out) / "model", init_from=None if resume else task.teacher)  # fmt: skip
         why = " (time budget reached)" if result.stopped_by_budget else ""
         print(f"distilled to step {result.step}{why} ({result.steps_per_s:.3f} steps/s), loss {result.final_loss:.4f}; "
               f"model {result.export} (sample with --ckpt {result.export} --steps 1 to {args.calls})")  # fmt: skip
