@@ -393,6 +393,22 @@ def test_init_from_leaves_the_source_machines_settings_behind(tiny_dataset, tmp_
         assert (config["bf16"], config["num_workers"]) == (bf16, workers), (extra, config["bf16"], config["num_workers"])
 
 
+def test_init_from_on_a_bf16_machine_keeps_pop_in_float32(tiny_dataset, tmp_path, monkeypatch):
+    """On a machine with native bf16 a fine-tune takes bf16 autocast by default, except a model that
+    trains in float32 only: POP fine-tuned with --init-from trains (it was a 'bf16 is not available
+    for POP' error on such a machine, CPU or GPU), and --bf16 asked for it explicitly is still one."""
+    import pocoloco.cli.common as cli_common
+
+    monkeypatch.setattr(cli_common, "bf16_is_fast", lambda device: True)  # avx512_bf16 / AMX / a bf16 GPU
+    base = ["--model", "pop", "--data", str(tiny_dataset), "--no-progress", "--device", "cpu", "--threads", "1",
+            "--sample-every", "0"]  # fmt: skip
+    src, out = str(tmp_path / "src"), str(tmp_path / "ft")
+    assert cli_main(["train", *base, "--out", src, "--preset", "tiny", "--steps", "1"]) == 0
+    assert cli_main(["train", *base, "--out", out, "--init-from", src, "--steps", "1"]) == 0
+    assert ckpt_io.load_checkpoint(out, expect_model="pop").config["bf16"] is False
+    assert cli_main(["train", *base, "--out", str(tmp_path / "ft2"), "--init-from", src, "--steps", "1", "--bf16"]) == 2
+
+
 def test_init_from_matches_outfit_codes_by_name(tiny_dataset, tmp_path):
     """Fine-tuning on a subset of outfits starts each outfit from the source's code of the same name."""
     src, out = tmp_path / "src", tmp_path / "ft"

@@ -104,8 +104,8 @@ def _config_from_args(args: argparse.Namespace):
         # a CPU without native bf16 would otherwise run its forward pass emulated (~10x slower here)
         # and start a GPU run's loader processes
         # nor does a frozen trunk: a fine-tune of a --freeze-trunk model trains every weight unless told
-        for field, value in (("bf16", resolve_bf16(None, choose_device(args.device))), ("num_workers", 0),
-                             ("freeze_trunk", False)):
+        machine_bf16 = cls.trains_in_bf16 and resolve_bf16(None, choose_device(args.device))
+        for field, value in (("bf16", machine_bf16), ("num_workers", 0), ("freeze_trunk", False)):
             if field in have and field not in overrides:
                 overrides[field] = value
         return config_from_checkpoint(args.init_from, args.model, **overrides)

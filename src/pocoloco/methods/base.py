@@ -146,6 +146,9 @@ class Method(ABC):
     fit_needs_normals: ClassVar[bool] = False
     #: keyword options of :meth:`preset` beyond the config's fields (CloSET: ``decomposition``)
     train_options: ClassVar[frozenset[str]] = frozenset()
+    #: trains under bf16 autocast when asked (POP: no; its decoder runs in float32), so a fine-tune
+    #: may take the machine's bf16 default
+    trains_in_bf16: ClassVar[bool] = True
     train_config: ClassVar[type]
 
     def __init__(self, model: nn.Module, config: Any, normalisation: Normalisation, path: Path, step: int,

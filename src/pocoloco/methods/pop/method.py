@@ -53,6 +53,7 @@ class POPMethod(SkinnedMethod):
     """A trained POP: UV position-map UNet + geometric feature tensor per outfit + point decoder."""
 
     kind = "pop"
+    trains_in_bf16 = False  # the fused BatchNorm + softplus decoder runs in float32
     #: points off the training UV map (N > its valid pixels): ``"interpolate"`` the displacements
     #: decoded at the training pixels, or ``"decode"`` at the finer map's UVs (before 2026-11-27;
     #: ~13 % farther from the scan per point, BENCHMARKS "POP at more points than its UV map")
