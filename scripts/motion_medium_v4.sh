@@ -6,7 +6,8 @@
 # fine-tune's gain was the training, not the window). Each model is scored on the standard frames
 # (28 x 2 seeds, 2,048 points, both splits), the motion model with each frame's own window, none
 # (rest) and another frame's of the same subject (shuffled), and paired per frame
-# (benchmarks/motion_gain.py) against the control and the shipped POP. Rerun to resume.
+# (benchmarks/motion_gain.py) against the control and the shipped POP; the control against the shipped
+# POP (benchmarks/compare_quality.py). Rerun to resume.
 #
 #   bash scripts/motion_medium_v4.sh              # POP ~1 h on a 2-core CPU after the data, then PocoLoco's long run
 #   POCOLOCO=0 bash scripts/motion_medium_v4.sh   # POP only
@@ -24,38 +25,46 @@ MINUTES=${MINUTES:-40}        # each fine-tune's clock (both run side by side, o
 SCALE=${SCALE:-30}            # the motion encoder's learning rate in multiples of the trunk's
 mkdir -p "$OUT"
 
-fine_tune() {  # fine_tune RUN TRAIN_ARGS...: from the shipped POP, on the clock, cooled down (wsd)
+train_run() {  # train_run RUN TRAIN_ARGS...: resumes a killed run (with the minutes its budget had left); a finished one is kept
   local run=$1; shift
   [ -d "$run/model" ] && return 0
   local again=(); [ -f "$run/checkpoints/latest" ] && again=(--resume)
-  nice $PL train --model pop --data "$DATA" --init-from default:pop --lr 1e-4 "$@" --out "$run" "${again[@]}" \
-    --lr-schedule wsd --steps 100000 --decay-steps 30000 --time-budget "$MINUTES" --ckpt-every 250 \
-    --sample-every 0 --threads 1 > "$run.log" 2>&1
+  nice $PL train "$@" --lr-schedule wsd --steps 100000 --sample-every 0 --out "$run" "${again[@]}" >> "$run.log" 2>&1
 }
-fine_tune "$OUT/pop_control" &
+quality() {  # quality KIND NAME CKPT [ARGS...]: a --ckpt-KIND row, both splits, the standard frames and seeds
+  local kind=$1 name=$2 ckpt=$3; shift 3
+  for split in test heldout; do
+    [ -f "$OUT/quality_${kind}_$name/$split/quality.json" ] || $PL bench quality --data "$DATA" --split "$split" \
+      --frames 28 --seeds 0 1 --points 2048 "--ckpt-$kind" "$ckpt" "$@" --out "$OUT/quality_${kind}_$name/$split"
+  done
+}
+gains() {  # gains KIND REFERENCE: the motion model's three windows paired with quality_KIND_REFERENCE, both splits
+  local kind=$1 ref=$2 split
+  for split in test heldout; do
+    q() { echo "$OUT/quality_${kind}_$1/$split/quality.json:$kind"; }
+    $PY benchmarks/motion_gain.py --reference "$(q "$ref")" --dataset "$(q motion_dataset)" --rest "$(q motion_rest)" \
+      --shuffled "$(q motion_shuffled)" --peer "$OUT/quality_pop_shipped/$split/quality.json:pop" \
+      --json "$OUT/gain_${split}_${kind}_vs_$ref.json" > "$OUT/gain_${split}_${kind}_vs_$ref.md"
+  done
+}
+
+# POP, from the shipped weights, both on the clock side by side
+POP_ARGS=(--model pop --data "$DATA" --init-from default:pop --lr 1e-4 --decay-steps 30000 --time-budget "$MINUTES"
+  --ckpt-every 250 --threads 1)
+train_run "$OUT/pop_control" "${POP_ARGS[@]}" &
 A=$!
-fine_tune "$OUT/pop_motion" --motion-window 2.0 --motion-lr-scale "$SCALE" &
+train_run "$OUT/pop_motion" "${POP_ARGS[@]}" --motion-window 2.0 --motion-lr-scale "$SCALE" &
 B=$!
 wait $A $B
-
-quality() {  # quality NAME CKPT [ARGS...]: both splits, the standard frames and seeds
-  local name=$1 ckpt=$2; shift 2
-  for split in test heldout; do
-    [ -f "$OUT/quality_$name/$split/quality.json" ] || $PL bench quality --data "$DATA" --split "$split" \
-      --frames 28 --seeds 0 1 --points 2048 --ckpt-pop "$ckpt" "$@" --out "$OUT/quality_$name/$split"
-  done
-}
-quality shipped default:pop
-quality control "$OUT/pop_control"
-for history in dataset rest shuffled; do quality "motion_$history" "$OUT/pop_motion" --history "$history"; done
-
-for split in test heldout; do
-  q() { echo "$OUT/quality_$1/$split/quality.json:pop"; }
-  for ref in control shipped; do
-    $PY benchmarks/motion_gain.py --reference "$(q $ref)" --dataset "$(q motion_dataset)" --rest "$(q motion_rest)" \
-      --shuffled "$(q motion_shuffled)" --peer "$(q shipped)" --json "$OUT/gain_${split}_pop_vs_$ref.json" \
-      > "$OUT/gain_${split}_pop_vs_$ref.md"
-  done
+quality pop shipped default:pop
+quality pop control "$OUT/pop_control"
+for history in dataset rest shuffled; do quality pop "motion_$history" "$OUT/pop_motion" --history "$history"; done
+gains pop control
+gains pop shipped
+for split in test heldout; do  # what the training alone did: the control against the shipped POP
+  $PY benchmarks/compare_quality.py "$OUT/quality_pop_shipped/$split/quality.json:pop" \
+    "$OUT/quality_pop_control/$split/quality.json:pop" --json "$OUT/compare_${split}_control_vs_shipped.json" \
+    > "$OUT/compare_${split}_control_vs_shipped.md"
 done
 echo "motion_medium_v4: POP done ($OUT)"
 [ "${POCOLOCO:-1}" = 1 ] || exit 0
@@ -64,26 +73,10 @@ echo "motion_medium_v4: POP done ($OUT)"
 # all, resumed across sessions by rerunning this script), the trunk at a third of the v4 fine-tune's
 # learning rate (the GPU runs on the quarter v3 over-fitted it) and the zero-initialised encoder at
 # 10x. Scored against the shipped default; `shuffled` and `rest` tell the window from more training.
-run=$OUT/pocoloco_motion
-if [ ! -d "$run/model" ]; then
-  again=(); [ -f "$run/checkpoints/latest" ] && again=(--resume)
-  nice $PL train --data "$DATA" --init-from default --motion-window 2.0 --motion-lr-scale 10 --batch-size 32 \
-    --lr 1e-4 --lr-schedule wsd --steps 100000 --decay-steps 20000 --time-budget "${POCO_MINUTES:-240}" \
-    --ckpt-every 100 --sample-every 0 --threads "${POCO_THREADS:-2}" --out "$run" "${again[@]}" >> "$run.log" 2>&1
-fi
-pquality() {  # pquality NAME CKPT [ARGS...]
-  local name=$1 ckpt=$2; shift 2
-  for split in test heldout; do
-    [ -f "$OUT/pquality_$name/$split/quality.json" ] || $PL bench quality --data "$DATA" --split "$split" \
-      --frames 28 --seeds 0 1 --points 2048 --ckpt-pocoloco "$ckpt" "$@" --out "$OUT/pquality_$name/$split"
-  done
-}
-pquality shipped default
-for history in dataset rest shuffled; do pquality "motion_$history" "$run" --history "$history"; done
-for split in test heldout; do
-  q() { echo "$OUT/pquality_$1/$split/quality.json:pocoloco"; }
-  $PY benchmarks/motion_gain.py --reference "$(q shipped)" --dataset "$(q motion_dataset)" --rest "$(q motion_rest)" \
-    --shuffled "$(q motion_shuffled)" --peer "$OUT/quality_shipped/$split/quality.json:pop" \
-    --json "$OUT/gain_${split}_pocoloco_vs_shipped.json" > "$OUT/gain_${split}_pocoloco_vs_shipped.md"
-done
+train_run "$OUT/pocoloco_motion" --data "$DATA" --init-from default --motion-window 2.0 --motion-lr-scale 10 \
+  --batch-size 32 --lr 1e-4 --decay-steps 20000 --time-budget "${POCO_MINUTES:-300}" --ckpt-every 100 \
+  --threads "${POCO_THREADS:-2}"
+quality pocoloco shipped default
+for history in dataset rest shuffled; do quality pocoloco "motion_$history" "$OUT/pocoloco_motion" --history "$history"; done
+gains pocoloco shipped
 echo "motion_medium_v4: done ($OUT)"
