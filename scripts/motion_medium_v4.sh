@@ -7,7 +7,8 @@
 # (28 x 2 seeds, 2,048 points, both splits), the motion model with each frame's own window, none
 # (rest) and another frame's of the same subject (shuffled), and paired per frame
 # (benchmarks/motion_gain.py) against the control and the shipped POP; the control against the shipped
-# POP (benchmarks/compare_quality.py). Rerun to resume.
+# POP (benchmarks/compare_quality.py). PocoLoco is also judged on the v4 standard test reference set
+# (bench distribution, paired per pose with the shipped default's report). Rerun to resume.
 #
 #   bash scripts/motion_medium_v4.sh              # POP ~1 h on a 2-core CPU after the data, then PocoLoco's long run
 #   POCOLOCO=0 bash scripts/motion_medium_v4.sh   # POP only
@@ -79,4 +80,12 @@ train_run "$OUT/pocoloco_motion" --data "$DATA" --init-from default --motion-win
 quality pocoloco shipped default
 for history in dataset rest shuffled; do quality pocoloco "motion_$history" "$OUT/pocoloco_motion" --history "$history"; done
 gains pocoloco shipped
+# the judge: the v4 standard test reference set (24 poses x 9 true states; none of the window at 0 s
+# shared, the frame's own at 2 s), paired per pose with the shipped default's report
+REFS=${REFS:-$HOME/.cache/pocoloco/data/medium_v4_std_test}
+[ -f "$OUT/judge_pocoloco_motion/distribution.json" ] || $PL bench distribution --refs "$REFS" \
+  --ckpt-pocoloco "$OUT/pocoloco_motion" --out "$OUT/judge_pocoloco_motion"
+$PY benchmarks/bench_fast.py --no-speed --teacher default --student "$OUT/pocoloco_motion" --json "$OUT/judge_pocoloco_motion_vs_shipped.json" --distribution \
+  "test=benchmarks/results/distribution_medium_v4_std/test/distribution.json:pocoloco,$OUT/judge_pocoloco_motion/distribution.json:pocoloco" \
+  > "$OUT/judge_pocoloco_motion_vs_shipped.md"
 echo "motion_medium_v4: done ($OUT)"
