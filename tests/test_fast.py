@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -296,6 +297,36 @@ def test_distill_from_a_training_pack(latent_teacher, tiny_dataset, tmp_path):
     np.testing.assert_allclose(pairs.joints, np.stack([ds[int(i)]["joints"] for i in frames]), atol=1e-6)
     m = load_method(out / "model")
     assert m.config.student_calls == 4 and m.predict(m.load_pose("demo:skirt"), 32, outfit=0).points.shape == (1, 32, 3)
+
+
+def test_distill_on_the_teachers_data_made_again(latent_teacher, tiny_dataset, tmp_path):
+    """The teacher's data regenerated (its statistics moved in their last digits) is the teacher's
+    data: the student and its pairs take the teacher's normalisation exactly; data whose mean is a
+    millimetre off is another dataset, a one-line error."""
+    from pocoloco.engine.checkpoint import load_checkpoint
+    from pocoloco.methods.pocoloco.distill import prepare_distillation
+
+    def made_again(name: str, shift_m: float):
+        out = tmp_path / name
+        out.mkdir()
+        for p in tiny_dataset.iterdir():
+            if p.name != "card.json":
+                (out / p.name).symlink_to(p)
+        card = json.loads((tiny_dataset / "card.json").read_text())
+        card["normalisation"]["mean"][0] += shift_m
+        (out / "card.json").write_text(json.dumps(card))
+        return out
+
+    teacher = load_checkpoint(latent_teacher, expect_model="pocoloco", training_state=False).normalisation
+    task = prepare_distillation(latent_teacher, made_again("close", 2e-5), tmp_path / "d", pairs=2, pair_points=16,
+                                teacher_steps=4)  # fmt: skip
+    assert task.normalisation == teacher and task.dataset.normalisation == teacher
+    assert task.dataset.normalisation.matches(teacher) and not teacher.matches(
+        dataclasses.replace(teacher, mean=(teacher.mean[0] + 1e-3, *teacher.mean[1:])))
+    with pytest.raises(ValueError, match="normalisation differs from the teacher's") as e:
+        prepare_distillation(latent_teacher, made_again("far", 1e-3), tmp_path / "e", pairs=2, pair_points=16,
+                             teacher_steps=4)  # fmt: skip
+    assert "\n" not in str(e.value)
 
 
 def test_distill_resume_after_a_kill_while_making_pairs(latent_teacher, tiny_dataset, tmp_path, capsys):

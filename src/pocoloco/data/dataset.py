@@ -109,6 +109,14 @@ class Normalisation:
         """Root-centring only (mean 0, std 1)."""
         return cls(mean=(0.0, 0.0, 0.0), std=1.0)
 
+    def matches(self, other: Normalisation, tol: float = 1e-3) -> bool:
+        """Whether ``other`` is this normalisation up to ``tol`` of the std in its mean and ``tol``
+        relative in its std, with the same root joint and heading: the same data made again (a
+        regenerated dataset's statistics move in their last digits, a different dataset's by mm)."""
+        return (self.root_joint == other.root_joint and self.heading == other.heading
+                and abs(self.std - other.std) <= tol * self.std
+                and max(abs(a - b) for a, b in zip(self.mean, other.mean)) <= tol * self.std)  # fmt: skip
+
     def _mean_like(self, x):
         if isinstance(x, torch.Tensor):
             return torch.tensor(self.mean, dtype=x.dtype, device=x.device)

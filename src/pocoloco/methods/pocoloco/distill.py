@@ -345,8 +345,11 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
     sha = teacher_sha(ck)
     task = DistillTask(config, data, teacher=str(ck.path), teacher_sha256=sha)
     if task.normalisation != ck.normalisation:
-        raise ValueError(f"--data {data}: its normalisation differs from the teacher's; distil on the data the teacher "
-                         "was trained on")  # fmt: skip
+        if not ck.normalisation.matches(task.normalisation):
+            raise ValueError(f"--data {data}: its normalisation differs from the teacher's; distil on the data the "
+                             "teacher was trained on")  # fmt: skip
+        # the teacher's data made again (its statistics moved in their last digits): the teacher's frame, exactly
+        task.dataset.normalisation = task.normalisation = ck.normalisation
     settings = PairSettings(pairs=pairs, num_points=pair_points, calls=calls, sampler=teacher_sampler,
                             steps=teacher_steps, seed=seed, shard=16, teacher=str(ck.path), teacher_sha256=sha,
                             num_timesteps=config.num_timesteps)  # fmt: skip
