@@ -329,6 +329,29 @@ def test_distill_on_the_teachers_data_made_again(latent_teacher, tiny_dataset, t
     assert "\n" not in str(e.value)
 
 
+def test_distill_init_from_a_student_of_the_same_teacher(latent_teacher, tiny_student, tiny_dataset, tmp_path):
+    """``distill --init-from STUDENT``: a student of the same teacher and grid goes on from its own
+    weights (training it longer); the teacher itself, a student of other calls or of another teacher
+    is a one-line error before any training."""
+    from pocoloco.engine.checkpoint import load_checkpoint
+    from pocoloco.methods.pocoloco.distill import distill, prepare_distillation, student_start
+
+    kw = {"pairs": 2, "pair_points": 16, "teacher_steps": 4, "batch_size": 2, "progress": False}
+    out = tmp_path / "longer"
+    distill(latent_teacher, tiny_dataset, out, steps=1, calls=4, init_from=tiny_student, **kw)
+    student = load_checkpoint(tiny_student, expect_model="pocoloco", training_state=False)
+    assert load_checkpoint(out / "checkpoints", expect_model="pocoloco").meta["init_from"] == str(student.path)
+    for init, calls, match in [(latent_teacher, 4, "not a distilled student"), (tiny_student, 2, "a student of 4 calls")]:
+        with pytest.raises(ValueError, match=match) as e:
+            distill(latent_teacher, tiny_dataset, tmp_path / f"bad{calls}", steps=1, calls=calls, init_from=init, **kw)
+        assert "\n" not in str(e.value) and not (tmp_path / f"bad{calls}" / "checkpoints").exists()
+    task = prepare_distillation(latent_teacher, tiny_dataset, tmp_path / "other", pairs=2, pair_points=16,
+                                teacher_steps=4)  # fmt: skip
+    task.teacher_sha256 = "0" * 64
+    with pytest.raises(ValueError, match="a student of another teacher"):
+        student_start(task, tiny_student)
+
+
 def test_distill_resume_after_a_kill_while_making_pairs(latent_teacher, tiny_dataset, tmp_path, capsys):
     """A run killed before its first student checkpoint (pairs made, or half made) goes on with
     ``--resume``: the pairs are kept, the student starts from the teacher; ``--resume`` into an

@@ -49,7 +49,7 @@ from pocoloco.utils.atomic import save_npz_atomic, write_json_atomic
 from pocoloco.utils.seeding import seed_of
 
 __all__ = ["DISTILL_SAMPLERS", "DistillTask", "PairSettings", "TeacherPairs", "distill", "distill_config",
-           "make_teacher_pairs", "prepare_distillation", "read_teacher_pairs"]  # fmt: skip
+           "make_teacher_pairs", "prepare_distillation", "read_teacher_pairs", "student_start"]  # fmt: skip
 
 #: deterministic samplers a teacher's pairs may come from (an SDE's answer is not a function of x_T)
 DISTILL_SAMPLERS = ("dpm++", "ddim", "unipc", "dpm++3m")
@@ -358,13 +358,34 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
     return task
 
 
+def student_start(task: DistillTask, init_from: str | Path | None = None) -> str:
+    """The weights a fresh student starts from: its teacher's, or ``init_from``, a student of the
+    same teacher on the same grid (e.g. the shipped ``default:fast``, to train it longer; int8
+    weights are read back as float). One-line errors for any other checkpoint."""
+    if init_from is None:
+        return str(task.teacher)
+    ck = load_checkpoint(init_from, expect_model="pocoloco", training_state=False)
+    calls = int(ck.meta.get("config", {}).get("student_calls") or 0)
+    if calls != task.config.student_calls:
+        what = "not a distilled student" if not calls else f"a student of {calls} calls"
+        raise ValueError(f"--init-from {init_from}: {what}; start from a {task.config.student_calls}-call student of "
+                         "this teacher, or from the teacher (no --init-from)")  # fmt: skip
+    sha = ck.meta.get("distilled_from", {}).get("teacher_sha256")
+    if sha != task.teacher_sha256:
+        raise ValueError(f"--init-from {init_from}: a student of another teacher ({str(sha)[:12]}...); start from a "
+                         "student of this teacher")  # fmt: skip
+    return str(ck.path)
+
+
 def distill(teacher: str | Path, data: str | Path, out: str | Path, *, resume: bool = False,
             device: str | torch.device = "cpu", progress: bool = True, time_budget_s: float | None = None,
-            **kwargs: Any):  # fmt: skip
+            init_from: str | Path | None = None, **kwargs: Any):  # fmt: skip
     """``pocoloco distill``: :func:`prepare_distillation` (``kwargs``: its options and train config
-    fields), then the student trained from the teacher's weights by the shared loop into the run
-    folder ``out`` (``resume``: from its newest checkpoint), its sampling-only export in
-    ``out/model``. Returns the loop's :class:`~pocoloco.engine.trainer.TrainResult`."""
+    fields), then the student trained from the teacher's weights (or ``init_from``'s,
+    :func:`student_start`) by the shared loop into the run folder ``out`` (``resume``: from its
+    newest checkpoint), its sampling-only export in ``out/model``. Returns the loop's
+    :class:`~pocoloco.engine.trainer.TrainResult`."""
     task = prepare_distillation(teacher, data, out, device=device, **kwargs)
+    start = None if resume else student_start(task, init_from)
     return train(task, out, device=device, resume=resume, progress=progress, time_budget_s=time_budget_s,
-                 export_to=Path(out) / "model", init_from=None if resume else task.teacher)
+                 export_to=Path(out) / "model", init_from=start)
