@@ -221,3 +221,10 @@ def test_bench_distribution_gives_a_motion_aware_model_the_shared_motion(tiny_da
     assert set(report["windows"]) == {"0", "0.2"}
     a, b = (report["per_pose"][k]["rows"]["pocoloco"]["spread_samples"] for k in (0, 1))
     assert a != b  # two draws: at rest, and with the shared motion
+    r = run_cli("bench", "distribution", "--refs", str(refs), "--ckpt-pocoloco", str(run), "--samples", "2",
+                "--points", "128", "--probes", "32", "--history", "rest", "--out", str(tmp_path / "rest"))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    rest = json.loads((tmp_path / "rest" / "distribution.json").read_text())
+    assert rest["settings"]["history"] == "rest"
+    c, d = (rest["per_pose"][k]["rows"]["pocoloco"]["spread_samples"] for k in (0, 1))
+    assert c == d == a  # no window anywhere: the clouds drawn at rest, for both windows

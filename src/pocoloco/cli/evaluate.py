@@ -218,7 +218,8 @@ def cmd_bench_distribution(args: argparse.Namespace) -> None:
     with progress_bar("poses", transient=True) as update:
         report = bench_distribution(args.refs, ckpts, args.out, samples=args.samples, points=args.points,
                                     probes=args.probes, seed=args.seed, device=args.device, sampler=args.sampler,
-                                    steps=args.steps, outfits=outfits, progress=update)  # fmt: skip
+                                    steps=args.steps, outfits=outfits, history=args.history,
+                                    progress=update)  # fmt: skip
     con.print(escape((Path(args.out) / "distribution.md").read_text()))
     con.print(f"wrote {escape(str(Path(args.out) / 'distribution.json'))} ({report['settings']['poses']} poses)")
 
@@ -235,6 +236,9 @@ def add_bench_distribution_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the samples, probes and subsets (default 0)")
     parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco's sampler (default dpm++sde)")
     parser.add_argument("--steps", type=int, help="its network calls (default: the sampler's)")
+    parser.add_argument("--history", choices=("dataset", "rest"), default="dataset",
+                        help="a --motion-window model: the frame's own motion where the true states share it "
+                             "(dataset), or never (rest: the same network without its window; default dataset)")  # fmt: skip
     parser.add_argument("--outfit", nargs="+", metavar="SUBJECT=OUTFIT", help="models with outfits: draw SUBJECT's "
                         "poses in OUTFIT (default: the subject's own name; e.g. skirt=skirt_a for `small` with the "
                         "medium models)")  # fmt: skip

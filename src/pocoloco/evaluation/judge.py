@@ -89,6 +89,7 @@ def bench_distribution(
     sampler: str = "dpm++sde",
     steps: int | None = None,
     outfits: Mapping[str, str] | None = None,
+    history: str = "dataset",
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Score every model of ``ckpts`` (row name -> checkpoint, ``default:...`` names allowed) on the
@@ -98,12 +99,16 @@ def bench_distribution(
     which a model trained on another dataset may not have). progress: ``callable(done_poses,
     total_poses)``. A motion-aware model (``--motion-window W``) is given the frame's own window
     where the reference set's shared seconds cover W (every true state went through that motion),
-    and none (the body at rest) where they do not; pose-only models draw once for all windows.
+    and none (the body at rest) where they do not; ``history="rest"`` gives it none anywhere (the
+    same network without its window: what the window adds); pose-only models draw once for all windows.
     JSON: ``rows[NAME][WINDOW]`` (WINDOW = shared seconds as text, "0", "2") -> statistic ->
     ``{"mean", "lo", "hi"}``, embedding statistics in cm per probe; ``per_pose``: every pose's
     statistics, its embedding ones (``_EMBEDDING_KEYS``) as raw Euclidean distances in metres over
     the P probes (x 100 / sqrt(P) gives the rows' cm per probe), Chamfer ones in cm; ``settings``.
     Returns it."""
+    if history not in ("dataset", "rest"):
+        raise ValueError(f"--history must be dataset or rest for the judge (a reference set's true states share "
+                         f"their frame's own motion), got {history!r}")  # fmt: skip
     if samples < 2:
         raise ValueError(f"--samples must be >= 2 (a generative model's spread needs two), got {samples}")
     if points < 16 or probes < 8:
@@ -140,9 +145,10 @@ def bench_distribution(
             for w in windows:
                 # a motion-aware model sees the frame's own motion where every true state shares it
                 # (the window's shared seconds cover the model's), else the body at rest
-                sees = bool(method.motion_window) and w["shared_seconds"] >= method.motion_window
+                sees = history == "dataset" and bool(method.motion_window) and w["shared_seconds"] >= method.motion_window
                 pose.motion = method.motion_of_frame(source_frame) if sees else None
-                same = next((c for (n, _), c in drawn.items() if n == name), None) if not method.motion_window else None
+                fixed = not method.motion_window or history == "rest"  # the same clouds for every window
+                same = next((c for (n, _), c in drawn.items() if n == name), None) if fixed else None
                 t0 = time.perf_counter()
                 clouds = same if same is not None else [
                     np.asarray(c, np.float64) for c in method.sample(pose, points, seeds, outfit=outfit, **kwargs).points]
@@ -173,7 +179,7 @@ def bench_distribution(
         "samples": samples, "points": points, "probes": probes, "seed": seed, "bootstrap": bootstrap,
         "sampler": sampler, "steps": steps, "outfits": dict(outfits or {}),
         "checkpoints": {n: describe_checkpoint(p) for n, (_, p) in methods.items()},
-        "motion_windows": {n: m.motion_window for n, (m, _) in methods.items() if m.motion_window},
+        "motion_windows": {n: m.motion_window for n, (m, _) in methods.items() if m.motion_window}, "history": history,
         "seconds_sampling": seconds,
     }  # fmt: skip
     report["per_pose"] = per_pose
