@@ -80,12 +80,26 @@ train_run "$OUT/pocoloco_motion" --data "$DATA" --init-from default --motion-win
 quality pocoloco shipped default
 for history in dataset rest shuffled; do quality pocoloco "motion_$history" "$OUT/pocoloco_motion" --history "$history"; done
 gains pocoloco shipped
+for split in test heldout; do  # the window alone: the motion model's own window against none and another frame's
+  for ref in rest shuffled; do
+    $PY benchmarks/motion_gain.py --reference "$OUT/quality_pocoloco_motion_$ref/$split/quality.json:pocoloco" \
+      --dataset "$OUT/quality_pocoloco_motion_dataset/$split/quality.json:pocoloco" \
+      --json "$OUT/gain_${split}_pocoloco_own_vs_$ref.json" > "$OUT/gain_${split}_pocoloco_own_vs_$ref.md"
+  done
+done
 # the judge: the v4 standard test reference set (24 poses x 9 true states; none of the window at 0 s
 # shared, the frame's own at 2 s), paired per pose with the shipped default's report
 REFS=${REFS:-$HOME/.cache/pocoloco/data/medium_v4_std_test}
-[ -f "$OUT/judge_pocoloco_motion/distribution.json" ] || $PL bench distribution --refs "$REFS" \
-  --ckpt-pocoloco "$OUT/pocoloco_motion" --out "$OUT/judge_pocoloco_motion"
+for history in dataset rest; do  # rest: the same network with no window anywhere (what the window adds)
+  judge=$OUT/judge_pocoloco_motion$([ $history = rest ] && echo _rest || true)
+  [ -f "$judge/distribution.json" ] || $PL bench distribution --refs "$REFS" --ckpt-pocoloco "$OUT/pocoloco_motion" \
+    --history $history --out "$judge"
+done
 $PY benchmarks/bench_fast.py --no-speed --teacher default --student "$OUT/pocoloco_motion" --json "$OUT/judge_pocoloco_motion_vs_shipped.json" --distribution \
   "test=benchmarks/results/distribution_medium_v4_std/test/distribution.json:pocoloco,$OUT/judge_pocoloco_motion/distribution.json:pocoloco" \
   > "$OUT/judge_pocoloco_motion_vs_shipped.md"
+$PY benchmarks/bench_fast.py --no-speed --teacher "$OUT/pocoloco_motion (rest)" --student "$OUT/pocoloco_motion" \
+  --json "$OUT/judge_pocoloco_motion_vs_rest.json" --distribution \
+  "test=$OUT/judge_pocoloco_motion_rest/distribution.json:pocoloco,$OUT/judge_pocoloco_motion/distribution.json:pocoloco" \
+  > "$OUT/judge_pocoloco_motion_vs_rest.md"
 echo "motion_medium_v4: done ($OUT)"
