@@ -48,7 +48,6 @@ quality() {  # quality NAME CKPT [ARGS...]
 quality teacher default
 quality shipped default:fast
 for calls in 4 2 1; do quality "longer_$calls" "$OUT/fast" --steps "$calls"; done
-quality shipped_2 default:fast --steps 2
 
 # 3. the judge: the longer student, and the teacher's ODE (its proper score is a distilled student's ceiling)
 [ -f "$OUT/judge_longer/distribution.json" ] || $PL bench distribution --refs "$REFS" --ckpt-pocoloco "$OUT/fast" \

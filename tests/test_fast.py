@@ -345,6 +345,7 @@ def test_distill_init_from_a_student_of_the_same_teacher(latent_teacher, tiny_st
         with pytest.raises(ValueError, match=match) as e:
             distill(latent_teacher, tiny_dataset, tmp_path / f"bad{calls}", steps=1, calls=calls, init_from=init, **kw)
         assert "\n" not in str(e.value) and not (tmp_path / f"bad{calls}" / "checkpoints").exists()
+        assert not (tmp_path / f"bad{calls}" / "pairs").exists()  # refused before the teacher pairs
     task = prepare_distillation(latent_teacher, tiny_dataset, tmp_path / "other", pairs=2, pair_points=16,
                                 teacher_steps=4)  # fmt: skip
     task.teacher_sha256 = "0" * 64

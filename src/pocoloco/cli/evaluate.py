@@ -37,7 +37,7 @@ from pocoloco.evaluation.quality import (
     garment_table_markdown,
     table_markdown,
 )
-from pocoloco.evaluation.judge import bench_distribution
+from pocoloco.evaluation.judge import JUDGE_HISTORY_MODES, bench_distribution
 from pocoloco.methods import train, train_preset
 from pocoloco.methods.registry import config_from_checkpoint
 from pocoloco.utils.atomic import output_folder
@@ -236,7 +236,7 @@ def add_bench_distribution_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the samples, probes and subsets (default 0)")
     parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco's sampler (default dpm++sde)")
     parser.add_argument("--steps", type=int, help="its network calls (default: the sampler's)")
-    parser.add_argument("--history", choices=("dataset", "rest"), default="dataset",
+    parser.add_argument("--history", choices=JUDGE_HISTORY_MODES, default="dataset",
                         help="a --motion-window model: the frame's own motion where the true states share it "
                              "(dataset), or never (rest: the same network without its window; default dataset)")  # fmt: skip
     parser.add_argument("--outfit", nargs="+", metavar="SUBJECT=OUTFIT", help="models with outfits: draw SUBJECT's "

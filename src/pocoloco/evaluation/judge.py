@@ -32,7 +32,7 @@ from pocoloco.methods import load_method
 from pocoloco.synth.histories import reference_sets
 from pocoloco.utils.atomic import jsonable, output_folder, write_json_atomic, write_text_atomic
 
-__all__ = ["JUDGE_COLUMNS", "ORACLE_ROWS", "bench_distribution", "bootstrap_means", "distribution_markdown"]
+__all__ = ["JUDGE_COLUMNS", "JUDGE_HISTORY_MODES", "ORACLE_ROWS", "bench_distribution", "bootstrap_means", "distribution_markdown"]
 
 #: oracle / baseline rows, always present
 ORACLE_ROWS = {"truth_loo": "truth, leave one out (a perfect sampler)",
@@ -52,6 +52,8 @@ JUDGE_COLUMNS = (
     ("nna_refs", "1-NNA truth", "{:.2f}"),
     ("nna_samples", "1-NNA samples", "{:.2f}"),
 )
+#: the motion a --motion-window model is given by the judge: the frame's own where the true states share it, or none
+JUDGE_HISTORY_MODES = ("dataset", "rest")
 _EMBEDDING_KEYS = ("energy_score", "energy_distance", "to_refs", "spread_samples", "spread_refs")
 
 
@@ -106,7 +108,7 @@ def bench_distribution(
     statistics, its embedding ones (``_EMBEDDING_KEYS``) as raw Euclidean distances in metres over
     the P probes (x 100 / sqrt(P) gives the rows' cm per probe), Chamfer ones in cm; ``settings``.
     Returns it."""
-    if history not in ("dataset", "rest"):
+    if history not in JUDGE_HISTORY_MODES:
         raise ValueError(f"--history must be dataset or rest for the judge (a reference set's true states share "
                          f"their frame's own motion), got {history!r}")  # fmt: skip
     if samples < 2:

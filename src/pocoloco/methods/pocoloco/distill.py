@@ -39,7 +39,8 @@ from torch import nn
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
 from pocoloco.diffusion.few_step import student_grid
 from pocoloco.diffusion.samplers import StepInfo, make_timesteps
-from pocoloco.engine.checkpoint import Checkpoint, load_checkpoint, meta_digest
+from pocoloco.engine.checkpoint import (Checkpoint, check_model_kind, load_checkpoint, meta_digest, read_meta,
+                                       resolve_checkpoint)
 from pocoloco.engine.trainer import train
 from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
@@ -280,6 +281,7 @@ class DistillTask(PocoLocoTask):
         super().__init__(config, data)
         self.pairs: TeacherPairs | None = None
         self.teacher, self.teacher_sha256 = teacher, teacher_sha256
+        self.start = teacher  # the checkpoint a fresh student starts from (prepare_distillation: --init-from)
 
     def step_bytes(self) -> int | None:
         per = super().step_bytes()
@@ -332,11 +334,14 @@ class DistillTask(PocoLocoTask):
 def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path, *, calls: int = 4,
                          pairs: int = 1024, pair_points: int = 512, teacher_sampler: str = "dpm++",
                          teacher_steps: int = 20, seed: int = 0, device: str | torch.device = "cpu",
+                         init_from: str | Path | None = None,
                          pair_progress: Callable[[int, int], None] | None = None, **overrides: Any) -> DistillTask:  # fmt: skip
     """The first half of ``pocoloco distill``: the student's task (:func:`distill_config` with
     ``overrides``: steps, batch_size, lr, ...) with its teacher pairs made or finished in
     ``out/pairs`` (``pair_progress(done, total)`` after each shard); one-line errors for a bad
-    teacher, data or settings before any work. ``task.teacher`` is the teacher's checkpoint folder."""
+    teacher, data, settings or ``init_from`` (:func:`student_start`) before any work.
+    ``task.teacher`` is the teacher's checkpoint folder, ``task.start`` the one a fresh student
+    starts from."""
     if not 1 <= calls <= 8:
         raise ValueError(f"--calls must be in [1, 8], got {calls}")
     ck = load_checkpoint(teacher, expect_model="pocoloco", training_state=False)
@@ -350,6 +355,7 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
                              "teacher was trained on")  # fmt: skip
         # the teacher's data made again (its statistics moved in their last digits): the teacher's frame, exactly
         task.dataset.normalisation = task.normalisation = ck.normalisation
+    task.start = student_start(task, init_from)
     settings = PairSettings(pairs=pairs, num_points=pair_points, calls=calls, sampler=teacher_sampler,
                             steps=teacher_steps, seed=seed, shard=16, teacher=str(ck.path), teacher_sha256=sha,
                             num_timesteps=config.num_timesteps)  # fmt: skip
@@ -361,31 +367,33 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
 def student_start(task: DistillTask, init_from: str | Path | None = None) -> str:
     """The weights a fresh student starts from: its teacher's, or ``init_from``, a student of the
     same teacher on the same grid (e.g. the shipped ``default:fast``, to train it longer; int8
-    weights are read back as float). One-line errors for any other checkpoint."""
+    weights are read back as float). One-line errors for any other checkpoint, from its meta.json
+    alone (the training loop loads the weights)."""
     if init_from is None:
         return str(task.teacher)
-    ck = load_checkpoint(init_from, expect_model="pocoloco", training_state=False)
-    calls = int(ck.meta.get("config", {}).get("student_calls") or 0)
+    path = resolve_checkpoint(init_from)
+    meta = read_meta(path)
+    check_model_kind(path, meta["model_kind"], "pocoloco", "--init-from")
+    calls = int(meta["config"].get("student_calls") or 0)
     if calls != task.config.student_calls:
         what = "not a distilled student" if not calls else f"a student of {calls} calls"
         raise ValueError(f"--init-from {init_from}: {what}; start from a {task.config.student_calls}-call student of "
                          "this teacher, or from the teacher (no --init-from)")  # fmt: skip
-    sha = ck.meta.get("distilled_from", {}).get("teacher_sha256")
+    sha = meta.get("distilled_from", {}).get("teacher_sha256")
     if sha != task.teacher_sha256:
         raise ValueError(f"--init-from {init_from}: a student of another teacher ({str(sha)[:12]}...); start from a "
                          "student of this teacher")  # fmt: skip
-    return str(ck.path)
+    return str(path)
 
 
 def distill(teacher: str | Path, data: str | Path, out: str | Path, *, resume: bool = False,
             device: str | torch.device = "cpu", progress: bool = True, time_budget_s: float | None = None,
-            init_from: str | Path | None = None, **kwargs: Any):  # fmt: skip
-    """``pocoloco distill``: :func:`prepare_distillation` (``kwargs``: its options and train config
-    fields), then the student trained from the teacher's weights (or ``init_from``'s,
-    :func:`student_start`) by the shared loop into the run folder ``out`` (``resume``: from its
+            **kwargs: Any):  # fmt: skip
+    """``pocoloco distill``: :func:`prepare_distillation` (``kwargs``: its options, ``init_from``
+    included, and train config fields), then the student trained from ``task.start`` (the teacher's
+    weights, or ``init_from``'s) by the shared loop into the run folder ``out`` (``resume``: from its
     newest checkpoint), its sampling-only export in ``out/model``. Returns the loop's
     :class:`~pocoloco.engine.trainer.TrainResult`."""
     task = prepare_distillation(teacher, data, out, device=device, **kwargs)
-    start = None if resume else student_start(task, init_from)
     return train(task, out, device=device, resume=resume, progress=progress, time_budget_s=time_budget_s,
-                 export_to=Path(out) / "model", init_from=start)
+                 export_to=Path(out) / "model", init_from=None if resume else task.start)
