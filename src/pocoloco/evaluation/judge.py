@@ -109,8 +109,8 @@ def bench_distribution(
     the P probes (x 100 / sqrt(P) gives the rows' cm per probe), Chamfer ones in cm; ``settings``.
     Returns it."""
     if history not in JUDGE_HISTORY_MODES:
-        raise ValueError(f"--history must be dataset or rest for the judge (a reference set's true states share "
-                         f"their frame's own motion), got {history!r}")  # fmt: skip
+        raise ValueError(f"--history must be {' or '.join(JUDGE_HISTORY_MODES)} for the judge (a reference set's "
+                         f"true states share their frame's own motion), got {history!r}")  # fmt: skip
     if samples < 2:
         raise ValueError(f"--samples must be >= 2 (a generative model's spread needs two), got {samples}")
     if points < 16 or probes < 8:
