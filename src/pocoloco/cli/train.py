@@ -405,7 +405,8 @@ def cmd_distill(args: argparse.Namespace) -> None:
         torch.set_num_threads(max(1, os.cpu_count() or 1))
     overrides = {k: v for k, v in {"steps": args.steps, "batch_size": args.batch_size, "lr": args.lr,
                                    "distill_chamfer": args.chamfer_weight, "distill_renoised": args.renoised_share,
-                                   "student_renoise": args.renoise}.items() if v is not None}  # fmt: skip
+                                   "student_renoise": args.renoise, "distill_set": args.set_weight}.items()
+                 if v is not None}  # fmt: skip
     out = output_folder(args.out)
     with exclusive_lock(out, "pocoloco distill"):
         log = console(stderr=True).print
@@ -421,7 +422,8 @@ def cmd_distill(args: argparse.Namespace) -> None:
         with progress_bar("teacher pairs", args.pairs) as update:  # closed before the training loop's bar
             task = prepare_distillation(resolve_ckpt_arg(args.ckpt), data, out, calls=args.calls, pairs=args.pairs,
                                         pair_points=args.pair_points, teacher_sampler=args.teacher_sampler,
-                                        teacher_steps=args.teacher_steps, seed=args.seed, device=device,
+                                        teacher_steps=args.teacher_steps, draws=args.draws_per_frame,
+                                        seed=args.seed, device=device,
                                         init_from=None if args.init_from is None else resolve_ckpt_arg(args.init_from),
                                         pair_progress=lambda d, n: update(d, n), **overrides)  # fmt: skip
         result = run_training(task, out, device=device, resume=resume, progress=True,
@@ -445,6 +447,11 @@ def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--teacher-sampler", default="dpm++", help="the teacher's deterministic sampler (default "
                         "dpm++, DPM-Solver++(2M) ODE)")  # fmt: skip
     parser.add_argument("--teacher-steps", type=int, default=20, help="its steps (a multiple of --calls; default 20)")
+    parser.add_argument("--draws-per-frame", type=int, default=1, help="teacher pairs per training frame, each "
+                        "from its own noise (default 1; > 1 for --set-weight)")  # fmt: skip
+    parser.add_argument("--set-weight", type=float, default=None, help="weight of the set-level term: the energy "
+                        "distance between a frame's student draws and the teacher's (the judge's embedding; keeps "
+                        "the draws' spread; needs --draws-per-frame >= 2; default 0)")  # fmt: skip
     parser.add_argument("--steps", type=int, default=None, help="student training steps (default 2000)")
     parser.add_argument("--batch-size", type=int, default=None, help="pairs per step (default 16)")
     parser.add_argument("--lr", type=float, default=None, help="learning rate (default 5e-5)")

@@ -15,7 +15,12 @@
    distance of corresponding points, ``sqrt(|d|^2 + c^2) - c`` (Song & Dhariwal 2023), plus
    ``distill_chamfer`` x the Chamfer distance to x0* (PSF, Wu et al. CVPR 2023, distils its one-step
    point generator with a Chamfer loss). The noisiest time, where the student must do the most, is
-   drawn for 40 % of a batch's clouds (the others evenly).
+   drawn for 40 % of a batch's clouds (the others evenly). Optionally (``distill_set``, pairs made
+   with D > 1 draws per frame) a set-level term: a batch of whole frames, and the energy distance
+   between each frame's D student answers and the teacher's D on the judge's probe-distance
+   embedding (:mod:`pocoloco.ops.probe_energy`; the loss adds its energy score, whose gradient is
+   the same, and which is never negative) — per-draw regression pulls a frame's draws toward
+   their mean, which Chamfer rewards and the judge's proper score does not.
 3. Sampling: :func:`pocoloco.diffusion.few_step.sample_few_step` with 1 to 4 calls (and, with
    ``export-model --polish-with``, the teacher's finishing call, :func:`~pocoloco.diffusion.few_step.polish`).
 
@@ -46,6 +51,7 @@ from pocoloco.methods.pocoloco.config import PocoLocoTrainConfig
 from pocoloco.methods.pocoloco.method import PocoLocoMethod
 from pocoloco.methods.pocoloco.training import PocoLocoTask
 from pocoloco.ops.chamfer import chamfer_distance
+from pocoloco.ops.probe_energy import box_probes, probe_embedding, set_energy_distance
 from pocoloco.utils.atomic import save_npz_atomic, write_json_atomic
 from pocoloco.utils.seeding import seed_of
 
@@ -56,6 +62,8 @@ __all__ = ["DISTILL_SAMPLERS", "DistillTask", "PairSettings", "TeacherPairs", "d
 DISTILL_SAMPLERS = ("dpm++", "ddim", "unipc", "dpm++3m")
 #: share of each batch's clouds at the noisiest grid time (the others share the rest evenly)
 NOISIEST_SHARE = 0.4
+#: probes of the set-level loss's embedding, per frame and step
+SET_PROBES = 256
 PAIRS_FILE = "pairs.json"
 
 
@@ -63,7 +71,8 @@ PAIRS_FILE = "pairs.json"
 class PairSettings:
     """How the teacher pairs were made: ``pairs`` clouds of ``num_points`` points, ``calls`` student
     grid timesteps, the teacher's deterministic ``sampler`` with ``steps`` steps, ``seed``,
-    ``shard`` pairs per file, and the teacher (its checkpoint folder and meta SHA-256)."""
+    ``shard`` pairs per file, the teacher (its checkpoint folder and meta SHA-256), and ``draws``
+    pairs per frame (consecutive pairs, each from its own noise: the sets a set-level loss compares)."""
 
     pairs: int
     num_points: int
@@ -75,6 +84,7 @@ class PairSettings:
     teacher: str
     teacher_sha256: str
     num_timesteps: int = 1000
+    draws: int = 1
 
     def check(self, num_timesteps: int) -> list[int]:
         """One-line errors for settings no student can learn from; returns the teacher's timesteps."""
@@ -86,6 +96,9 @@ class PairSettings:
                              f"of {', '.join(DISTILL_SAMPLERS)}")  # fmt: skip
         if not 1 <= self.calls <= 8:
             raise ValueError(f"--calls must be in [1, 8], got {self.calls}")
+        if self.draws < 1 or self.shard % self.draws or self.pairs % self.draws:
+            raise ValueError(f"--draws-per-frame {self.draws}: must divide --pairs {self.pairs} and the shard size "
+                             f"{self.shard}")  # fmt: skip
         ts = make_timesteps(num_timesteps, self.steps, "trailing")
         grid = student_grid(num_timesteps, self.calls)
         if not set(grid) <= set(ts):
@@ -151,7 +164,7 @@ def make_teacher_pairs(task: DistillTask, teacher: nn.Module, settings: PairSett
     meta_path = out / PAIRS_FILE
     want = dict(settings.__dict__)
     if meta_path.is_file():
-        have = json.loads(meta_path.read_text())
+        have = {"draws": 1, **json.loads(meta_path.read_text())}  # folders made before draws existed: one each
         if have != want:
             diff = [k for k in want if have.get(k) != want[k]]
             raise ValueError(f"{out}: teacher pairs made with other settings ({', '.join(diff)}); choose another --out")
@@ -174,7 +187,8 @@ def make_teacher_pairs(task: DistillTask, teacher: nn.Module, settings: PairSett
                 progress(done, settings.pairs)
             continue
         rng = np.random.default_rng(seed_of(settings.seed, 11, k))
-        frames = rng.choice(len(ds), n, replace=len(ds) < n)
+        m = n // settings.draws  # frames in this shard, each drawn `draws` times from its own noises
+        frames = np.repeat(rng.choice(len(ds), m, replace=len(ds) < m), settings.draws)
         items = [ds[int(i)] for i in frames]
         joints = torch.stack([torch.as_tensor(it["joints"]) for it in items]).float()  # (n, J, 3) normalised
         subject = torch.tensor([int(it["subject"]) for it in items])
@@ -233,14 +247,22 @@ def read_teacher_pairs(folder: str | Path) -> TeacherPairs:
 
 class PairBatches(torch.utils.data.Dataset):
     """Step s -> a batch of B (pair, grid time) draws: ``x`` (B, N, C) the teacher's state, ``t`` (B,),
-    ``target`` (B, N, C), ``joints`` (B, J, 3), ``subject`` (B,) [, ``motion`` (B, J, F)]."""
+    ``target`` (B, N, C), ``joints`` (B, J, 3), ``subject`` (B,) [, ``motion`` (B, J, F)].
+
+    grouped: whole frames instead of single pairs: B / D frames (D = the pairs' ``draws``), all D
+    pairs of a frame consecutive in the batch and at the same grid time (the sets a set-level loss
+    compares)."""
 
     def __init__(self, pairs: TeacherPairs, batch_size: int, seed: int, steps: int, rank: int = 0,
-                 renoised: float = 0.0, alpha_bar: np.ndarray | None = None):  # fmt: skip
+                 renoised: float = 0.0, alpha_bar: np.ndarray | None = None, grouped: bool = False):  # fmt: skip
         self.pairs, self.batch_size, self.seed, self.steps, self.rank = pairs, batch_size, seed, steps, rank
-        self.renoised, self.alpha_bar = renoised, alpha_bar
+        self.renoised, self.alpha_bar, self.grouped = renoised, alpha_bar, grouped
         if renoised and alpha_bar is None:
             raise ValueError("re-noised draws need the schedule's alpha_bar")
+        draws = pairs.settings.draws
+        if grouped and (draws < 2 or batch_size % draws):
+            raise ValueError(f"a set-level loss needs >= 2 teacher pairs per frame (--draws-per-frame, got {draws}) "
+                             f"and a batch size that is a multiple of it (got {batch_size})")  # fmt: skip
         K = len(pairs.grid)
         self.time_p = np.full(K, (1.0 - NOISIEST_SHARE) / max(K - 1, 1))
         self.time_p[0] = NOISIEST_SHARE if K > 1 else 1.0
@@ -251,8 +273,15 @@ class PairBatches(torch.utils.data.Dataset):
     def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
         p = self.pairs
         rng = np.random.default_rng(seed_of(self.seed, 12, int(step), self.rank))
-        idx = rng.choice(len(p.targets), self.batch_size, replace=len(p.targets) < self.batch_size)
-        k = rng.choice(len(p.grid), self.batch_size, p=self.time_p)
+        if self.grouped:  # whole frames, each frame's draws at one grid time
+            D = p.settings.draws
+            groups, g = len(p.targets) // D, self.batch_size // D
+            first = D * rng.choice(groups, g, replace=groups < g)
+            idx = (first[:, None] + np.arange(D)).reshape(-1)
+            k = np.repeat(rng.choice(len(p.grid), g, p=self.time_p), D)
+        else:
+            idx = rng.choice(len(p.targets), self.batch_size, replace=len(p.targets) < self.batch_size)
+            k = rng.choice(len(p.grid), self.batch_size, p=self.time_p)
         x = p.states[idx, k]  # (B, N, C) the teacher's states
         # re-noised draws (a later grid time): the teacher's answer noised afresh, as the sampler does
         renoised = (k > 0) & (rng.random(self.batch_size) < self.renoised)
@@ -291,7 +320,8 @@ class DistillTask(PocoLocoTask):
         if self.pairs is None:
             raise RuntimeError("DistillTask: make or read the teacher pairs first")
         return PairBatches(self.pairs, self.config.batch_size, self.config.seed, self.config.steps, rank,
-                           self.config.distill_renoised, self.schedule.alphas_cumprod.double().numpy())  # fmt: skip
+                           self.config.distill_renoised, self.schedule.alphas_cumprod.double().numpy(),
+                           grouped=self.config.distill_set > 0)  # fmt: skip
 
     def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
         c = self.config
@@ -309,9 +339,29 @@ class DistillTask(PocoLocoTask):
             cham = chamfer_distance(x0[..., :3], target[..., :3]).chamfer.mean()
             loss = loss + c.distill_chamfer * cham
             logs["chamfer"] = cham.detach()
+        if c.distill_set > 0:  # each frame's draws as a set, scored against the teacher's set as the judge does
+            ed = self.set_loss(x0[..., :3], target[..., :3], step, rank)
+            loss = loss + c.distill_set * ed["energy_score"]  # = energy distance / 2 + a constant; never < 0
+            logs.update({f"set_{k}": v.detach() for k, v in ed.items()})
         logs["loss"] = loss.detach()
         as_tensors = x.device.type != "cpu"
         return loss, {k: v if as_tensors else float(v) for k, v in logs.items()}
+
+    def set_loss(self, x0: torch.Tensor, target: torch.Tensor, step: int, rank: int) -> dict[str, torch.Tensor]:
+        """The set-level term: the student's answers x0 (B, N, 3) for a batch of whole frames
+        (:class:`PairBatches` ``grouped``: D consecutive draws per frame) against the teacher's
+        (B, N, 3), as the judge scores a sampler: the energy distance of the probe-distance
+        embeddings (:func:`~pocoloco.ops.probe_energy.set_energy_distance`; SET_PROBES probes drawn
+        afresh each step in each frame's bounding box). Returns its statistics averaged over the
+        frames, in units of the normalised clouds."""
+        if self.pairs is None:
+            raise RuntimeError("DistillTask: make or read the teacher pairs first")
+        D = self.pairs.settings.draws
+        s, t = x0.reshape(-1, D, *x0.shape[1:]), target.reshape(-1, D, *target.shape[1:])  # (G, D, N, 3)
+        gen = torch.Generator(device=x0.device).manual_seed(seed_of(self.config.seed, 13, int(step), rank))
+        probes = box_probes(t, SET_PROBES, gen).unsqueeze(1)  # (G, 1, P, 3): one fixed map per frame
+        ed = set_energy_distance(probe_embedding(s, probes), probe_embedding(t.float(), probes))
+        return {k: v.mean() for k, v in ed.items()}
 
     def check_resume(self, ck: Checkpoint) -> None:
         super().check_resume(ck)
@@ -324,7 +374,8 @@ class DistillTask(PocoLocoTask):
         s = self.pairs.settings if self.pairs is not None else None
         extra["distilled_from"] = {"teacher": self.teacher, "teacher_sha256": self.teacher_sha256,
                                    **({"pairs": s.pairs, "pair_points": s.num_points, "teacher_sampler": s.sampler,
-                                       "teacher_steps": s.steps} if s is not None else {})}  # fmt: skip
+                                       "teacher_steps": s.steps, "draws_per_frame": s.draws}
+                                      if s is not None else {})}  # fmt: skip
         return extra
 
     def preview(self, model: nn.Module, step: int, out: Path, device: torch.device) -> Path | None:
@@ -333,8 +384,8 @@ class DistillTask(PocoLocoTask):
 
 def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path, *, calls: int = 4,
                          pairs: int = 1024, pair_points: int = 512, teacher_sampler: str = "dpm++",
-                         teacher_steps: int = 20, seed: int = 0, device: str | torch.device = "cpu",
-                         init_from: str | Path | None = None,
+                         teacher_steps: int = 20, draws: int = 1, seed: int = 0,
+                         device: str | torch.device = "cpu", init_from: str | Path | None = None,
                          pair_progress: Callable[[int, int], None] | None = None, **overrides: Any) -> DistillTask:  # fmt: skip
     """The first half of ``pocoloco distill``: the student's task (:func:`distill_config` with
     ``overrides``: steps, batch_size, lr, ...) with its teacher pairs made or finished in
@@ -344,6 +395,10 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
     starts from."""
     if not 1 <= calls <= 8:
         raise ValueError(f"--calls must be in [1, 8], got {calls}")
+    batch = int(overrides.get("batch_size") or 16)
+    if overrides.get("distill_set") and (draws < 2 or batch % draws):
+        raise ValueError(f"--set-weight needs >= 2 teacher pairs per frame (--draws-per-frame, got {draws}) and a "
+                         f"batch size that is a multiple of it (got {batch})")  # fmt: skip
     ck = load_checkpoint(teacher, expect_model="pocoloco", training_state=False)
     method = PocoLocoMethod.from_checkpoint(ck, device=str(device))
     config = distill_config(method.config, calls, seed=seed, num_points=pair_points, **overrides)
@@ -358,7 +413,7 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
     task.start = student_start(task, init_from)
     settings = PairSettings(pairs=pairs, num_points=pair_points, calls=calls, sampler=teacher_sampler,
                             steps=teacher_steps, seed=seed, shard=16, teacher=str(ck.path), teacher_sha256=sha,
-                            num_timesteps=config.num_timesteps)  # fmt: skip
+                            num_timesteps=config.num_timesteps, draws=draws)  # fmt: skip
     settings.check(config.num_timesteps)
     task.pairs = make_teacher_pairs(task, method.model, settings, Path(out) / "pairs", progress=pair_progress)
     return task
