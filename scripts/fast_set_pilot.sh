@@ -2,12 +2,13 @@
 # Issue 42, the set-level loss: does scoring each frame's draws as a set (the energy score of the
 # judge's probe embedding, `distill --set-weight`) give back the spread the shipped student lost
 # (0.72 of its teacher ODE's) and close its proper-score gap? A paired pilot at equal wall-clock:
-# both arms go on from the shipped `default:fast` on the same new teacher pairs (256 training frames
-# x 4 draws each), one thread each, side by side: `set` with the set term, `plain` without.
+# every arm goes on from the shipped `default:fast` on the same new teacher pairs (256 training
+# frames x 4 draws each), one thread each, side by side: `set10` and `set30` with the set term at
+# weight 10 and 30 (at weight 1 its gradient is ~0.06x the per-point terms'), `plain` without.
 # Then each is judged on the v4 standard test reference set and scored by `bench quality` (4 calls).
 #
-#   bash scripts/fast_set_pilot.sh                   # 45 min per arm, both at once on 2 cores
-#   MINUTES=90 SET_WEIGHT=2 bash scripts/fast_set_pilot.sh
+#   bash scripts/fast_set_pilot.sh                   # 50 min per arm, the three at once on 2 cores
+#   MINUTES=90 bash scripts/fast_set_pilot.sh
 #
 # Needs the whole `medium` v4 in $DATA and its standard test reference set in $REFS (see
 # scripts/fast_medium_v4.sh). Every step skips what is done; rerun to go on.
@@ -18,8 +19,8 @@ PL=.venv/bin/pocoloco
 DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v4_eval}
 REFS=${REFS:-$HOME/.cache/pocoloco/data/medium_v4_std_test}
 OUT=${OUT:-$HOME/.cache/pocoloco/runs/fast_set}
-MINUTES=${MINUTES:-45}
-SET_WEIGHT=${SET_WEIGHT:-1}
+MINUTES=${MINUTES:-50}
+ARMS=(set10:10 set30:30 plain:0)
 PAIRS=(--pairs 1024 --draws-per-frame 4 --seed 1)
 mkdir -p "$OUT"
 
@@ -35,22 +36,22 @@ arm() {  # arm NAME WEIGHT
   [ -f "$run/model/meta.json" ] && return 0
   if [ -d "$run/checkpoints" ]; then again=(--resume); else mkdir -p "$run"; cp -rn "$OUT/pairs_run/pairs" "$run/"; fi
   nice $PL distill --ckpt default --data "$DATA" --out "$run" --init-from default:fast "${PAIRS[@]}" \
-    --set-weight "$2" --steps 100000 --batch-size 16 --lr 5e-5 --renoised-share 0.5 --time-budget "$MINUTES" \
+    --set-weight "$2" --steps 100000 --batch-size 16 --lr 1e-4 --renoised-share 0.5 --time-budget "$MINUTES" \
     --threads 1 "${again[@]}" >> "$run.log" 2>&1
 }
-arm set "$SET_WEIGHT" &
-arm plain 0 &
+for a in "${ARMS[@]}"; do arm "${a%%:*}" "${a##*:}" & done
 wait
-for a in set plain; do
+NAMES=("${ARMS[@]%%:*}")
+for a in "${NAMES[@]}"; do
   [ -f "$OUT/fast_$a/meta.json" ] || $PL export-model --ckpt "$OUT/$a/checkpoints" --dtype int8 --polish-with default \
     --out "$OUT/fast_$a"
 done
 # 3. the judge (test reference set), then quality at 4 calls on both splits
-for a in set plain; do
+for a in "${NAMES[@]}"; do
   [ -f "$OUT/judge_$a/distribution.json" ] || $PL bench distribution --refs "$REFS" --ckpt-pocoloco "$OUT/fast_$a" \
     --out "$OUT/judge_$a"
 done
-for a in set plain; do
+for a in "${NAMES[@]}"; do
   for split in test heldout; do
     [ -f "$OUT/quality_$a/$split/quality.json" ] || $PL bench quality --data "$DATA" --split "$split" --frames 28 \
       --seeds 0 1 --points 2048 --ckpt-pocoloco "$OUT/fast_$a" --threads 2 --out "$OUT/quality_$a/$split"

@@ -673,6 +673,7 @@ def test_distill_with_the_set_level_loss(latent_teacher, tiny_dataset, tmp_path,
     assert not np.allclose(pairs.states[0, 0], pairs.states[1, 0]) and not np.allclose(pairs.targets[0], pairs.targets[1])
     logged = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert all(np.isfinite(r["set_energy_distance"]) and r["set_spread_refs"] > 0 and r["loss"] > 0 for r in logged)
+    assert all(r["set_spread_samples"] > 0 for r in logged)  # the chain's answers differ per noise
     meta = json.loads((out / "model" / "meta.json").read_text())
     assert meta["distilled_from"]["draws_per_frame"] == 2 and meta["config"]["distill_set"] == 1.0
     with pytest.raises(ValueError, match="--set-weight needs") as e:
@@ -687,3 +688,23 @@ def test_distill_with_the_set_level_loss(latent_teacher, tiny_dataset, tmp_path,
     meta_path.write_text(json.dumps(settings))
     assert read_teacher_pairs(old / "pairs").settings.draws == 1
     distill(latent_teacher, tiny_dataset, old, steps=2, resume=True, **{**kw, "pairs": 2, "batch_size": 2})
+
+
+def test_the_set_terms_chain_is_the_students_sampler(latent_teacher, tiny_dataset, tmp_path, torch_single_thread):
+    """The set-level term scores what the student samples: its chain (no gradient but the last
+    call's) equals ``sample_few_step`` on the grid it ships with, given the same noise stream."""
+    from pocoloco.methods import load_method
+    from pocoloco.methods.pocoloco.distill import DistillTask, chain_grid, distill_config
+
+    assert chain_grid(1000, 4) == [999, 749, 249] and chain_grid(1000, 2) == [999, 499]
+    teacher = load_method(latent_teacher)
+    task = DistillTask(distill_config(teacher.config, 4, distill_set=1.0), tiny_dataset)
+    noise = torch.randn(4, 32, 3, generator=torch.Generator().manual_seed(1))
+    cond = task.condition(torch.zeros(4, 24, 3), torch.zeros(4, dtype=torch.long))
+    net = teacher.model.eval()
+    got = task.student_chain(net, noise, cond, torch.Generator().manual_seed(5))
+    assert got.requires_grad
+    with torch.no_grad():
+        want = sample_few_step(net, task.schedule, noise, cond, timesteps=[999, 749, 249], renoise=1.0,
+                               rng=torch.Generator().manual_seed(5), prediction_type=task.config.prediction_type)  # fmt: skip
+    torch.testing.assert_close(got.detach(), want, atol=1e-4, rtol=1e-4)

@@ -16,11 +16,13 @@
    ``distill_chamfer`` x the Chamfer distance to x0* (PSF, Wu et al. CVPR 2023, distils its one-step
    point generator with a Chamfer loss). The noisiest time, where the student must do the most, is
    drawn for 40 % of a batch's clouds (the others evenly). Optionally (``distill_set``, pairs made
-   with D > 1 draws per frame) a set-level term: a batch of whole frames, and the energy distance
-   between each frame's D student answers and the teacher's D on the judge's probe-distance
-   embedding (:mod:`pocoloco.ops.probe_energy`; the loss adds its energy score, whose gradient is
-   the same, and which is never negative) — per-draw regression pulls a frame's draws toward
-   their mean, which Chamfer rewards and the judge's proper score does not.
+   with D > 1 draws per frame) a set-level term: a batch of whole frames; each frame's D noises
+   taken down the student's own sampling chain, and its D answers scored against the teacher's D
+   by the judge's proper score on the probe-distance embedding (:mod:`pocoloco.ops.probe_energy`;
+   the loss adds the energy score, whose gradient is the energy distance's and which is never
+   negative). Each call keeps most of a frame's spread on the teacher's path, but every fresh
+   re-noising pulls the next answer toward the mean: the chain loses it call after call, which
+   Chamfer rewards and the proper score does not (docs/lab/fast.md).
 3. Sampling: :func:`pocoloco.diffusion.few_step.sample_few_step` with 1 to 4 calls (and, with
    ``export-model --polish-with``, the teacher's finishing call, :func:`~pocoloco.diffusion.few_step.polish`).
 
@@ -42,7 +44,8 @@ import torch
 from torch import nn
 
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
-from pocoloco.diffusion.few_step import student_grid
+from pocoloco.diffusion.few_step import polished_grid, student_grid
+from pocoloco.diffusion.sampler_base import randn_like
 from pocoloco.diffusion.samplers import StepInfo, make_timesteps
 from pocoloco.engine.checkpoint import (Checkpoint, check_model_kind, load_checkpoint, meta_digest, read_meta,
                                        resolve_checkpoint)
@@ -120,6 +123,13 @@ class TeacherPairs:
     motion: np.ndarray | None
     grid: list[int]
     settings: PairSettings
+
+
+def chain_grid(num_timesteps: int, calls: int) -> list[int]:
+    """The grid the set-level term runs the student's chain on: the one it samples with by default
+    (a teacher's finishing call after it: :func:`~pocoloco.diffusion.few_step.polished_grid`, e.g.
+    [999, 749, 249] for 4 calls), else its whole grid."""
+    return polished_grid(num_timesteps, calls, calls) or student_grid(num_timesteps, calls)
 
 
 def teacher_sha(ck: Checkpoint) -> str:
@@ -279,6 +289,7 @@ class PairBatches(torch.utils.data.Dataset):
             first = D * rng.choice(groups, g, replace=groups < g)
             idx = (first[:, None] + np.arange(D)).reshape(-1)
             k = np.repeat(rng.choice(len(p.grid), g, p=self.time_p), D)
+            noise = p.states[idx, 0]  # the draws' initial noises, for the student's own chain
         else:
             idx = rng.choice(len(p.targets), self.batch_size, replace=len(p.targets) < self.batch_size)
             k = rng.choice(len(p.grid), self.batch_size, p=self.time_p)
@@ -295,6 +306,8 @@ class PairBatches(torch.utils.data.Dataset):
                  "subject": torch.from_numpy(p.subject[idx]), "trajectory": torch.from_numpy(~renoised)}  # fmt: skip
         if p.motion is not None:
             batch["motion"] = torch.from_numpy(p.motion[idx])
+        if self.grouped:
+            batch["noise"] = torch.from_numpy(noise)
         return batch
 
 
@@ -339,28 +352,52 @@ class DistillTask(PocoLocoTask):
             cham = chamfer_distance(x0[..., :3], target[..., :3]).chamfer.mean()
             loss = loss + c.distill_chamfer * cham
             logs["chamfer"] = cham.detach()
-        if c.distill_set > 0:  # each frame's draws as a set, scored against the teacher's set as the judge does
-            ed = self.set_loss(x0[..., :3], target[..., :3], step, rank)
+        if c.distill_set > 0:  # each frame's draws down the student's chain, scored against the teacher's set
+            ed = self.set_loss(net, batch, cond, step, rank)
             loss = loss + c.distill_set * ed["energy_score"]  # = energy distance / 2 + a constant; never < 0
             logs.update({f"set_{k}": v.detach() for k, v in ed.items()})
         logs["loss"] = loss.detach()
         as_tensors = x.device.type != "cpu"
         return loss, {k: v if as_tensors else float(v) for k, v in logs.items()}
 
-    def set_loss(self, x0: torch.Tensor, target: torch.Tensor, step: int, rank: int) -> dict[str, torch.Tensor]:
-        """The set-level term: the student's answers x0 (B, N, 3) for a batch of whole frames
-        (:class:`PairBatches` ``grouped``: D consecutive draws per frame) against the teacher's
-        (B, N, 3), as the judge scores a sampler: the energy distance of the probe-distance
-        embeddings (:func:`~pocoloco.ops.probe_energy.set_energy_distance`; SET_PROBES probes drawn
-        afresh each step in each frame's bounding box). Returns its statistics averaged over the
-        frames, in units of the normalised clouds."""
+    def student_chain(self, net: nn.Module, noise: torch.Tensor, cond: Any, gen: torch.Generator) -> torch.Tensor:
+        """(B, N, C) the student's answers from ``noise`` (B, N, C) down :func:`chain_grid`, as
+        :func:`~pocoloco.diffusion.few_step.sample_few_step` gives them (``student_renoise`` fresh
+        noise from ``gen`` at each re-noising), with a gradient through the last call only."""
+        c = self.config
+        grid = chain_grid(c.num_timesteps, c.student_calls)
+        x = noise.float()
+        B = len(x)
+        with torch.no_grad():
+            for t, t_next in zip(grid[:-1], grid[1:]):
+                tt = torch.full((B,), t, device=x.device)
+                eps, x0 = self.schedule.pred_to_eps_x0(net(x, tt, cond).float(), x, tt, c.prediction_type)
+                ab = self.schedule.alpha_bar(t_next)
+                sigma = c.student_renoise * (1.0 - ab) ** 0.5
+                x = ab**0.5 * x0 + max(1.0 - ab - sigma**2, 0.0) ** 0.5 * eps + sigma * randn_like(x, gen)
+        tt = torch.full((B,), grid[-1], device=x.device)
+        return self.schedule.pred_to_eps_x0(net(x, tt, cond).float(), x, tt, c.prediction_type)[1]
+
+    def set_loss(self, net: nn.Module, batch: dict[str, torch.Tensor], cond: Any, step: int,
+                 rank: int) -> dict[str, torch.Tensor]:  # fmt: skip
+        """The set-level term, on the student's own chain: each frame's D initial noises (a batch of
+        whole frames, :class:`PairBatches` ``grouped``) taken down the grid the student samples
+        with (:func:`chain_grid`; each call re-noised with ``student_renoise`` fresh noise, as
+        :func:`~pocoloco.diffusion.few_step.sample_few_step` does; no gradient but the last call's),
+        and the last call's answers scored as a set against the teacher's D answers the way the
+        judge scores a sampler: the energy distance / score of the probe-distance embeddings
+        (:mod:`pocoloco.ops.probe_energy`; SET_PROBES probes drawn afresh each step in each
+        frame's bounding box). Returns the statistics averaged over the frames, normalised units."""
         if self.pairs is None:
             raise RuntimeError("DistillTask: make or read the teacher pairs first")
-        D = self.pairs.settings.draws
-        s, t = x0.reshape(-1, D, *x0.shape[1:]), target.reshape(-1, D, *target.shape[1:])  # (G, D, N, 3)
-        gen = torch.Generator(device=x0.device).manual_seed(seed_of(self.config.seed, 13, int(step), rank))
+        c, D = self.config, self.pairs.settings.draws
+        noise = batch["noise"]
+        gen = torch.Generator(device=noise.device).manual_seed(seed_of(c.seed, 13, int(step), rank))
+        x0 = self.student_chain(net, noise, cond, gen)
+        target = batch["target"][..., :3].float()
+        s, t = x0[..., :3].reshape(-1, D, x0.shape[1], 3), target.reshape(-1, D, target.shape[1], 3)  # (G, D, N, 3)
         probes = box_probes(t, SET_PROBES, gen).unsqueeze(1)  # (G, 1, P, 3): one fixed map per frame
-        ed = set_energy_distance(probe_embedding(s, probes), probe_embedding(t.float(), probes))
+        ed = set_energy_distance(probe_embedding(s, probes), probe_embedding(t, probes))
         return {k: v.mean() for k, v in ed.items()}
 
     def check_resume(self, ck: Checkpoint) -> None:
