@@ -19,8 +19,7 @@ MOTION=${MOTION:-$HOME/.cache/pocoloco/runs/v4motion}
 [ -f "$RES/heldout_fast/distribution.json" ] || nice $PL bench distribution --refs "$REFS" \
   --ckpt-pocoloco default:fast --ckpt-hybrid default:hybrid-fast --out "$RES/heldout_fast"
 $PY benchmarks/bench_fast.py --no-speed --teacher default --student default:fast --json "$RES/fast_vs_default_heldout.json" \
-  --distribution "heldout=$RES/heldout/distribution.json:pocoloco,$RES/heldout_fast/distribution.json:pocoloco" \
-  > "$RES/fast_vs_default_heldout.md"
+  --distribution "heldout=$RES/heldout/distribution.json:pocoloco,$RES/heldout_fast/distribution.json:pocoloco"
 
 if [ -f "$MOTION/pocoloco_motion/model/meta.json" ] || [ -d "$MOTION/pocoloco_motion/checkpoints" ]; then
   for history in dataset rest; do
