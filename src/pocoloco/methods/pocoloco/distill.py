@@ -125,6 +125,14 @@ class TeacherPairs:
     settings: PairSettings
 
 
+def check_set_batches(draws: int, batch_size: int) -> None:
+    """One-line error unless batches of whole frames can be made: the set-level term needs >= 2
+    teacher pairs per frame and a batch size that is a multiple of them."""
+    if draws < 2 or batch_size % draws:
+        raise ValueError(f"--set-weight needs >= 2 teacher pairs per frame (--draws-per-frame, got {draws}) and a "
+                         f"batch size that is a multiple of it (got {batch_size})")  # fmt: skip
+
+
 def chain_grid(num_timesteps: int, calls: int) -> list[int]:
     """The grid the set-level term runs the student's chain on: the one it samples with by default
     (a teacher's finishing call after it: :func:`~pocoloco.diffusion.few_step.polished_grid`, e.g.
@@ -269,10 +277,8 @@ class PairBatches(torch.utils.data.Dataset):
         self.renoised, self.alpha_bar, self.grouped = renoised, alpha_bar, grouped
         if renoised and alpha_bar is None:
             raise ValueError("re-noised draws need the schedule's alpha_bar")
-        draws = pairs.settings.draws
-        if grouped and (draws < 2 or batch_size % draws):
-            raise ValueError(f"a set-level loss needs >= 2 teacher pairs per frame (--draws-per-frame, got {draws}) "
-                             f"and a batch size that is a multiple of it (got {batch_size})")  # fmt: skip
+        if grouped:
+            check_set_batches(pairs.settings.draws, batch_size)
         K = len(pairs.grid)
         self.time_p = np.full(K, (1.0 - NOISIEST_SHARE) / max(K - 1, 1))
         self.time_p[0] = NOISIEST_SHARE if K > 1 else 1.0
@@ -432,10 +438,8 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
     starts from."""
     if not 1 <= calls <= 8:
         raise ValueError(f"--calls must be in [1, 8], got {calls}")
-    batch = int(overrides.get("batch_size") or 16)
-    if overrides.get("distill_set") and (draws < 2 or batch % draws):
-        raise ValueError(f"--set-weight needs >= 2 teacher pairs per frame (--draws-per-frame, got {draws}) and a "
-                         f"batch size that is a multiple of it (got {batch})")  # fmt: skip
+    if overrides.get("distill_set"):  # before any pair is made
+        check_set_batches(draws, int(overrides.get("batch_size") or 16))
     ck = load_checkpoint(teacher, expect_model="pocoloco", training_state=False)
     method = PocoLocoMethod.from_checkpoint(ck, device=str(device))
     config = distill_config(method.config, calls, seed=seed, num_points=pair_points, **overrides)
