@@ -28,7 +28,8 @@ from pocoloco.diffusion import PerSampleRNG
 from pocoloco.diffusion.few_step import polish, sample_few_step
 from pocoloco.engine.shipped import resolve_ckpt_arg
 from pocoloco.methods import load_method
-from pocoloco.methods.pocoloco.distill import DistillTask, distill_config, read_teacher_pairs
+from pocoloco.methods.pocoloco.distill import DistillTask, chain_grid, distill_config, read_teacher_pairs
+from pocoloco.methods.pocoloco.method import DEFAULT_POLISH_T
 from pocoloco.ops.probe_energy import box_probes, probe_embedding, set_energy_distance
 
 
@@ -90,11 +91,12 @@ def main(argv: list[str] | None = None) -> int:
         for calls in (1, 2, cfg.student_calls):
             out = sample_few_step(net, schedule, noise, cond, steps=calls, rng=PerSampleRNG(list(idx)), **kw)
             score(out, f"sampler, {calls} calls")
-        grid = [999, 749, 249]
+        grid = chain_grid(schedule.num_timesteps, cfg.student_calls)  # the grid it ships with
         rng = PerSampleRNG(list(idx))
         out = sample_few_step(net, schedule, noise, cond, timesteps=grid, rng=rng, **kw)
         score(out, f"sampler, grid {grid}")
-        out = polish(teacher.model.float().eval(), schedule, out, cond, 20, rng, prediction_type=cfg.prediction_type)
+        t_polish = student.polish[1] if student.polish is not None else DEFAULT_POLISH_T
+        out = polish(teacher.model.float().eval(), schedule, out, cond, t_polish, rng, prediction_type=cfg.prediction_type)
         score(out, f"sampler, grid {grid} + the teacher's finishing call")
     if a.json:
         Path(a.json).write_text(json.dumps({"pairs": str(a.pairs), "student": a.student, "frames": G, "draws": D,
