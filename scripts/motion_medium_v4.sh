@@ -87,19 +87,27 @@ for split in test heldout; do  # the window alone: the motion model's own window
       --json "$OUT/gain_${split}_pocoloco_own_vs_$ref.json" > "$OUT/gain_${split}_pocoloco_own_vs_$ref.md"
   done
 done
-# the judge: the v4 standard test reference set (24 poses x 9 true states; none of the window at 0 s
-# shared, the frame's own at 2 s), paired per pose with the shipped default's report
-REFS=${REFS:-$HOME/.cache/pocoloco/data/medium_v4_std_test}
-for history in dataset rest; do  # rest: the same network with no window anywhere (what the window adds)
-  judge=$OUT/judge_pocoloco_motion$([ $history = rest ] && echo _rest || true)
-  [ -f "$judge/distribution.json" ] || $PL bench distribution --refs "$REFS" --ckpt-pocoloco "$OUT/pocoloco_motion" \
-    --history $history --out "$judge"
+# the judge: the v4 standard reference sets (24 poses x 9 true states each; none of the window at 0 s
+# shared, the frame's own at 2 s), paired per pose with the shipped default's report on the same set
+# (benchmarks/results/distribution_medium_v4_std/SPLIT; scripts/judge_medium_v4_heldout.sh makes the
+# held-out one). Test: judge_pocoloco_motion*, held out: judge_heldout_pocoloco_motion*.
+REFS_TEST=${REFS:-$HOME/.cache/pocoloco/data/medium_v4_std_test}
+REFS_HELDOUT=${REFS_HELDOUT:-$HOME/.cache/pocoloco/data/medium_v4_std_heldout}
+for split in test heldout; do
+  if [ $split = test ]; then refs=$REFS_TEST; pre=judge_; else refs=$REFS_HELDOUT; pre=judge_heldout_; fi
+  shipped=benchmarks/results/distribution_medium_v4_std/$split/distribution.json
+  [ -d "$refs" ] && [ -f "$shipped" ] || { echo "motion_medium_v4: no $split reference set or shipped judge; skipped"; continue; }
+  for history in dataset rest; do  # rest: the same network with no window anywhere (what the window adds)
+    judge=$OUT/${pre}pocoloco_motion$([ $history = rest ] && echo _rest || true)
+    [ -f "$judge/distribution.json" ] || $PL bench distribution --refs "$refs" --ckpt-pocoloco "$OUT/pocoloco_motion" \
+      --history $history --out "$judge"
+  done
+  $PY benchmarks/bench_fast.py --no-speed --teacher default --student "$OUT/pocoloco_motion" \
+    --json "$OUT/${pre}pocoloco_motion_vs_shipped.json" --distribution \
+    "$split=$shipped:pocoloco,$OUT/${pre}pocoloco_motion/distribution.json:pocoloco" > "$OUT/${pre}pocoloco_motion_vs_shipped.md"
+  $PY benchmarks/bench_fast.py --no-speed --teacher "$OUT/pocoloco_motion (rest)" --student "$OUT/pocoloco_motion" \
+    --json "$OUT/${pre}pocoloco_motion_vs_rest.json" --distribution \
+    "$split=$OUT/${pre}pocoloco_motion_rest/distribution.json:pocoloco,$OUT/${pre}pocoloco_motion/distribution.json:pocoloco" \
+    > "$OUT/${pre}pocoloco_motion_vs_rest.md"
 done
-$PY benchmarks/bench_fast.py --no-speed --teacher default --student "$OUT/pocoloco_motion" --json "$OUT/judge_pocoloco_motion_vs_shipped.json" --distribution \
-  "test=benchmarks/results/distribution_medium_v4_std/test/distribution.json:pocoloco,$OUT/judge_pocoloco_motion/distribution.json:pocoloco" \
-  > "$OUT/judge_pocoloco_motion_vs_shipped.md"
-$PY benchmarks/bench_fast.py --no-speed --teacher "$OUT/pocoloco_motion (rest)" --student "$OUT/pocoloco_motion" \
-  --json "$OUT/judge_pocoloco_motion_vs_rest.json" --distribution \
-  "test=$OUT/judge_pocoloco_motion_rest/distribution.json:pocoloco,$OUT/judge_pocoloco_motion/distribution.json:pocoloco" \
-  > "$OUT/judge_pocoloco_motion_vs_rest.md"
 echo "motion_medium_v4: done ($OUT)"
