@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
+from pocoloco.diffusion.samplers import make_timesteps
 from pocoloco.diffusion.few_step import (allowed_calls, check_student_calls, polish, polished_grid,
                                          sample_few_step, sampling_grid, student_grid)
 
@@ -708,3 +709,67 @@ def test_the_set_terms_chain_is_the_students_sampler(latent_teacher, tiny_datase
         want = sample_few_step(net, task.schedule, noise, cond, timesteps=[999, 749, 249], renoise=1.0,
                                rng=torch.Generator().manual_seed(5), prediction_type=task.config.prediction_type)  # fmt: skip
     torch.testing.assert_close(got.detach(), want, atol=1e-4, rtol=1e-4)
+
+
+def test_distill_with_the_teachers_answers_from_renoised_states(latent_teacher, tiny_dataset, tmp_path,
+                                                               torch_single_thread):  # fmt: skip
+    """``--renoised-targets ode``: beside each pair shard, its answer noised afresh to each later grid
+    time and the teacher's deterministic sampler run from there over its own remaining timesteps
+    (checked against that sampler called directly); they are made once (a rerun keeps them), read
+    back with the pairs, and the batches' re-noised draws are those stored states with those
+    answers, scored point by point; asked for without re-noised draws, or read incomplete, a
+    one-line error."""
+    from pocoloco.methods import load_method
+    from pocoloco.methods.pocoloco.distill import (DistillTask, PairBatches, distill, distill_config,
+                                                   read_teacher_pairs)  # fmt: skip
+    from pocoloco.utils.seeding import seed_of
+
+    out = tmp_path / "d"
+    kw = dict(calls=4, pairs=4, pair_points=32, teacher_steps=8, batch_size=4, progress=False, log_every=1,
+              distill_renoised=0.5, distill_renoised_targets="ode")  # fmt: skip
+    distill(latent_teacher, tiny_dataset, out, steps=2, **kw)
+    pairs = read_teacher_pairs(out / "pairs", renoised=True)
+    assert pairs.renoised_states.shape == pairs.renoised_targets.shape == (4, 3, 32, 3)
+    # the slow reference: the stored state is the answer noised with the pair's own noise stream, the
+    # stored answer the teacher's DPM-Solver++ ODE from it over its timesteps from that grid time on
+    teacher = load_method(latent_teacher)
+    task = DistillTask(distill_config(teacher.config, 4), tiny_dataset)
+    schedule, i = task.schedule, 2
+    rng = PerSampleRNG([seed_of(0, 14, i)])  # distill seed 0
+    ts = make_timesteps(1000, 8, "trailing")
+    cond = task.condition(torch.from_numpy(pairs.joints[i:i + 1]), torch.from_numpy(pairs.subject[i:i + 1]))
+    for k, t in enumerate(pairs.grid[1:]):
+        ab = schedule.alphas_cumprod.double()[t]
+        x = (ab.sqrt() * torch.from_numpy(pairs.targets[i:i + 1]).double()
+             + (1 - ab).sqrt() * rng.randn((32, 3)).double()).float()  # fmt: skip
+        torch.testing.assert_close(torch.from_numpy(pairs.renoised_states[i:i + 1, k]), x)
+        want = sample("dpm++", teacher.model.eval(), schedule, x, cond, timesteps=ts[ts.index(t):],
+                      prediction_type=task.config.prediction_type)  # fmt: skip
+        torch.testing.assert_close(torch.from_numpy(pairs.renoised_targets[i:i + 1, k]), want, atol=1e-4, rtol=1e-4)
+    assert not np.allclose(pairs.renoised_targets[:, 0], pairs.targets)  # from 749 the teacher draws anew
+    # batches: a re-noised draw is a stored state with its stored answer, every draw scored per point
+    b = PairBatches(pairs, 64, 0, 5, renoised=0.5, alpha_bar=schedule.alphas_cumprod.double().numpy())[1]
+    assert b["trajectory"].all()
+    hits = 0
+    for j in range(64):
+        k = pairs.grid.index(int(b["t"][j]))
+        on_path = [p for p in range(4) if np.array_equal(b["x"][j].numpy(), pairs.states[p, k])]
+        stored = [p for p in range(4) if k and np.array_equal(b["x"][j].numpy(), pairs.renoised_states[p, k - 1])]
+        assert len(on_path) + len(stored) == 1
+        want = pairs.targets[on_path[0]] if on_path else pairs.renoised_targets[stored[0], k - 1]
+        np.testing.assert_array_equal(b["target"][j].numpy(), want)
+        hits += bool(stored)
+    assert 0 < hits < 64
+    meta = json.loads((out / "model" / "meta.json").read_text())
+    assert meta["distilled_from"]["renoised_targets"] == "ode"
+    # made once: a resumed run keeps them
+    stamp = (out / "pairs" / "renoised_00000.npz").stat().st_mtime_ns
+    distill(latent_teacher, tiny_dataset, out, steps=3, resume=True, **kw)
+    assert (out / "pairs" / "renoised_00000.npz").stat().st_mtime_ns == stamp
+    (out / "pairs" / "renoised_00000.npz").unlink()
+    with pytest.raises(ValueError, match="re-noised teacher pairs incomplete") as e:
+        read_teacher_pairs(out / "pairs", renoised=True)
+    assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="--renoised-share > 0") as e:
+        distill(latent_teacher, tiny_dataset, tmp_path / "bad", steps=1, **{**kw, "distill_renoised": 0.0})
+    assert "\n" not in str(e.value) and not (tmp_path / "bad" / "pairs").exists()

@@ -405,7 +405,8 @@ def cmd_distill(args: argparse.Namespace) -> None:
         torch.set_num_threads(max(1, os.cpu_count() or 1))
     overrides = {k: v for k, v in {"steps": args.steps, "batch_size": args.batch_size, "lr": args.lr,
                                    "distill_chamfer": args.chamfer_weight, "distill_renoised": args.renoised_share,
-                                   "student_renoise": args.renoise, "distill_set": args.set_weight}.items()
+                                   "student_renoise": args.renoise, "distill_set": args.set_weight,
+                                   "distill_renoised_targets": args.renoised_targets}.items()
                  if v is not None}  # fmt: skip
     out = output_folder(args.out)
     with exclusive_lock(out, "pocoloco distill"):
@@ -459,6 +460,10 @@ def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--renoised-share", type=float, default=None, help="share of the later-grid draws made as "
                         "the re-noising sampler makes them: the teacher's answer noised afresh, scored by Chamfer "
                         "(default 0)")  # fmt: skip
+    parser.add_argument("--renoised-targets", choices=("answer", "ode"), default=None, help="the re-noised draws' "
+                        "target: the teacher's answer they were noised from (answer, the default) or the teacher's "
+                        "deterministic answer from the re-noised state (ode: made once beside the pairs, costs the "
+                        "teacher (calls - 1) / 2 of the pairs' time; keeps the chain's draws apart)")  # fmt: skip
     parser.add_argument("--renoise", type=float, default=None, help="the student's sampler: share of fresh noise "
                         "when re-noising, 0 (deterministic) .. 1 (default 1)")  # fmt: skip
     parser.add_argument("--seed", type=int, default=0, help="seed of the pairs' frames and noises and of the "

@@ -77,7 +77,9 @@ class PocoLocoTrainConfig(Config):
     distill_huber: the student's loss, per-point pseudo-Huber (``distill_huber``: its c, normalised
     units) plus ``distill_chamfer`` x the Chamfer distance to the teacher's cloud. distill_renoised:
     the share of a batch's later-grid draws made as the re-noising sampler makes them (the
-    teacher's answer noised afresh to the grid time, scored by Chamfer alone). distill_set: weight
+    teacher's answer noised afresh to the grid time). distill_renoised_targets: their target,
+    "answer" (the teacher's answer itself, scored by Chamfer alone) or "ode" (the teacher's
+    deterministic answer from the re-noised state, made once with the pairs). distill_set: weight
     of the set-level term (teacher pairs made with several draws per frame): the energy distance
     between a frame's student answers and the teacher's, on the judge's probe-distance embedding
     (per-draw regression pulls the draws to their mean; this keeps their spread).
@@ -128,6 +130,7 @@ class PocoLocoTrainConfig(Config):
     distill_chamfer: float = 1.0
     distill_huber: float = 0.01
     distill_renoised: float = 0.0
+    distill_renoised_targets: str = "answer"
     distill_set: float = 0.0
     student_renoise: float = 1.0
 
@@ -157,6 +160,11 @@ class PocoLocoTrainConfig(Config):
         if not (0 <= self.distill_renoised <= 1 and 0 <= self.student_renoise <= 1):
             raise ValueError(f"distill_renoised and student_renoise must be in [0, 1], got {self.distill_renoised}, "
                              f"{self.student_renoise}")  # fmt: skip
+        if self.distill_renoised_targets not in ("answer", "ode"):
+            raise ValueError(f"distill_renoised_targets (--renoised-targets) must be answer or ode, got "
+                             f"{self.distill_renoised_targets!r}")  # fmt: skip
+        if self.distill_renoised_targets == "ode" and not self.distill_renoised > 0:
+            raise ValueError("--renoised-targets ode: no re-noised draws to give them to; set --renoised-share > 0")
         if not (self.distill_set >= 0 and math.isfinite(self.distill_set)):
             raise ValueError(f"distill_set (--set-weight) must be a number >= 0, got {self.distill_set}")
         if self.student_calls < 0 or self.distill_chamfer < 0 or not self.distill_huber > 0:

@@ -15,7 +15,13 @@
    distance of corresponding points, ``sqrt(|d|^2 + c^2) - c`` (Song & Dhariwal 2023), plus
    ``distill_chamfer`` x the Chamfer distance to x0* (PSF, Wu et al. CVPR 2023, distils its one-step
    point generator with a Chamfer loss). The noisiest time, where the student must do the most, is
-   drawn for 40 % of a batch's clouds (the others evenly). Optionally (``distill_set``, pairs made
+   drawn for 40 % of a batch's clouds (the others evenly). Re-noised draws (``distill_renoised``)
+   put the student where its own sampler puts it, the teacher's answer noised afresh to a later
+   grid time; their target is that answer (``distill_renoised_targets="answer"``, scored by Chamfer
+   alone: the student learns a denoiser there, whose answer is pulled toward the pose's mean) or
+   the teacher's deterministic answer from that re-noised state (``"ode"``,
+   :func:`make_renoised_pairs`: the consistency condition on the states the sampler visits, so
+   the chain keeps its draws apart; points correspond, so the per-point term applies). Optionally (``distill_set``, pairs made
    with D > 1 draws per frame) a set-level term: a batch of whole frames; each frame's D noises
    taken down the student's own sampling chain, and its D answers scored against the teacher's D
    by the judge's proper score on the probe-distance embedding (:mod:`pocoloco.ops.probe_energy`;
@@ -59,7 +65,8 @@ from pocoloco.utils.atomic import save_npz_atomic, write_json_atomic
 from pocoloco.utils.seeding import seed_of
 
 __all__ = ["DISTILL_SAMPLERS", "DistillTask", "PairSettings", "TeacherPairs", "distill", "distill_config",
-           "make_teacher_pairs", "prepare_distillation", "read_teacher_pairs", "student_start"]  # fmt: skip
+           "make_renoised_pairs", "make_teacher_pairs", "prepare_distillation", "read_teacher_pairs",
+           "student_start"]  # fmt: skip
 
 #: deterministic samplers a teacher's pairs may come from (an SDE's answer is not a function of x_T)
 DISTILL_SAMPLERS = ("dpm++", "ddim", "unipc", "dpm++3m")
@@ -114,7 +121,9 @@ class PairSettings:
 class TeacherPairs:
     """The pairs in memory: ``states`` (P, K, N, C) the teacher's states at the K grid timesteps
     ``grid`` (state 0 = the initial noise), ``targets`` (P, N, C) its answers, ``joints`` (P, J, 3)
-    normalised, ``subject`` (P,) dataset subject ids, ``motion`` (P, J, F) window features or None."""
+    normalised, ``subject`` (P,) dataset subject ids, ``motion`` (P, J, F) window features or None;
+    ``renoised_states`` / ``renoised_targets`` (P, K - 1, N, C) or None: each answer noised afresh to
+    the later grid times and the teacher's answer from there (:func:`make_renoised_pairs`)."""
 
     states: np.ndarray
     targets: np.ndarray
@@ -123,6 +132,8 @@ class TeacherPairs:
     motion: np.ndarray | None
     grid: list[int]
     settings: PairSettings
+    renoised_states: np.ndarray | None = None
+    renoised_targets: np.ndarray | None = None
 
 
 def check_set_batches(draws: int, batch_size: int) -> None:
@@ -162,8 +173,8 @@ def distill_config(teacher: PocoLocoTrainConfig, calls: int, **overrides: Any) -
     return teacher.replace(**{**base, **overrides})
 
 
-def _shard_path(out: Path, k: int) -> Path:
-    return out / f"shard_{k:05d}.npz"
+def _shard_path(out: Path, k: int, kind: str = "shard") -> Path:
+    return out / f"{kind}_{k:05d}.npz"
 
 
 @torch.no_grad()
@@ -236,9 +247,48 @@ def make_teacher_pairs(task: DistillTask, teacher: nn.Module, settings: PairSett
     return read_teacher_pairs(out)
 
 
-def read_teacher_pairs(folder: str | Path) -> TeacherPairs:
-    """The pairs of a folder :func:`make_teacher_pairs` completed; one-line errors for a missing,
-    incomplete or damaged one."""
+@torch.no_grad()
+def make_renoised_pairs(task: DistillTask, teacher: nn.Module, folder: str | Path,
+                        progress: Callable[[int, int], None] | None = None) -> TeacherPairs:  # fmt: skip
+    """Make (or finish) the re-noised pairs of the teacher pairs in ``folder`` (complete, made by
+    :func:`make_teacher_pairs` for this teacher): for each pair and each later grid time t_k, its
+    answer x0* noised afresh, ``x = sqrt(abar_k) x0* + sqrt(1 - abar_k) z`` (what the re-noising
+    sampler hands its next call, DDPM eq. 4), and the teacher's deterministic sampler run from x
+    over its own timesteps from t_k down (``renoised_XXXXX.npz`` beside each pair shard, written
+    atomically; z from per-pair seeds ``seed_of(seed, 14, pair)``). Costs the teacher
+    (K - 1) / 2 of the pairs' calls on the 4-call grid. Returns the pairs with them read."""
+    pairs = read_teacher_pairs(folder)
+    s, c, folder = pairs.settings, task.config, Path(folder)
+    ts = s.check(c.num_timesteps)
+    schedule = NoiseSchedule.from_kind(c.schedule, c.num_timesteps)
+    ab = schedule.alphas_cumprod.double()
+    device = next(teacher.parameters()).device
+    teacher.eval()
+    for k in range(-(-s.pairs // s.shard)):
+        lo, hi = k * s.shard, min((k + 1) * s.shard, s.pairs)
+        path = _shard_path(folder, k, "renoised")
+        if not path.is_file():
+            target = torch.from_numpy(pairs.targets[lo:hi]).to(device).double()
+            joints, subject = torch.from_numpy(pairs.joints[lo:hi]), torch.from_numpy(pairs.subject[lo:hi])
+            motion = None if pairs.motion is None else torch.from_numpy(pairs.motion[lo:hi]).to(device)
+            cond = task.condition(joints.to(device), subject.to(device), motion=motion)
+            prng = PerSampleRNG([seed_of(s.seed, 14, i) for i in range(lo, hi)], device=device)
+            states, answers = [], []
+            for t in pairs.grid[1:]:
+                x = (ab[t].sqrt() * target + (1 - ab[t]).sqrt() * prng.randn(target.shape[1:], device=device).double())
+                x = x.float()
+                states.append(x.cpu())
+                answers.append(sample(s.sampler, teacher, schedule, x, cond, prediction_type=c.prediction_type,
+                                      timesteps=ts[ts.index(t):], rng=prng).float().cpu())  # fmt: skip
+            save_npz_atomic(path, states=torch.stack(states, 1).numpy(), targets=torch.stack(answers, 1).numpy())
+        if progress is not None:
+            progress(hi, s.pairs)
+    return read_teacher_pairs(folder, renoised=True)
+
+
+def read_teacher_pairs(folder: str | Path, renoised: bool = False) -> TeacherPairs:
+    """The pairs of a folder :func:`make_teacher_pairs` completed (``renoised``: with the re-noised
+    pairs of :func:`make_renoised_pairs`); one-line errors for a missing, incomplete or damaged one."""
     folder = Path(folder)
     try:
         settings = PairSettings(**json.loads((folder / PAIRS_FILE).read_text()))
@@ -247,20 +297,34 @@ def read_teacher_pairs(folder: str | Path) -> TeacherPairs:
     except (TypeError, json.JSONDecodeError) as e:
         raise ValueError(f"{folder / PAIRS_FILE}: damaged ({e})") from None
     shards = -(-settings.pairs // settings.shard)
-    parts: dict[str, list[np.ndarray]] = {}
-    for k in range(shards):
-        path = _shard_path(folder, k)
-        if not path.is_file():
-            raise ValueError(f"{folder}: teacher pairs incomplete ({path.name} missing; rerun to finish them)")
-        try:
-            with np.load(path) as z:
-                for key in z.files:
-                    parts.setdefault(key, []).append(z[key])
-        except (OSError, ValueError, EOFError) as e:
-            raise ValueError(f"{path}: damaged shard ({e}); delete it and rerun") from None
-    cat = {k: np.concatenate(v) for k, v in parts.items()}
+
+    def gather(kind: str) -> dict[str, np.ndarray]:
+        parts: dict[str, list[np.ndarray]] = {}
+        for k in range(shards):
+            path = _shard_path(folder, k, kind)
+            if not path.is_file():
+                what = "teacher pairs" if kind == "shard" else "re-noised teacher pairs"
+                raise ValueError(f"{folder}: {what} incomplete ({path.name} missing; rerun to finish them)")
+            try:
+                with np.load(path) as z:
+                    for key in z.files:
+                        parts.setdefault(key, []).append(z[key])
+            except (OSError, ValueError, EOFError) as e:
+                raise ValueError(f"{path}: damaged shard ({e}); delete it and rerun") from None
+        return {k: np.concatenate(v) for k, v in parts.items()}
+
+    cat = gather("shard")
     grid = student_grid(settings.num_timesteps, settings.calls)
-    return TeacherPairs(cat["states"], cat["targets"], cat["joints"], cat["subject"], cat.get("motion"), grid, settings)
+    pairs = TeacherPairs(cat["states"], cat["targets"], cat["joints"], cat["subject"], cat.get("motion"), grid,
+                         settings)  # fmt: skip
+    if renoised:
+        re = gather("renoised")
+        want = (len(pairs.targets), len(grid) - 1, *pairs.targets.shape[1:])
+        if re["states"].shape != want or re["targets"].shape != want:
+            raise ValueError(f"{folder}: re-noised pairs of shape {re['states'].shape}, expected {want}; delete the "
+                             "renoised_*.npz files and rerun")  # fmt: skip
+        pairs.renoised_states, pairs.renoised_targets = re["states"], re["targets"]
+    return pairs
 
 
 class PairBatches(torch.utils.data.Dataset):
@@ -300,20 +364,28 @@ class PairBatches(torch.utils.data.Dataset):
             idx = rng.choice(len(p.targets), self.batch_size, replace=len(p.targets) < self.batch_size)
             k = rng.choice(len(p.grid), self.batch_size, p=self.time_p)
         x = p.states[idx, k]  # (B, N, C) the teacher's states
+        target = p.targets[idx]
         # re-noised draws (a later grid time): the teacher's answer noised afresh, as the sampler does
         renoised = (k > 0) & (rng.random(self.batch_size) < self.renoised)
-        if renoised.any():
+        corresponds = ~renoised
+        if renoised.any() and p.renoised_states is not None:  # stored, with the teacher's answer from there
+            x, target = x.copy(), target.copy()
+            x[renoised] = p.renoised_states[idx[renoised], k[renoised] - 1]
+            target[renoised] = p.renoised_targets[idx[renoised], k[renoised] - 1]
+            corresponds = np.ones_like(renoised)
+        elif renoised.any():  # drawn now; the target stays the answer, scored by Chamfer alone
             ab = self.alpha_bar[np.asarray(p.grid)[k[renoised]]].reshape(-1, 1, 1)
             z = rng.standard_normal(x[renoised].shape).astype(np.float32)
             x = x.copy()
             x[renoised] = (np.sqrt(ab) * p.targets[idx[renoised]] + np.sqrt(1 - ab) * z).astype(np.float32)
         batch = {"x": torch.from_numpy(x), "t": torch.as_tensor(np.asarray(p.grid)[k]),
-                 "target": torch.from_numpy(p.targets[idx]), "joints": torch.from_numpy(p.joints[idx]),
-                 "subject": torch.from_numpy(p.subject[idx]), "trajectory": torch.from_numpy(~renoised)}  # fmt: skip
+                 "target": torch.from_numpy(target), "joints": torch.from_numpy(p.joints[idx]),
+                 "subject": torch.from_numpy(p.subject[idx]), "trajectory": torch.from_numpy(corresponds)}  # fmt: skip
         if p.motion is not None:
             batch["motion"] = torch.from_numpy(p.motion[idx])
         if self.grouped:
             batch["noise"] = torch.from_numpy(noise)
+            batch["answers"] = torch.from_numpy(p.targets[idx])  # the draws' own answers: the set compared
         return batch
 
 
@@ -400,7 +472,7 @@ class DistillTask(PocoLocoTask):
         noise = batch["noise"]
         gen = torch.Generator(device=noise.device).manual_seed(seed_of(c.seed, 13, int(step), rank))
         x0 = self.student_chain(net, noise, cond, gen)
-        target = batch["target"][..., :3].float()
+        target = batch["answers"][..., :3].float()
         s, t = x0[..., :3].reshape(-1, D, x0.shape[1], 3), target.reshape(-1, D, target.shape[1], 3)  # (G, D, N, 3)
         probes = box_probes(t, SET_PROBES, gen).unsqueeze(1)  # (G, 1, P, 3): one fixed map per frame
         ed = set_energy_distance(probe_embedding(s, probes), probe_embedding(t, probes))
@@ -417,7 +489,8 @@ class DistillTask(PocoLocoTask):
         s = self.pairs.settings if self.pairs is not None else None
         extra["distilled_from"] = {"teacher": self.teacher, "teacher_sha256": self.teacher_sha256,
                                    **({"pairs": s.pairs, "pair_points": s.num_points, "teacher_sampler": s.sampler,
-                                       "teacher_steps": s.steps, "draws_per_frame": s.draws}
+                                       "teacher_steps": s.steps, "draws_per_frame": s.draws,
+                                       "renoised_targets": self.config.distill_renoised_targets}
                                       if s is not None else {})}  # fmt: skip
         return extra
 
@@ -457,6 +530,8 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
                             num_timesteps=config.num_timesteps, draws=draws)  # fmt: skip
     settings.check(config.num_timesteps)
     task.pairs = make_teacher_pairs(task, method.model, settings, Path(out) / "pairs", progress=pair_progress)
+    if config.distill_renoised_targets == "ode" and config.distill_renoised > 0:
+        task.pairs = make_renoised_pairs(task, method.model, Path(out) / "pairs", progress=pair_progress)
     return task
 
 
