@@ -8,7 +8,10 @@ answers as a ratio to the teacher's, and the energy distance. Rows: one call at 
 from the teacher's own state there ("teacher's path"), from the teacher's answer noised afresh to
 that time ("re-noised", what the re-noising sampler hands the next call when the previous answer
 was right), and the student's sampler itself from the pairs' initial noises (1 / 2 / 4 calls of
-its grid, and the 3-call grid the teacher finishes, with and without that finishing call).
+its grid, and the 3-call grid the teacher finishes, with and without that finishing call). Where
+the pairs folder also holds the re-noised pairs (``distill --renoised-targets ode``), the
+teacher's own deterministic answers from its answers noised afresh to each later grid time: what
+a student taught the consistency condition on the sampler's states would learn.
 
     python benchmarks/fast_chain_spread.py --pairs RUN/pairs --data DATA --student default:fast --frames 12 \\
         --json chain_spread.json
@@ -44,7 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None, help="write the rows here")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
-    pairs = read_teacher_pairs(a.pairs)
+    try:
+        pairs = read_teacher_pairs(a.pairs, renoised=True)
+    except ValueError:  # no re-noised pairs here: those rows are left out
+        pairs = read_teacher_pairs(a.pairs)
     D = pairs.settings.draws
     if D < 2:
         sys.exit(f"{a.pairs}: one draw per frame; make pairs with --draws-per-frame >= 2")
@@ -86,6 +92,10 @@ def main(argv: list[str] | None = None) -> int:
                 z = torch.randn(target.shape, generator=gen)
                 score(x0_at((ab[t].sqrt() * target + (1 - ab[t]).sqrt() * z).float(), t),
                       f"one call at t = {t}, re-noised teacher answer")  # fmt: skip
+        if pairs.renoised_targets is not None:
+            for k, t in enumerate(pairs.grid[1:]):
+                score(torch.from_numpy(pairs.renoised_targets[idx, k]).float(),
+                      f"the teacher's ODE from its answer re-noised to t = {t}")  # fmt: skip
         noise = torch.from_numpy(pairs.states[idx, 0]).float()
         kw = {"prediction_type": cfg.prediction_type, "renoise": cfg.student_renoise}
         for calls in (1, 2, cfg.student_calls):
