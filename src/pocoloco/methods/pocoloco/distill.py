@@ -531,7 +531,9 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
     settings.check(config.num_timesteps)
     task.pairs = make_teacher_pairs(task, method.model, settings, Path(out) / "pairs", progress=pair_progress)
     if config.distill_renoised_targets == "ode" and config.distill_renoised > 0:
-        task.pairs = make_renoised_pairs(task, method.model, Path(out) / "pairs", progress=pair_progress)
+        # one bar for both passes: the pairs are the first half of it, their re-noised answers the second
+        more = None if pair_progress is None else (lambda done, total: pair_progress(total + done, 2 * total))
+        task.pairs = make_renoised_pairs(task, method.model, Path(out) / "pairs", progress=more)
     return task
 
 
