@@ -47,10 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None, help="write the rows here")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
-    try:
-        pairs = read_teacher_pairs(a.pairs, renoised=True)
-    except ValueError:  # no re-noised pairs here: those rows are left out
-        pairs = read_teacher_pairs(a.pairs)
+    pairs = read_teacher_pairs(a.pairs, renoised=None)  # without re-noised pairs, their rows are left out
     D = pairs.settings.draws
     if D < 2:
         sys.exit(f"{a.pairs}: one draw per frame; make pairs with --draws-per-frame >= 2")

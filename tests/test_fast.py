@@ -762,6 +762,7 @@ def test_distill_with_the_teachers_answers_from_renoised_states(latent_teacher, 
     assert 0 < hits < 64
     meta = json.loads((out / "model" / "meta.json").read_text())
     assert meta["distilled_from"]["renoised_targets"] == "ode"
+    assert np.array_equal(read_teacher_pairs(out / "pairs", renoised=None).renoised_targets, pairs.renoised_targets)
     # made once: a resumed run keeps them
     stamp = (out / "pairs" / "renoised_00000.npz").stat().st_mtime_ns
     distill(latent_teacher, tiny_dataset, out, steps=3, resume=True, **kw)
@@ -770,6 +771,7 @@ def test_distill_with_the_teachers_answers_from_renoised_states(latent_teacher, 
     with pytest.raises(ValueError, match="re-noised teacher pairs incomplete") as e:
         read_teacher_pairs(out / "pairs", renoised=True)
     assert "\n" not in str(e.value)
+    assert read_teacher_pairs(out / "pairs", renoised=None).renoised_states is None  # where they are all there
     with pytest.raises(ValueError, match="--renoised-share > 0") as e:
         distill(latent_teacher, tiny_dataset, tmp_path / "bad", steps=1, **{**kw, "distill_renoised": 0.0})
     assert "\n" not in str(e.value) and not (tmp_path / "bad" / "pairs").exists()

@@ -286,9 +286,10 @@ def make_renoised_pairs(task: DistillTask, teacher: nn.Module, folder: str | Pat
     return read_teacher_pairs(folder, renoised=True)
 
 
-def read_teacher_pairs(folder: str | Path, renoised: bool = False) -> TeacherPairs:
+def read_teacher_pairs(folder: str | Path, renoised: bool | None = False) -> TeacherPairs:
     """The pairs of a folder :func:`make_teacher_pairs` completed (``renoised``: with the re-noised
-    pairs of :func:`make_renoised_pairs`); one-line errors for a missing, incomplete or damaged one."""
+    pairs of :func:`make_renoised_pairs`; None: with them where they are all there); one-line errors
+    for a missing, incomplete or damaged one."""
     folder = Path(folder)
     try:
         settings = PairSettings(**json.loads((folder / PAIRS_FILE).read_text()))
@@ -317,6 +318,8 @@ def read_teacher_pairs(folder: str | Path, renoised: bool = False) -> TeacherPai
     grid = student_grid(settings.num_timesteps, settings.calls)
     pairs = TeacherPairs(cat["states"], cat["targets"], cat["joints"], cat["subject"], cat.get("motion"), grid,
                          settings)  # fmt: skip
+    if renoised is None:
+        renoised = all(_shard_path(folder, k, "renoised").is_file() for k in range(shards))
     if renoised:
         re = gather("renoised")
         want = (len(pairs.targets), len(grid) - 1, *pairs.targets.shape[1:])
@@ -330,6 +333,11 @@ def read_teacher_pairs(folder: str | Path, renoised: bool = False) -> TeacherPai
 class PairBatches(torch.utils.data.Dataset):
     """Step s -> a batch of B (pair, grid time) draws: ``x`` (B, N, C) the teacher's state, ``t`` (B,),
     ``target`` (B, N, C), ``joints`` (B, J, 3), ``subject`` (B,) [, ``motion`` (B, J, F)].
+
+    Re-noised draws (``renoised``: that share of the later-grid draws) are the stored re-noised
+    states with the teacher's answers from them where the pairs hold them (:func:`make_renoised_pairs`),
+    else the answer noised afresh here with the answer as target (``trajectory`` False: no per-point
+    correspondence).
 
     grouped: whole frames instead of single pairs: B / D frames (D = the pairs' ``draws``), all D
     pairs of a frame consecutive in the batch and at the same grid time (the sets a set-level loss
