@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
-from pocoloco.diffusion.samplers import make_timesteps
+from pocoloco.diffusion.samplers import make_timesteps, sample_ddim
 from pocoloco.diffusion.few_step import (allowed_calls, check_student_calls, polish, polished_grid,
                                          sample_few_step, sampling_grid, student_grid)
 
@@ -709,6 +709,8 @@ def test_the_set_terms_chain_is_the_students_sampler(latent_teacher, tiny_datase
         want = sample_few_step(net, task.schedule, noise, cond, timesteps=[999, 749, 249], renoise=1.0,
                                rng=torch.Generator().manual_seed(5), prediction_type=task.config.prediction_type)  # fmt: skip
     torch.testing.assert_close(got.detach(), want, atol=1e-4, rtol=1e-4)
+    with pytest.raises(ValueError, match="end_at must be in"):  # the shared sampler stops only below its last step
+        sample_ddim(net, task.schedule, noise, cond, timesteps=[999, 749], end_at=749)
 
 
 def test_distill_with_the_teachers_answers_from_renoised_states(latent_teacher, tiny_dataset, tmp_path,

@@ -152,6 +152,7 @@ def sample_ddim(
     rng: PerSampleRNG | torch.Generator | None = None,
     known: tuple[torch.Tensor, torch.Tensor] | None = None,
     progress: ProgressFn | None = None,
+    end_at: int | None = None,
 ) -> torch.Tensor:
     """DDIM sampling (Song et al. 2021, eq. 12 and 16).
 
@@ -161,7 +162,9 @@ def sample_ddim(
     sigma = r sqrt(1 - abar_s) instead (eta must stay 0): the share of fresh noise in the re-noised
     state, r = 1 the consistency models' multistep sampler (:mod:`~pocoloco.diffusion.few_step`).
     With ``clip``, eps_hat is re-derived from the clipped x0_hat (GLIDE; diffusers'
-    ``use_clipped_model_output=True``). Other arguments as in :func:`sample_ddpm`.
+    ``use_clipped_model_output=True``). ``end_at``: stop at the state of that timestep (below the
+    last visited one) instead of x0, e.g. to take a chain's last call separately (a distillation's
+    gradient). Other arguments as in :func:`sample_ddpm`.
     """
     if eta < 0:
         raise ValueError(f"eta must be >= 0, got {eta}")
@@ -171,6 +174,10 @@ def sample_ddim(
         raise ValueError("give eta or renoise, not both")
     run = SamplerRun(denoiser, schedule, noise, cond, prediction_type,
                resolve_timesteps(schedule, steps, spacing, timesteps), clip, rng, known, progress)  # fmt: skip
+    if end_at is not None:
+        if not 0 <= int(end_at) < run.timesteps[-1]:
+            raise ValueError(f"end_at must be in [0, {run.timesteps[-1]}), below the last timestep, got {end_at}")
+        run.ab_prev[-1] = schedule.alpha_bar(int(end_at))
     x = run.start(noise)
     for i in range(len(run.timesteps)):
         ab_t, ab_s = run.ab[i], run.ab_prev[i]

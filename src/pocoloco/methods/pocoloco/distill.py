@@ -51,8 +51,7 @@ from torch import nn
 
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
 from pocoloco.diffusion.few_step import polished_grid, student_grid
-from pocoloco.diffusion.sampler_base import randn_like
-from pocoloco.diffusion.samplers import StepInfo, make_timesteps
+from pocoloco.diffusion.samplers import StepInfo, make_timesteps, sample_ddim
 from pocoloco.engine.checkpoint import (Checkpoint, check_model_kind, load_checkpoint, meta_digest, read_meta,
                                        resolve_checkpoint)
 from pocoloco.engine.trainer import train
@@ -453,15 +452,11 @@ class DistillTask(PocoLocoTask):
         c = self.config
         grid = chain_grid(c.num_timesteps, c.student_calls)
         x = noise.float()
-        B = len(x)
-        with torch.no_grad():
-            for t, t_next in zip(grid[:-1], grid[1:]):
-                tt = torch.full((B,), t, device=x.device)
-                eps, x0 = self.schedule.pred_to_eps_x0(net(x, tt, cond).float(), x, tt, c.prediction_type)
-                ab = self.schedule.alpha_bar(t_next)
-                sigma = c.student_renoise * (1.0 - ab) ** 0.5
-                x = ab**0.5 * x0 + max(1.0 - ab - sigma**2, 0.0) ** 0.5 * eps + sigma * randn_like(x, gen)
-        tt = torch.full((B,), grid[-1], device=x.device)
+        if len(grid) > 1:  # every call but the last, without a gradient, ending at the last call's state
+            with torch.no_grad():
+                x = sample_ddim(net, self.schedule, x, cond, prediction_type=c.prediction_type, timesteps=grid[:-1],
+                                renoise=c.student_renoise, rng=gen, end_at=grid[-1])  # fmt: skip
+        tt = torch.full((len(x),), grid[-1], device=x.device)
         return self.schedule.pred_to_eps_x0(net(x, tt, cond).float(), x, tt, c.prediction_type)[1]
 
     def set_loss(self, net: nn.Module, batch: dict[str, torch.Tensor], cond: Any, step: int,
