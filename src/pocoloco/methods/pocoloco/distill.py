@@ -203,7 +203,7 @@ def make_teacher_pairs(task: DistillTask, teacher: nn.Module, settings: PairSett
     device = next(teacher.parameters()).device
     C = int(c.denoiser.point_channels)
     ds = task.dataset
-    shards = -(-settings.pairs // settings.shard)
+    shards = _num_shards(settings)
     done = 0
     teacher.eval()
     for k in range(shards):
@@ -247,23 +247,22 @@ def make_teacher_pairs(task: DistillTask, teacher: nn.Module, settings: PairSett
 
 
 @torch.no_grad()
-def make_renoised_pairs(task: DistillTask, teacher: nn.Module, folder: str | Path,
+def make_renoised_pairs(task: DistillTask, teacher: nn.Module, pairs: TeacherPairs, folder: str | Path,
                         progress: Callable[[int, int], None] | None = None) -> TeacherPairs:  # fmt: skip
-    """Make (or finish) the re-noised pairs of the teacher pairs in ``folder`` (complete, made by
-    :func:`make_teacher_pairs` for this teacher): for each pair and each later grid time t_k, its
+    """Make (or finish) the re-noised pairs of ``pairs``, the complete teacher pairs in ``folder``
+    (made by :func:`make_teacher_pairs` for this teacher): for each pair and each later grid time t_k, its
     answer x0* noised afresh, ``x = sqrt(abar_k) x0* + sqrt(1 - abar_k) z`` (what the re-noising
     sampler hands its next call, DDPM eq. 4), and the teacher's deterministic sampler run from x
     over its own timesteps from t_k down (``renoised_XXXXX.npz`` beside each pair shard, written
     atomically; z from per-pair seeds ``seed_of(seed, 14, pair)``). Costs the teacher
-    (K - 1) / 2 of the pairs' calls on the 4-call grid. Returns the pairs with them read."""
-    pairs = read_teacher_pairs(folder)
+    (K - 1) / 2 of the pairs' calls on the 4-call grid. Returns ``pairs`` with them read in."""
     s, c, folder = pairs.settings, task.config, Path(folder)
     ts = s.check(c.num_timesteps)
     schedule = NoiseSchedule.from_kind(c.schedule, c.num_timesteps)
     ab = schedule.alphas_cumprod.double()
     device = next(teacher.parameters()).device
     teacher.eval()
-    for k in range(-(-s.pairs // s.shard)):
+    for k in range(_num_shards(s)):
         lo, hi = k * s.shard, min((k + 1) * s.shard, s.pairs)
         path = _shard_path(folder, k, "renoised")
         if not path.is_file():
@@ -282,7 +281,7 @@ def make_renoised_pairs(task: DistillTask, teacher: nn.Module, folder: str | Pat
             save_npz_atomic(path, states=torch.stack(states, 1).numpy(), targets=torch.stack(answers, 1).numpy())
         if progress is not None:
             progress(hi, s.pairs)
-    return read_teacher_pairs(folder, renoised=True)
+    return _with_renoised(pairs, folder)
 
 
 def read_teacher_pairs(folder: str | Path, renoised: bool | None = False) -> TeacherPairs:
@@ -296,36 +295,45 @@ def read_teacher_pairs(folder: str | Path, renoised: bool | None = False) -> Tea
         raise ValueError(f"{folder}: no teacher pairs ({PAIRS_FILE} missing)") from None
     except (TypeError, json.JSONDecodeError) as e:
         raise ValueError(f"{folder / PAIRS_FILE}: damaged ({e})") from None
-    shards = -(-settings.pairs // settings.shard)
-
-    def gather(kind: str) -> dict[str, np.ndarray]:
-        parts: dict[str, list[np.ndarray]] = {}
-        for k in range(shards):
-            path = _shard_path(folder, k, kind)
-            if not path.is_file():
-                what = "teacher pairs" if kind == "shard" else "re-noised teacher pairs"
-                raise ValueError(f"{folder}: {what} incomplete ({path.name} missing; rerun to finish them)")
-            try:
-                with np.load(path) as z:
-                    for key in z.files:
-                        parts.setdefault(key, []).append(z[key])
-            except (OSError, ValueError, EOFError) as e:
-                raise ValueError(f"{path}: damaged shard ({e}); delete it and rerun") from None
-        return {k: np.concatenate(v) for k, v in parts.items()}
-
-    cat = gather("shard")
+    cat = _gather_shards(folder, settings, "shard")
     grid = student_grid(settings.num_timesteps, settings.calls)
     pairs = TeacherPairs(cat["states"], cat["targets"], cat["joints"], cat["subject"], cat.get("motion"), grid,
                          settings)  # fmt: skip
     if renoised is None:
-        renoised = all(_shard_path(folder, k, "renoised").is_file() for k in range(shards))
-    if renoised:
-        re = gather("renoised")
-        want = (len(pairs.targets), len(grid) - 1, *pairs.targets.shape[1:])
-        if re["states"].shape != want or re["targets"].shape != want:
-            raise ValueError(f"{folder}: re-noised pairs of shape {re['states'].shape}, expected {want}; delete the "
-                             "renoised_*.npz files and rerun")  # fmt: skip
-        pairs.renoised_states, pairs.renoised_targets = re["states"], re["targets"]
+        renoised = all(_shard_path(folder, k, "renoised").is_file() for k in range(_num_shards(settings)))
+    return _with_renoised(pairs, folder) if renoised else pairs
+
+
+def _num_shards(settings: PairSettings) -> int:
+    return -(-settings.pairs // settings.shard)
+
+
+def _gather_shards(folder: Path, settings: PairSettings, kind: str) -> dict[str, np.ndarray]:
+    """The arrays of every ``kind`` shard of a pairs folder, concatenated; one-line errors for a
+    missing or damaged shard."""
+    parts: dict[str, list[np.ndarray]] = {}
+    for k in range(_num_shards(settings)):
+        path = _shard_path(folder, k, kind)
+        if not path.is_file():
+            what = "teacher pairs" if kind == "shard" else "re-noised teacher pairs"
+            raise ValueError(f"{folder}: {what} incomplete ({path.name} missing; rerun to finish them)")
+        try:
+            with np.load(path) as z:
+                for key in z.files:
+                    parts.setdefault(key, []).append(z[key])
+        except (OSError, ValueError, EOFError) as e:
+            raise ValueError(f"{path}: damaged shard ({e}); delete it and rerun") from None
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def _with_renoised(pairs: TeacherPairs, folder: Path) -> TeacherPairs:
+    """``pairs`` with the re-noised pairs of ``folder`` (:func:`make_renoised_pairs`) read in."""
+    re = _gather_shards(folder, pairs.settings, "renoised")
+    want = (len(pairs.targets), len(pairs.grid) - 1, *pairs.targets.shape[1:])
+    if re["states"].shape != want or re["targets"].shape != want:
+        raise ValueError(f"{folder}: re-noised pairs of shape {re['states'].shape}, expected {want}; delete the "
+                         "renoised_*.npz files and rerun")  # fmt: skip
+    pairs.renoised_states, pairs.renoised_targets = re["states"], re["targets"]
     return pairs
 
 
@@ -533,10 +541,10 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
                             num_timesteps=config.num_timesteps, draws=draws)  # fmt: skip
     settings.check(config.num_timesteps)
     task.pairs = make_teacher_pairs(task, method.model, settings, Path(out) / "pairs", progress=pair_progress)
-    if config.distill_renoised_targets == "ode" and config.distill_renoised > 0:
+    if config.distill_renoised_targets == "ode":  # (the config refuses it without re-noised draws)
         # one bar for both passes: the pairs are the first half of it, their re-noised answers the second
         more = None if pair_progress is None else (lambda done, total: pair_progress(total + done, 2 * total))
-        task.pairs = make_renoised_pairs(task, method.model, Path(out) / "pairs", progress=more)
+        task.pairs = make_renoised_pairs(task, method.model, task.pairs, Path(out) / "pairs", progress=more)
     return task
 
 
