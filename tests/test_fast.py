@@ -13,6 +13,7 @@ from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
 from pocoloco.diffusion.samplers import make_timesteps, sample_ddim
 from pocoloco.diffusion.few_step import (allowed_calls, check_student_calls, polish, polished_grid,
                                          sample_few_step, sampling_grid, student_grid)
+from pocoloco.methods.pocoloco.method import DEFAULT_POLISH_T
 
 
 @pytest.fixture(scope="module")
@@ -274,7 +275,7 @@ def test_a_teacher_finishes_a_polished_student(latent_teacher, tiny_student, tin
     assert main(["export-model", "--ckpt", str(out), "--polish-with", str(teacher_copy), "--out",
                  str(tmp_path / "relinked")]) == 0  # fmt: skip
     relinked = load_method(tmp_path / "relinked")
-    assert relinked.polish is not None and relinked.polish[1] == 20  # --polish-t's default
+    assert relinked.polish is not None and relinked.polish[1] == DEFAULT_POLISH_T == 5  # --polish-t's default
     assert main(["export-model", "--ckpt", str(out), "--out", str(tmp_path / "stale")]) == 2  # not without it
 
 
@@ -476,14 +477,14 @@ def test_shipped_fast_model_samples_with_its_own_sampler(tmp_path):
     teacher = json.loads((default_checkpoint() / "meta.json").read_text())
     assert meta["weights_dtype"] == "int8" and meta["config"]["student_calls"] == 4
     assert meta["distilled_from"]["teacher_sha256"] == teacher["meta_sha256"]
-    assert meta["polish"] == {"ckpt": "default", "meta_sha256": teacher["meta_sha256"], "t": 20}
+    assert meta["polish"] == {"ckpt": "default", "meta_sha256": teacher["meta_sha256"], "t": 5}
     assert describe_checkpoint(path) == "default:fast"
     out = tmp_path / "s"
     assert main(["sample", "--ckpt", "default:fast", "--points", "400", "--num", "2", "--no-render", "--threads", "1",
                  "--out", str(out)]) == 0  # fmt: skip
     info = json.loads((out / "sample.json").read_text())
     assert info["sampler"] == "few-step" and info["steps"] == 4
-    assert info["student_timesteps"] == [999, 749, 249] and info["polish"] == {"with": "default", "t": 20}
+    assert info["student_timesteps"] == [999, 749, 249] and info["polish"] == {"with": "default", "t": 5}
     from pocoloco.data.published import read_ply
     from pocoloco.methods import load_method
 

@@ -40,11 +40,13 @@ from pocoloco.models.denoisers import build_denoiser
 
 __all__ = ["DEFAULT_POLISH_T", "LoadedDenoiser", "PocoLocoMethod", "load_denoiser", "polish_link"]
 
-#: the step a distilled model's teacher re-noises its answer to for the last call (1-based): on
-#: quarter ``medium`` v3 (28 frames x 2 seeds), t = 10 / 20 / 30 / 50 after the first student's 3
-#: calls gave Chamfer x1.016 / 1.008 / 1.009 / 1.022 of the 25-call teacher on test, x1.056 / 1.050
-#: / 1.052 / 1.065 held out (docs/lab/fast.md; benchmarks/results/fast_medium_v3/polish/sweep_*.json)
-DEFAULT_POLISH_T = 20
+#: the step a distilled model's teacher re-noises its answer to for the last call (1-based). Chamfer
+#: hardly tells 5 to 30 apart (quarter ``medium`` v3, t = 10 / 20 / 30 / 50: x1.016 / 1.008 / 1.009 /
+#: 1.022 of the 25-call teacher on test); the proper score does: on the v4 standard reference sets
+#: t = 5 beats 20 by 2.0 / 1.7 % (test / held out, paired per pose, 0 s shared) at +0.3 % Chamfer, the
+#: teacher's x0 estimate at t = 20 (a noise of ~13 mm) shrinking the cloud by ~1 mm
+#: (docs/lab/fast.md; benchmarks/results/fast_polish_t/)
+DEFAULT_POLISH_T = 5
 
 
 class PocoLocoMethod(Method):
