@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> None:
             print(f"| {name} | {window} | {100 * line['es_ratio_minus_1']:+.1f} +- {100 * line['es_ratio_se']:.1f} % | "
                   f"{line['to_refs_cm']:.2f} | {line['spread_cm']:.2f} | {line['bias_mm']:.2f} |")  # fmt: skip
     out = {"settings": {k: v for k, v in vars(args).items() if k != "json"}, "summary": summary, "per_pose": rows}
-    Path(args.json).write_text(json.dumps(out, indent=1))
+    Path(args.json).write_text(json.dumps(out, separators=(",", ":")))
     print(f"wrote {args.json}")
 
 

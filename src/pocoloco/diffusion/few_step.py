@@ -24,8 +24,8 @@ fuzzy at the scale of a centimetre or two, where its teacher is at its best. SDE
 2022) at a low step does that last part: the student's x0 is re-noised to step ``t`` (1-based, as
 the apps' chains; 5 of 1,000 by default, a noise of ~6 mm) with fresh noise and the *teacher*
 gives its x0 estimate there, in one call (at a higher t its estimate, a posterior mean, smooths
-the student's fuzz away but shrinks the cloud toward its inside). With ``calls`` >= 3 network calls in all, the
-student spends ``calls - 1`` as above and the teacher the last
+the student's fuzz away but shrinks the cloud toward its inside). With ``calls`` >= 3 network
+calls in all, the student spends ``calls - 1`` as above and the teacher the last
 (:func:`polished_grid`: 4 calls = the student at 999, 749, 249, then the teacher).
 """
 
