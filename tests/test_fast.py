@@ -465,6 +465,52 @@ def test_pair_batches_mix_teacher_states_and_renoised_answers(four):
         PairBatches(pairs, 4, 0, 10, renoised=0.5)
 
 
+def test_a_diffusion_model_finishes_with_its_own_call(latent_teacher, tiny_student, tmp_path, torch_single_thread):
+    """``finish_t`` / ``--finish-t``: after its chain the model's own x0 at step T of the cloud
+    re-noised there, equal to the chain then ``polish`` with the model as its own teacher, written
+    out; recorded in sample.json and the judge's settings; a student, a step outside [1, T] or a
+    non-integer is a one-line error before any work; a deterministic model warns and ignores it."""
+    from pocoloco.cli import main
+    from pocoloco.diffusion import sample as diffusion_sample
+    from pocoloco.methods import SamplerOptions, load_method
+    from pocoloco.methods.pocoloco.sampling import condition_for
+
+    m = load_method(latent_teacher)
+    pose = m.load_pose("demo:skirt")
+    joints = np.asarray(pose.joints)
+    opts = SamplerOptions(sampler="dpm++sde", steps=4, finish_t=5)
+    got = m.predict(pose, 40, seeds=[2], outfit=0, options=opts).points[0]
+    plain = m.predict(pose, 40, seeds=[2], outfit=0, options=SamplerOptions(sampler="dpm++sde", steps=4)).points[0]
+    assert not np.allclose(got, plain)
+
+    schedule = NoiseSchedule.from_kind(m.config.schedule, m.config.num_timesteps)
+    kw = m.condition(0)
+    joints_n = m.normalisation.normalise(np.zeros((1, 3), np.float32), joints)[1]
+    cond = condition_for(torch.as_tensor(joints_n)[None], kw["outfit"], kw["shape"])
+    rng = PerSampleRNG([2])
+    x = diffusion_sample("dpm++sde", m.model, schedule, rng.randn((40, 3)), cond, rng=rng, steps=4,
+                         prediction_type=m.config.prediction_type, clip=None)  # fmt: skip
+    x = polish(m.model, schedule, x, cond, 5, rng, prediction_type=m.config.prediction_type)
+    root = m.normalisation.root(joints).astype(np.float32)
+    ref = m.normalisation.denormalise(x.numpy(), root, m.normalisation.angle(joints))[0]
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    assert m.sample_settings(opts, 40)["finish_t"] == 5 and "finish_t" not in m.sample_settings(SamplerOptions(), 40)
+
+    out = tmp_path / "s"
+    assert main(["sample", "--ckpt", str(latent_teacher), "--points", "40", "--num", "1", "--steps", "4",
+                 "--finish-t", "5", "--no-render", "--out", str(out)]) == 0  # fmt: skip
+    assert json.loads((out / "sample.json").read_text())["finish_t"] == 5
+    student = load_method(tiny_student)
+    for method, t, match in [(m, 0, r"\[1, 1000\], got 0"), (m, 1001, "got 1001"), (m, 2.5, "got 2.5"),
+                             (student, 5, "is for a diffusion model")]:  # fmt: skip
+        with pytest.raises(ValueError, match=match) as e:
+            method.check_options(SamplerOptions(finish_t=t))
+        assert "\n" not in str(e.value)
+    assert main(["sample", "--ckpt", str(tiny_student), "--points", "40", "--finish-t", "5", "--no-render",
+                 "--out", str(tmp_path / "refused")]) == 2  # fmt: skip
+    assert not (tmp_path / "refused" / "sample.json").exists()
+
+
 def test_shipped_fast_model_samples_with_its_own_sampler(tmp_path):
     """``--ckpt default:fast``: a student of the shipped default (its teacher named by SHA-256), int8
     weights, 4 calls by default (3 of its own, the default's last: ``polish``); a clothed body near

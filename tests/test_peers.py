@@ -571,8 +571,8 @@ def test_shipped_peer_samples_a_demo_pose(tmp_path, capsys, model):
     err = _one_line_error(capsys, main([*argv[:2], "default:nope", *argv[3:-1], str(tmp_path / "x")]))
     assert "default:pop" in err and "default:closet" in err and "default:hybrid" in err
     if model != "hybrid":  # a regressor told how to sample: it says it ignores that, once
-        assert main([*argv[:-1], str(tmp_path / "steps"), "--steps", "5", "--no-render"]) == 0
-        assert capsys.readouterr().err.count("is deterministic: --sampler / --steps do not apply") == 1
+        assert main([*argv[:-1], str(tmp_path / "steps"), "--steps", "5", "--finish-t", "5", "--no-render"]) == 0
+        assert capsys.readouterr().err.count("is deterministic: --sampler / --steps / --finish-t do not apply") == 1
 
 
 def test_describe_checkpoint_names_shipped_and_relative_paths(tmp_path, monkeypatch):

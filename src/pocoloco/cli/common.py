@@ -141,6 +141,15 @@ def add_bf16_argument(parser: argparse.ArgumentParser) -> None:
                              "where it runs natively (CPUs with avx512_bf16 / AMX, recent GPUs), off elsewhere")  # fmt: skip
 
 
+def add_finish_argument(parser: argparse.ArgumentParser) -> None:
+    """``--finish-t`` (``sample``, ``eval``, ``bench quality``, ``bench distribution``): a diffusion
+    model's own finishing call (:class:`pocoloco.methods.SamplerOptions`)."""
+    parser.add_argument("--finish-t", type=int, default=None, metavar="T",
+                        help="after the sampler's chain, re-noise each cloud to step T (of 1,000) and take the "
+                             "network's own estimate there: one call more, which undoes the slight shrinking of "
+                             "the chain's last estimate (5 is the measured best; default: off)")  # fmt: skip
+
+
 def add_even_argument(parser: argparse.ArgumentParser) -> None:
     """``--even`` (``sample``, ``eval``, ``bench quality``): :func:`pocoloco.methods.predict_clouds`."""
     parser.add_argument("--even", action="store_true",

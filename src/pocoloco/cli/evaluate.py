@@ -9,6 +9,7 @@ from pathlib import Path
 from pocoloco.cli.common import (
     add_bf16_argument,
     add_even_argument,
+    add_finish_argument,
     add_threads_argument,
     console,
     progress_bar,
@@ -76,7 +77,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                             subjects=tuple(args.subjects) if args.subjects else None, batch_size=args.batch_size,
                             use_ema=not args.raw_weights, clip=args.clip or None, bf16=resolve_bf16(args.bf16, args.device),
                             nearest_align=args.nearest_align, outfit=args.outfit, even=args.even,
-                            history=args.history)  # fmt: skip
+                            history=args.history, finish_t=args.finish_t)  # fmt: skip
     if settings.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {settings.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
     fmt.read_card(args.data)
@@ -107,6 +108,7 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
                                          "or the nearest trained one for a subject the model never saw; default: each "
                                          "frame's subject)")  # fmt: skip
     add_even_argument(parser)
+    add_finish_argument(parser)
     parser.add_argument("--no-baselines", action="store_true", help="skip the nearest-frame / posed-body / GT rows")
     parser.add_argument("--baselines-only", action="store_true", help="no model: only the baselines")
     add_nearest_align_argument(parser)
@@ -142,7 +144,7 @@ def cmd_bench_quality(args: argparse.Namespace) -> None:
     settings = EvalSettings(split=args.split, num_frames=args.frames, num_points=args.points, seeds=tuple(args.seeds),
                             sampler=args.sampler, steps=args.steps, clip=5.0, nearest_align=args.nearest_align,
                             subjects=tuple(args.subjects) if args.subjects else None, even=args.even,
-                            history=args.history)  # fmt: skip
+                            history=args.history, finish_t=args.finish_t)  # fmt: skip
     con = console(stderr=True)
     ckpts = {key: getattr(args, f"ckpt_{key}") for key in QUALITY_ROWS}
     if args.train_steps is not None and (args.train_steps < 1 or args.work is None):
@@ -193,6 +195,7 @@ def add_bench_quality_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sampler", default="dpm++sde", help=f"PocoLoco sampler (default dpm++sde, {SAMPLER_STEPS['dpm++sde']} steps)")
     parser.add_argument("--steps", type=int, help="PocoLoco sampler steps (default: the sampler's)")
     add_even_argument(parser)
+    add_finish_argument(parser)
     add_nearest_align_argument(parser)
     add_history_argument(parser)
     add_threads_argument(parser)
@@ -219,7 +222,7 @@ def cmd_bench_distribution(args: argparse.Namespace) -> None:
         report = bench_distribution(args.refs, ckpts, args.out, samples=args.samples, points=args.points,
                                     probes=args.probes, seed=args.seed, device=args.device, sampler=args.sampler,
                                     steps=args.steps, outfits=outfits, history=args.history,
-                                    progress=update)  # fmt: skip
+                                    finish_t=args.finish_t, progress=update)  # fmt: skip
     con.print(escape((Path(args.out) / "distribution.md").read_text()))
     con.print(f"wrote {escape(str(Path(args.out) / 'distribution.json'))} ({report['settings']['poses']} poses)")
 
@@ -236,6 +239,7 @@ def add_bench_distribution_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the samples, probes and subsets (default 0)")
     parser.add_argument("--sampler", default="dpm++sde", help="PocoLoco's sampler (default dpm++sde)")
     parser.add_argument("--steps", type=int, help="its network calls (default: the sampler's)")
+    add_finish_argument(parser)
     parser.add_argument("--history", choices=JUDGE_HISTORY_MODES, default="dataset",
                         help="a --motion-window model: the frame's own motion where the true states share it "
                              "(dataset), or never (rest: the same network without its window; default dataset)")  # fmt: skip

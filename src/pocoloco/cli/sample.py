@@ -13,6 +13,7 @@ from pocoloco.cli.common import (
     add_any_pose_argument,
     add_bf16_argument,
     add_even_argument,
+    add_finish_argument,
     add_device_argument,
     add_threads_argument,
     load_method_from_args,
@@ -52,13 +53,15 @@ def cmd_sample(args: argparse.Namespace) -> None:
             raise ValueError(f"--num {args.num}: {method.title} is deterministic (one cloud per pose and outfit); "
                              "use --num 1")  # fmt: skip
         num = 1
-        if args.steps is not None or args.sampler != "dpm++sde":
-            warnings.warn(f"{method.title} is deterministic: --sampler / --steps do not apply and are ignored")
+        if args.steps is not None or args.sampler != "dpm++sde" or args.finish_t is not None:
+            warnings.warn(f"{method.title} is deterministic: --sampler / --steps / --finish-t do not apply and are "
+                          "ignored")  # fmt: skip
     else:
         num = 3 if args.num is None else args.num
     options = SamplerOptions(sampler=args.sampler, steps=args.steps, clip=args.clip or None,
                              bf16=resolve_bf16(args.bf16, method.device),
-                             batch_size=args.batch_size, even=args.even)  # fmt: skip
+                             batch_size=args.batch_size, even=args.even,
+                             finish_t=None if method.deterministic else args.finish_t)  # fmt: skip
     if not method.deterministic and args.sampler not in SAMPLER_STEPS:
         raise ValueError(f"unknown sampler {args.sampler!r}; choose one of: {', '.join(SAMPLER_STEPS)}")
     notes = []
@@ -105,6 +108,8 @@ def cmd_sample(args: argparse.Namespace) -> None:
     what = f"{num} samples" if not method.deterministic else f"1 {method.title} cloud"
     how = (f"{settings.get('sampler', args.sampler)} {settings['steps']} steps" if "steps" in settings
            else f"outfit {method.outfit_names()[outfit]}" if outfit is not None else method.title)  # fmt: skip
+    if settings.get("finish_t") is not None:
+        how += f" + its own call at step {settings['finish_t']}"
     for note in notes:
         print(f"note: {note}")
     print(f"wrote {what} of {args.points} points to {out} ({seconds / num:.3f} s per sample, {how})")
@@ -139,6 +144,7 @@ def add_sample_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"sampler steps (default: {steps_defaults()}; ddpm 1000 = the paper's)")  # fmt: skip
     parser.add_argument("--points", type=int, default=2048, help="N points per cloud (default 2048; any N works)")
     add_even_argument(parser)
+    add_finish_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="cloud k uses seed SEED + k (default 0)")
     parser.add_argument("--batch-size", type=int, default=8, help="clouds denoised together (default 8)")
     parser.add_argument("--raw-weights", action="store_true", help="use the raw weights instead of the EMA")

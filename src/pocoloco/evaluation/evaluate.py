@@ -133,7 +133,8 @@ class EvalSettings:
     given (issue 41; pose-only models ignore it): ``dataset`` the frame's own, ``rest`` none (the
     body at rest: the pose-only use of the same model), ``shuffled`` the window of another frame of
     the same subject and split (in another sequence where there is one; fixed per frame), which
-    tells the motion's information from the extra capacity.
+    tells the motion's information from the extra capacity. finish_t: the generative models' own
+    finishing call (``SamplerOptions.finish_t``; None: off).
     """
 
     split: str = "test"
@@ -152,6 +153,7 @@ class EvalSettings:
     outfit: str | None = None
     even: bool = False
     history: str = "dataset"
+    finish_t: int | None = None
 
     def __post_init__(self):
         if self.split not in fmt.SPLITS:
@@ -238,7 +240,7 @@ def evaluate(
 
     info: dict[str, Any] = {"data": os.fspath(data), **_settings_dict(settings)}
     options = SamplerOptions(sampler=settings.sampler, steps=settings.steps, clip=settings.clip, bf16=settings.bf16,
-                             batch_size=settings.batch_size, even=settings.even)  # fmt: skip
+                             batch_size=settings.batch_size, even=settings.even, finish_t=settings.finish_t)  # fmt: skip
     methods = _load_methods(ckpt, data, card, sorted({s for s, _, _ in chosen}), settings, options, device, info)
     if methods:  # a request larger than free memory: fewer clouds at a time, or one line
         options = fit_to_memory(next(iter(methods.values())), settings.num_points, len(settings.seeds), options)

@@ -28,7 +28,7 @@ from pocoloco.data.format import DatasetLayout, read_card, read_frame
 from pocoloco.data.poses import Pose
 from pocoloco.engine.shipped import describe_checkpoint, resolve_ckpt_arg
 from pocoloco.evaluation.distribution import pose_statistics, probe_points, truth_rows
-from pocoloco.methods import load_method
+from pocoloco.methods import SamplerOptions, load_method
 from pocoloco.synth.histories import reference_sets
 from pocoloco.utils.atomic import jsonable, output_folder, write_json_atomic, write_text_atomic
 
@@ -92,6 +92,7 @@ def bench_distribution(
     steps: int | None = None,
     outfits: Mapping[str, str] | None = None,
     history: str = "dataset",
+    finish_t: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Score every model of ``ckpts`` (row name -> checkpoint, ``default:...`` names allowed) on the
@@ -103,6 +104,7 @@ def bench_distribution(
     where the reference set's shared seconds cover W (every true state went through that motion),
     and none (the body at rest) where they do not; ``history="rest"`` gives it none anywhere (the
     same network without its window: what the window adds); pose-only models draw once for all windows.
+    finish_t: the generative models' own finishing call (``SamplerOptions.finish_t``; None: off).
     JSON: ``rows[NAME][WINDOW]`` (WINDOW = shared seconds as text, "0", "2") -> statistic ->
     ``{"mean", "lo", "hi"}``, embedding statistics in cm per probe; ``per_pose``: every pose's
     statistics, its embedding ones (``_EMBEDDING_KEYS``) as raw Euclidean distances in metres over
@@ -124,6 +126,8 @@ def bench_distribution(
     for name, ckpt in ckpts.items():
         path = resolve_ckpt_arg(str(ckpt))
         methods[name] = (load_method(path, device=device), path)
+        if not methods[name][0].deterministic:  # a bad sampler / steps / finish_t: one line, before any work
+            methods[name][0].check_options(SamplerOptions(sampler=sampler, steps=steps, finish_t=finish_t))
     poses: dict[tuple, list[dict]] = {}
     for p in pairs:
         poses.setdefault((p["subject"], p["source"]["sequence"], p["source"]["frame"]), []).append(p)
@@ -142,7 +146,7 @@ def bench_distribution(
         source_frame = DatasetLayout(hist["source"]).frame_path(subject, hist["split"], key[1], int(key[2]))
         for name, (method, _) in methods.items():
             seeds = [0] if method.deterministic else [seed * 100_003 + pose_index * 1_000 + i for i in range(samples)]
-            kwargs = {} if method.deterministic else {"sampler": sampler, "steps": steps}
+            kwargs = {} if method.deterministic else {"sampler": sampler, "steps": steps, "finish_t": finish_t}
             outfit = (outfits or {}).get(subject)  # None: the pose's own subject
             for w in windows:
                 # a motion-aware model sees the frame's own motion where every true state shares it
@@ -179,7 +183,8 @@ def bench_distribution(
         "refs": str(refs), "split": hist["split"], "poses": len(poses), "histories": hist["histories"],
         "true_states_per_pose": hist["histories"] + 1, "windows": [f"{s:g}" for s in hist["shared_seconds"]],
         "samples": samples, "points": points, "probes": probes, "seed": seed, "bootstrap": bootstrap,
-        "sampler": sampler, "steps": steps, "outfits": dict(outfits or {}),
+        "sampler": sampler, "steps": steps, **({"finish_t": finish_t} if finish_t is not None else {}),
+        "outfits": dict(outfits or {}),
         "checkpoints": {n: describe_checkpoint(p) for n, (_, p) in methods.items()},
         "motion_windows": {n: m.motion_window for n, (m, _) in methods.items() if m.motion_window}, "history": history,
         "seconds_sampling": seconds,

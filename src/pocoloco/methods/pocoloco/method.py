@@ -33,7 +33,7 @@ from pocoloco.engine.trainer import TrainingTask
 from pocoloco.methods.base import Method, PointPrior, SampledClouds, SamplerOptions
 from pocoloco.methods.pocoloco.config import TRAIN_PRESETS, PocoLocoTrainConfig, point_bytes
 from pocoloco.methods.pocoloco.fitting import CodeFit, fit_outfit_code
-from pocoloco.methods.pocoloco.sampling import sample_clouds, sampler_for
+from pocoloco.methods.pocoloco.sampling import check_finish, sample_clouds, sampler_for
 from pocoloco.methods.pocoloco.training import PocoLocoTask
 from pocoloco.models.conditioning import OutfitBound, phenotype_vector
 from pocoloco.models.denoisers import build_denoiser
@@ -196,6 +196,7 @@ class PocoLocoMethod(Method):
 
     def check_options(self, options: SamplerOptions) -> None:
         sampler_for(self.config, options.sampler, options.steps, self.polish is not None)
+        check_finish(self.config, options.finish_t)
 
     def bytes_per_point(self) -> int:
         """The latent denoiser's point stream: ``point_width`` x (``point_mlp_ratio`` + 2) float32
@@ -251,7 +252,7 @@ class PocoLocoMethod(Method):
                              bf16=options.bf16, body=self.body_points_of(pose),
                              velocity=pose.velocity if self.config.joint_velocity else None,
                              motion=pose.motion if self.config.motion_window else None, polish=self.polish,
-                             **kw)  # fmt: skip
+                             finish=options.finish_t, **kw)  # fmt: skip
 
     def sample_settings(self, options: SamplerOptions, num_points: int) -> dict[str, Any]:
         sampler, steps = sampler_for(self.config, options.sampler, options.steps, self.polish is not None)
@@ -261,6 +262,7 @@ class PocoLocoMethod(Method):
         return {"preset": self.config.preset, "weights": self.weights, "sampler": sampler, "steps": steps,
                 **({"student_timesteps": own} if own else {}),
                 **({"polish": {"with": self.meta["polish"].get("ckpt"), "t": self.polish[1]}} if grid else {}),
+                **({"finish_t": options.finish_t} if options.finish_t is not None else {}),
                 "batch_size": options.batch_size, "clip": options.clip, "bf16": options.bf16,
                 **({"even_candidates": self.even_candidates(num_points)} if options.even else {})}  # fmt: skip
 

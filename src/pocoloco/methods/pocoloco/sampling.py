@@ -37,7 +37,7 @@ from pocoloco.diffusion.schedules import NoiseSchedule
 from pocoloco.methods.base import SampledClouds
 from pocoloco.models.conditioning import PoseCondition
 
-__all__ = ["DEFAULT_CLIP", "condition_for", "sample_clouds", "sampler_for"]
+__all__ = ["DEFAULT_CLIP", "check_finish", "condition_for", "sample_clouds", "sampler_for"]
 
 #: default x0 clamp of the CLI (normalised units); the ``small`` data stay within +-3.52
 DEFAULT_CLIP = 5.0
@@ -86,6 +86,19 @@ def sampler_for(config: Any, sampler: str, steps: int | None, polish: bool = Fal
     return "few-step", steps
 
 
+def check_finish(config: Any, finish: int | None) -> None:
+    """One-line ValueError unless ``finish`` (a 1-based step for one more call of the model's own
+    after its chain, or None) suits a model of ``config``: a step of its schedule, and not a
+    distilled student (whose last call is its teacher's: ``export-model --polish-t``)."""
+    if finish is None:
+        return
+    if isinstance(finish, bool) or not isinstance(finish, (int, np.integer)) or not 1 <= finish <= config.num_timesteps:
+        raise ValueError(f"--finish-t must be a step in [1, {config.num_timesteps}], got {finish!r}")
+    if int(getattr(config, "student_calls", 0) or 0):
+        raise ValueError("--finish-t is for a diffusion model; a distilled model's last call is its teacher's "
+                         "(export-model --polish-with TEACHER --polish-t T)")  # fmt: skip
+
+
 @torch.no_grad()
 def sample_clouds(
     model: torch.nn.Module,
@@ -108,6 +121,7 @@ def sample_clouds(
     velocity: np.ndarray | None = None,
     motion: MotionWindow | None = None,
     polish: tuple[torch.nn.Module, int] | None = None,
+    finish: int | None = None,
 ) -> SampledClouds:
     """Draw ``num`` clouds of ``num_points`` points from the denoiser, conditioned on one pose.
 
@@ -143,6 +157,12 @@ def sample_clouds(
         polish: (teacher denoiser, t) of a distilled student whose teacher makes its last call,
             re-noising the student's answer to 1-based step t (:func:`~pocoloco.diffusion.few_step.polish`)
             when ``steps`` >= 3 (:func:`~pocoloco.diffusion.few_step.polished_grid`); None: off.
+        finish: a diffusion model's own finishing call: after the chain, each cloud re-noised to
+            1-based step ``finish`` with fresh noise from its generator and the model's x0 estimate
+            there (:func:`~pocoloco.diffusion.few_step.polish` with the model as its own teacher);
+            None: off. The chain's last estimate comes from its grid's last step (40 of 1,000 for
+            25 dpm++sde steps), a noise larger than the cloth's detail, and shrinks the cloud a
+            little; one more call at step 5 takes it back (docs/lab/fast.md).
         bf16: run the denoiser under bf16 autocast (its matmuls and attention in bfloat16; the
             sampler's arithmetic and the returned points stay float32). Several times faster on
             CPUs with AMX / avx512_bf16 and on recent GPUs; slower on CPUs without them.
@@ -161,6 +181,7 @@ def sample_clouds(
     if len(seeds) != num:
         raise ValueError(f"seeds must have num={num} entries, got {len(seeds)}")
     sampler, steps = sampler_for(config, sampler, steps, polish is not None)
+    check_finish(config, finish)
     joints = check_joints("joints", joints, J)
     param = next(model.parameters())
     device, dtype = param.device, param.dtype
@@ -213,6 +234,9 @@ def sample_clouds(
                 x = sample(sampler, model, schedule, noise, cond, rng=rng, **kwargs)  # (B, N, C)
                 if grid is not None:
                     x = teacher_polish(polish[0], schedule, x, cond, polish[1], rng,
+                                       prediction_type=config.prediction_type, clip=clip)  # fmt: skip
+                if finish is not None:
+                    x = teacher_polish(model, schedule, x, cond, int(finish), rng,
                                        prediction_type=config.prediction_type, clip=clip)  # fmt: skip
             out[b0 : b0 + len(chunk)] = x.float().cpu().numpy()
             if progress is not None:
