@@ -220,6 +220,10 @@ def sample_clouds(
         own = grid or sampling_grid(config.num_timesteps, steps, int(config.student_calls))
         kwargs["timesteps"], kwargs["steps"] = own, len(own)
 
+    # the last call after the chain (one network, one step): a student's teacher, or a diffusion
+    # model's own (check_finish refuses a student, so at most one of the two applies)
+    finisher = polish if grid is not None else (model, int(finish)) if finish is not None else None
+
     was_training = model.training
     model.eval()
     out = np.empty((num, num_points, C), np.float32)  # (K, N, C) normalised
@@ -232,11 +236,8 @@ def sample_clouds(
                                  outfit, shape, body_t, code, velocity_t, motion_t)  # fmt: skip
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 x = sample(sampler, model, schedule, noise, cond, rng=rng, **kwargs)  # (B, N, C)
-                if grid is not None:
-                    x = teacher_polish(polish[0], schedule, x, cond, polish[1], rng,
-                                       prediction_type=config.prediction_type, clip=clip)  # fmt: skip
-                if finish is not None:
-                    x = teacher_polish(model, schedule, x, cond, int(finish), rng,
+                if finisher is not None:
+                    x = teacher_polish(finisher[0], schedule, x, cond, finisher[1], rng,
                                        prediction_type=config.prediction_type, clip=clip)  # fmt: skip
             out[b0 : b0 + len(chunk)] = x.float().cpu().numpy()
             if progress is not None:
