@@ -32,6 +32,20 @@ import numpy as np
 import torch
 
 
+def own_finishing_call(method, subject: str, joints: np.ndarray, clouds, t: int, seeds) -> list[np.ndarray]:
+    """``clouds`` (M of (N, 3), metres, drawn under ``joints``) re-noised to step t and ``method``'s
+    own x0 there: one DDIM call from t, the renoising noise from seeds + 7919 (what a student's
+    finishing call does, here a model's after its own chain; ``teacher_finish.py`` uses it too).
+    The library's ``--finish-t`` does the same with the sampler's own generator."""
+    from pocoloco.apps.common import denoise_from, to_metres, to_normalised
+
+    prior = method.point_prior(method.outfit_id(subject))
+    joints = np.asarray(joints)
+    x0 = to_normalised(method.normalisation, np.stack([np.asarray(c) for c in clouds]), None, joints, 3)
+    x = denoise_from(prior, joints, x0, t, sampler="ddim", steps=1, seeds=[s + 7919 for s in seeds])
+    return list(to_metres(method.normalisation, x, joints)[0])
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--refs", required=True, help="a reference set (pocoloco data histories)")
@@ -57,17 +71,6 @@ def main(argv: list[str] | None = None) -> None:
     from pocoloco.methods import load_method
     from pocoloco.synth.histories import reference_sets
 
-    from pocoloco.apps.common import denoise_from, to_metres, to_normalised
-
-    def finish(method, pose, clouds, t, seeds):
-        """``clouds`` (M of (N, 3), metres) re-noised to step t and ``method``'s own x0 there (one
-        DDIM call from t: what a student's finishing call does, here the teacher's after itself)."""
-        prior = method.point_prior(method.outfit_id(pose.subject))
-        joints = np.asarray(pose.joints)
-        x0 = to_normalised(method.normalisation, np.stack([np.asarray(c) for c in clouds]), None, joints, 3)
-        x = denoise_from(prior, joints, x0, t, sampler="ddim", steps=1, seeds=[s + 7919 for s in seeds])
-        return list(to_metres(method.normalisation, x, joints)[0])
-
     refs = Path(args.refs)
     hist = read_card(refs)["histories"]
     teacher = load_method(resolve_ckpt_arg(args.teacher))
@@ -89,7 +92,7 @@ def main(argv: list[str] | None = None) -> None:
                                                for k, f in enumerate([*w["refs"], w["own"]])] for w in windows}  # fmt: skip
         drawn = {"teacher": teacher.sample(pose, args.points, seeds).points}
         for t in args.teacher_ts:  # the teacher's answer, re-noised to t and its own x0 there (one call more)
-            drawn[f"teacher_t{t}"] = finish(teacher, pose, drawn["teacher"], t, seeds)
+            drawn[f"teacher_t{t}"] = own_finishing_call(teacher, pose.subject, pose.joints, drawn["teacher"], t, seeds)
         for t in args.ts:
             student.polish = (network, t)
             drawn[f"student_t{t}"] = student.sample(pose, args.points, seeds).points

@@ -5,7 +5,7 @@ its clouds a little (``polish_probe_bias.py --teacher-ts``: -3 % on the judge's 
 one more call at step 5). This scores the same thing against one scan per frame, on the frames,
 GT subsets and poses of ``pocoloco bench quality`` (``quality_frames.py``): for each frame and seed,
 the teacher's cloud and that cloud re-noised to step t with the teacher's x0 there (one DDIM call,
-:func:`pocoloco.apps.common.denoise_from`), each scored by Chamfer / S2M / M2S to the GT subset,
+:func:`polish_probe_bias.own_finishing_call`), each scored by Chamfer / S2M / M2S to the GT subset,
 paired. No x0 clamp on either.
 
     python benchmarks/experiments/teacher_finish.py --data DATA --split test --ts 5 \\
@@ -39,9 +39,9 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
+    from polish_probe_bias import own_finishing_call
     from quality_frames import quality_frames
 
-    from pocoloco.apps.common import denoise_from, to_metres, to_normalised
     from pocoloco.engine.shipped import resolve_ckpt_arg
     from pocoloco.evaluation.metrics import chamfer_cm, m2s_cm, s2m_cm
     from pocoloco.methods import load_method
@@ -49,15 +49,11 @@ def main(argv: list[str] | None = None) -> None:
     method = load_method(resolve_ckpt_arg(args.ckpt))
     rows: dict[str, list[dict]] = {}
     for i, key, subject, gt, pose in quality_frames(method, args.data, args.split, args.frames, args.points):
-        joints = np.asarray(pose.joints)
-        prior = method.point_prior(method.outfit_id(subject))
         for seed in args.seeds:
             cloud = np.asarray(method.sample(pose, args.points, [seed]).points[0])
             clouds = {"teacher": cloud}
-            x0 = to_normalised(method.normalisation, cloud[None], None, joints, 3)
             for t in args.ts:
-                x = denoise_from(prior, joints, x0, t, sampler="ddim", steps=1, seeds=[seed + 7919])
-                clouds[f"teacher_t{t}"] = to_metres(method.normalisation, x, joints)[0][0]
+                clouds[f"teacher_t{t}"] = own_finishing_call(method, subject, pose.joints, [cloud], t, [seed])[0]
             for name, c in clouds.items():
                 rows.setdefault(name, []).append({"frame": key, "seed": seed, "chamfer_cm": chamfer_cm(c, gt),
                                                   "s2m_cm": s2m_cm(c, gt), "m2s_cm": m2s_cm(c, gt)})  # fmt: skip
