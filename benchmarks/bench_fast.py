@@ -129,20 +129,24 @@ def animation(teacher: str, student: str, motion: str, frames: int, threads: int
     return out
 
 
-def distribution(teacher: str, student: str) -> list[dict]:
+def distribution(pairs: list[tuple[str, str]]) -> list[dict]:
     """Paired per pose, per shared window: the student's energy score (the judge's proper score) and
-    spread between samples against the teacher's, from two ``bench distribution`` reports of the same
-    reference set (``FILE:ROW`` each)."""
-    def load(spec):
+    spread between samples against the teacher's, from ``bench distribution`` reports (``FILE:ROW``
+    each), one (teacher, student) pair per reference set; several sets are pooled pose by pose (a
+    pose is keyed by its set, so two sets may hold the same frame)."""
+    def load(index, spec):
         path, _, row = spec.rpartition(":")
-        return {(p["subject"], p["sequence"], p["frame"], p["window"]): p["rows"][row]
+        return {(index, p["subject"], p["sequence"], p["frame"], p["window"]): p["rows"][row]
                 for p in json.loads(Path(path).read_text())["per_pose"] if row in p["rows"]}  # fmt: skip
 
-    ref, stu = load(teacher), load(student)
+    ref, stu = {}, {}
+    for index, (teacher, student) in enumerate(pairs):
+        ref.update(load(index, teacher))
+        stu.update(load(index, student))
     out = []
-    for window in sorted({k[3] for k in ref}):
-        keys = sorted(k for k in ref if k[3] == window and k in stu)
-        row: dict = {"window": window, "poses": len(keys)}
+    for window in sorted({k[4] for k in ref}):
+        keys = sorted(k for k in ref if k[4] == window and k in stu)
+        row: dict = {"window": window, "poses": len(keys), "sets": len(pairs)}
         for metric in ("energy_score", "spread_samples"):
             p = paired({k: ref[k] for k in keys}, {k: stu[k] for k in keys}, metric, keys)
             row[metric] = {**p, "ratio": p["model"] / p["reference"] if p["reference"] else float("nan")}
@@ -186,7 +190,7 @@ def main() -> None:
     ap.add_argument("--animate-no-polish", action="store_true",
                     help="--animate: also the student without its teacher's finishing call")
     ap.add_argument("--distribution", nargs="*", default=[], help="SPLIT=TEACHER_FILE:ROW,STUDENT_FILE:ROW "
-                    "(bench distribution reports of one reference set)")  # fmt: skip
+                    "(bench distribution reports of one reference set; a SPLIT given twice pools its sets)")  # fmt: skip
     ap.add_argument("--json", required=True)
     a = ap.parse_args()
     import torch
@@ -208,10 +212,13 @@ def main() -> None:
         result["models_speed"] = models_speed(a.models, a.repeats)
     if a.distribution:
         result["distribution"] = {}
-        for spec in a.distribution:
+        sets: dict[str, list[tuple[str, str]]] = {}
+        for spec in a.distribution:  # a split named twice: its reference sets pooled
             split, pair = spec.split("=", 1)
-            print(f"[{split}]")
-            result["distribution"][split] = distribution(*pair.split(",", 1))
+            sets.setdefault(split, []).append(tuple(pair.split(",", 1)))
+        for split, pairs in sets.items():
+            print(f"[{split}, {len(pairs)} reference set{'s' if len(pairs) > 1 else ''}]")
+            result["distribution"][split] = distribution(pairs)
     if a.animate:
         result["animation"] = animation(a.teacher, a.student, a.animate, a.animate_frames, a.animate_threads,
                                         no_polish=a.animate_no_polish)  # fmt: skip
