@@ -13,7 +13,7 @@ from pocoloco.data import format as fmt
 from pocoloco.data import published
 from pocoloco.data.published import read_ply, read_pop_npz
 from pocoloco.utils import atomic_write, save_npz_atomic, write_json_atomic
-from pocoloco.utils.atomic import output_folder
+from pocoloco.utils.atomic import jsonable, output_folder
 
 
 def random_frame(rng: np.random.Generator, n: int = 50, v: int = 20, vg: int | None = 7, index: int = 3) -> fmt.Frame:
@@ -68,6 +68,16 @@ def test_save_npz_and_json_atomic(tmp_path):
     with pytest.raises(ValueError):
         write_json_atomic(tmp_path / "d.json", {"k": float("nan")})  # strict JSON only
     assert not (tmp_path / "d.json").exists()
+
+
+def test_jsonable_rounds_floats_to_significant_digits_only_when_asked():
+    x = {"a": [np.float32(1.23456789), 2.0 / 3.0, float("nan"), 7, True], 3: np.array([123456.789, -1e-9 / 3])}
+    assert jsonable(x) == {"a": [float(np.float32(1.23456789)), 2.0 / 3.0, None, 7, True], "3": [123456.789, -1e-9 / 3]}
+    short = jsonable(x, digits=6)
+    assert short == {"a": [1.23457, 0.666667, None, 7, True], "3": [123457.0, -3.33333e-10]}
+    for full, kept in zip(jsonable(x)["a"][:2] + jsonable(x)["3"], short["a"][:2] + short["3"]):
+        assert abs(kept - full) <= 5e-6 * abs(full)  # each value to 1e-6 of itself
+    assert isinstance(short["a"][3], int) and short["a"][4] is True  # ints and bools are not floats here
 
 
 def test_output_folder_accepts_folders_and_new_paths_not_files(tmp_path):

@@ -103,6 +103,18 @@ def test_histories_cli_makes_a_verified_resumable_reference_set(tiny_dataset, tm
     r = run_cli(*args)
     assert r.returncode == 0, r.stderr
     assert victim.exists() and sets[0]["refs"][0].read_bytes() == before
+    # resumed again in-process: what exists counts as done from the first report (12 = 2 poses x 3 x 2
+    # windows; the lost one's history is all that runs), so the time left is this run's estimate
+    from pocoloco.synth.histories import HistoriesSpec, make_histories
+
+    (seq_dir / "sequence.json").unlink()
+    victim.unlink()
+    for k in (0, 2):
+        (seq_dir / "frames" / f"{k:06d}.json").write_text(json.dumps({"k": k, "prefix_kind": "x"}))
+    reports = []
+    make_histories(tiny_dataset, out, HistoriesSpec(poses=2, histories=3, shared_seconds=(0.0, 0.2), subjects=("tight",)),
+                   progress=lambda done, total: reports.append((done, total)))  # fmt: skip
+    assert reports == [(10, 12), (12, 12)] and victim.exists(), reports
     # another request into the same folder, and bad input: one line each
     for bad, msg in ((["--histories", "4"], "holds another reference set"), (["--histories", "1"], "--histories"),
                      (["--shared-seconds", "-1"], "--shared-seconds")):  # fmt: skip

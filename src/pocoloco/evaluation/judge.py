@@ -191,7 +191,7 @@ def bench_distribution(
     }  # fmt: skip
     report["per_pose"] = per_pose
     out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out / "distribution.json", jsonable(report), indent=None)
+    write_json_atomic(out / "distribution.json", jsonable(report, digits=6), indent=None)
     write_text_atomic(out / "distribution.md", distribution_markdown(report))
     return report
 

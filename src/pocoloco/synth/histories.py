@@ -309,7 +309,10 @@ def _run_history_inner(source: Path, out: Path, spec: HistoriesSpec, job: _Job) 
     src, layout = DatasetLayout(source), DatasetLayout(out)
     paths = {w: layout.frame_path(subject.name, spec.split, window_name(job.pose, w), job.k)
              for w in spec.shared_seconds}  # fmt: skip
-    records = {w: _read_record(p) for w, p in paths.items()}
+    # a window whose sequence is finished already holds this reference (its records moved into
+    # sequence.json): only counted; the caller reads what it needs from disk
+    records = {w: {"k": job.k} if layout.sequence_meta_path(subject.name, spec.split, window_name(job.pose, w)).exists()
+               else _read_record(p) for w, p in paths.items()}  # fmt: skip
     pending = [w for w in spec.shared_seconds if records[w] is None]
     if not pending:
         return [records[w] for w in spec.shared_seconds]
@@ -465,8 +468,15 @@ def make_histories(source: str | os.PathLike, out: str | os.PathLike, spec: Hist
         return all(layout.sequence_meta_path(pose.subject, spec.split, window_name(pose, w)).exists()
                    for w in spec.shared_seconds)  # fmt: skip
 
+    def made(job: _Job) -> bool:  # every window of this history already written (a resumed run)
+        names = [window_name(job.pose, w) for w in spec.shared_seconds]
+        return all(layout.sequence_meta_path(job.pose.subject, spec.split, name).exists()
+                   or _read_record(layout.frame_path(job.pose.subject, spec.split, name, job.k)) is not None
+                   for name in names)  # fmt: skip
+
     k_shard, n_shard = shard
-    mine = [j for n, j in enumerate(jobs) if n % n_shard == k_shard - 1 and not finished(j.pose)]
+    # what was made before counts as done at once, so the time left is estimated from this run's work
+    mine = [j for n, j in enumerate(jobs) if n % n_shard == k_shard - 1 and not finished(j.pose) and not made(j)]
     total, done = len(jobs) * windows, (len(jobs) - len(mine)) * windows
     if progress:
         progress(done, total)

@@ -134,18 +134,22 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
         f.write(text)
 
 
-def jsonable(x: Any) -> Any:
-    """A JSON-ready copy: NaN / inf -> None, numpy scalars / arrays -> Python, dict keys -> str, recursively."""
+def jsonable(x: Any, digits: int | None = None) -> Any:
+    """A JSON-ready copy: NaN / inf -> None, numpy scalars / arrays -> Python, dict keys -> str, recursively.
+    ``digits``: floats rounded to that many significant digits (a report of many per-pose numbers
+    stays small; 6 keeps 1e-6 of each value); None: kept as they are."""
     if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v, digits) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
+        return [jsonable(v, digits) for v in x]
     if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
+        return jsonable(x.tolist(), digits)
     if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return jsonable(x.item())
+        return jsonable(x.item(), digits)
     if isinstance(x, float) and not math.isfinite(x):
         return None
+    if isinstance(x, float) and digits is not None:
+        return float(f"{x:.{digits}g}")
     return x
 
 
