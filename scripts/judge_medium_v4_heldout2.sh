@@ -45,6 +45,15 @@ judge "$RES/heldout_finish5" --ckpt-pocoloco default --finish-t 5
 pair "$RES/default_finish5_vs_default.json" default "$ONE/heldout_finish5/distribution.json" \
   "$RES/heldout_finish5/distribution.json" "$ONE/heldout/distribution.json" "$RES/heldout/distribution.json"
 
+# EXTRA="NAME=CKPT ...": other students, judged into RUNS (NAME_heldout2) and paired against
+# default:fast, pooled with their first-set report RUNS/NAME_heldout1/distribution.json where it exists
+for extra in ${EXTRA:-}; do
+  name=${extra%%=*} ckpt=${extra#*=}
+  judge_untracked "${name}_heldout2" "$RUNS" --ckpt-pocoloco "$ckpt"
+  pair "$RUNS/${name}_vs_fast.json" "$ckpt" "$RUNS/${name}_heldout1/distribution.json" \
+    "$RUNS/${name}_heldout2/distribution.json" "$ONE/heldout_fast/distribution.json" "$RES/heldout_fast/distribution.json"
+done
+
 if [ -d "$MOTION" ]; then  # the first set's reports are in the motion run's folder (scripts/motion_medium_v4.sh)
   judge_untracked judge_heldout2_pocoloco_motion "$MRES" --ckpt-pocoloco "$MOTION" --history dataset
   judge_untracked judge_heldout2_pocoloco_motion_rest "$MRES" --ckpt-pocoloco "$MOTION" --history rest
