@@ -43,9 +43,9 @@ judge "$RES/${SPLIT}_fast" --ckpt-pocoloco default:fast
 pair "$RES/fast_vs_default_$SPLIT.json" default:fast "$ONE/${SPLIT}_fast/distribution.json" "$RES/${SPLIT}_fast/distribution.json" \
   "$ONE/$SPLIT/distribution.json" "$RES/$SPLIT/distribution.json"
 
-judge "$RES/${SPLIT}_finish5" --ckpt-pocoloco default --finish-t 5
+judge_untracked "${SPLIT}_finish5" "$RES" --ckpt-pocoloco default --finish-t 5
 pair "$RES/default_finish5_vs_default_$SPLIT.json" default "$ONE/${SPLIT}_finish5/distribution.json" \
-  "$RES/${SPLIT}_finish5/distribution.json" "$ONE/$SPLIT/distribution.json" "$RES/$SPLIT/distribution.json"
+  "$RUNS/${SPLIT}_finish5/distribution.json" "$ONE/$SPLIT/distribution.json" "$RES/$SPLIT/distribution.json"
 
 # EXTRA="NAME=CKPT ...": other students, judged into RUNS (NAME_SPLIT2) and paired against
 # default:fast, pooled with their first-set report RUNS/NAME_SPLIT1/distribution.json
