@@ -295,6 +295,16 @@ def _read_record(path: Path) -> dict | None:
     return None
 
 
+def _made_record(layout: DatasetLayout, spec: HistoriesSpec, job: _Job, shared: float) -> dict | None:
+    """History ``job``'s reference for the window of ``shared`` seconds, if made before: its record,
+    or ``{"k": k}`` where the window's sequence is finished (the records moved into sequence.json;
+    whoever needs them reads them from there); None: still to make."""
+    name = window_name(job.pose, shared)
+    if layout.sequence_meta_path(job.pose.subject, spec.split, name).exists():
+        return {"k": job.k}
+    return _read_record(layout.frame_path(job.pose.subject, spec.split, name, job.k))
+
+
 def _run_history_inner(source: Path, out: Path, spec: HistoriesSpec, job: _Job) -> list[dict]:
     """History k's prefix motion is simulated once, from the subject's cloth settled at rest, in the
     orientation it was drawn in; each window then continues that cloth state, turned about the
@@ -309,10 +319,7 @@ def _run_history_inner(source: Path, out: Path, spec: HistoriesSpec, job: _Job) 
     src, layout = DatasetLayout(source), DatasetLayout(out)
     paths = {w: layout.frame_path(subject.name, spec.split, window_name(job.pose, w), job.k)
              for w in spec.shared_seconds}  # fmt: skip
-    # a window whose sequence is finished already holds this reference (its records moved into
-    # sequence.json): only counted; the caller reads what it needs from disk
-    records = {w: {"k": job.k} if layout.sequence_meta_path(subject.name, spec.split, window_name(job.pose, w)).exists()
-               else _read_record(p) for w, p in paths.items()}  # fmt: skip
+    records = {w: _made_record(layout, spec, job, w) for w in spec.shared_seconds}
     pending = [w for w in spec.shared_seconds if records[w] is None]
     if not pending:
         return [records[w] for w in spec.shared_seconds]
@@ -464,19 +471,12 @@ def make_histories(source: str | os.PathLike, out: str | os.PathLike, spec: Hist
     jobs = [_Job(i, p, k) for i, p in enumerate(poses) for k in range(spec.histories)]
     windows = len(spec.shared_seconds)
 
-    def finished(pose: RefPose) -> bool:
-        return all(layout.sequence_meta_path(pose.subject, spec.split, window_name(pose, w)).exists()
-                   for w in spec.shared_seconds)  # fmt: skip
-
-    def made(job: _Job) -> bool:  # every window of this history already written (a resumed run)
-        names = [window_name(job.pose, w) for w in spec.shared_seconds]
-        return all(layout.sequence_meta_path(job.pose.subject, spec.split, name).exists()
-                   or _read_record(layout.frame_path(job.pose.subject, spec.split, name, job.k)) is not None
-                   for name in names)  # fmt: skip
+    def made(job: _Job) -> bool:  # every window of this history made before (a finished pose's included)
+        return all(_made_record(layout, spec, job, w) is not None for w in spec.shared_seconds)
 
     k_shard, n_shard = shard
     # what was made before counts as done at once, so the time left is estimated from this run's work
-    mine = [j for n, j in enumerate(jobs) if n % n_shard == k_shard - 1 and not finished(j.pose) and not made(j)]
+    mine = [j for n, j in enumerate(jobs) if n % n_shard == k_shard - 1 and not made(j)]
     total, done = len(jobs) * windows, (len(jobs) - len(mine)) * windows
     if progress:
         progress(done, total)
