@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> dict:
               "settings": "complete's defaults unless the method says otherwise; the scan's normals are passed",
               "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
               "seconds_total": seconds, "summary": summary, "rows": rows}  # fmt: skip
-    write_json_atomic(args.out, jsonable(result))
+    write_json_atomic(args.out, jsonable(result), indent=None)  # per-frame rows: compact
     Path(f"{args.out}.partial").unlink(missing_ok=True)  # the finished run replaces it
     print(f"wrote {args.out}")
     return result

@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> dict:
               "sampler": args.sampler, "steps": args.steps, "threads": torch.get_num_threads(),
               "machine": platform.processor() or platform.machine(), "seconds_total": seconds, "means": means,
               "rows": rows}  # fmt: skip
-    write_json_atomic(args.out, jsonable(result))
+    write_json_atomic(args.out, jsonable(result), indent=None)  # per-frame rows: compact
     print(f"wrote {args.out}")
     return result
 
