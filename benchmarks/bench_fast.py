@@ -30,6 +30,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from motion_gain import paired, rows  # noqa: E402
 
+from pocoloco.evaluation.judge import same_reference_set  # noqa: E402
+
 METRICS = (("chamfer_cm", "Chamfer cm"), ("m2s_garment_cm", "garment M2S cm"),
            ("outlier_10cm_pct", "> 10 cm %"), ("diversity_cm", "spread cm"))  # fmt: skip
 
@@ -134,15 +136,18 @@ def distribution(pairs: list[tuple[str, str]]) -> list[dict]:
     spread between samples against the teacher's, from ``bench distribution`` reports (``FILE:ROW``
     each), one (teacher, student) pair per reference set; several sets are pooled pose by pose (a
     pose is keyed by its set, so two sets may hold the same frame)."""
-    def load(index, spec):
-        path, _, row = spec.rpartition(":")
+    def load(index, spec, report):
+        row = spec.rpartition(":")[2]
         return {(index, p["subject"], p["sequence"], p["frame"], p["window"]): p["rows"][row]
-                for p in json.loads(Path(path).read_text())["per_pose"] if row in p["rows"]}  # fmt: skip
+                for p in report["per_pose"] if row in p["rows"]}  # fmt: skip
 
     ref, stu = {}, {}
     for index, (teacher, student) in enumerate(pairs):
-        ref.update(load(index, teacher))
-        stu.update(load(index, student))
+        reports = [json.loads(Path(spec.rpartition(":")[0]).read_text()) for spec in (teacher, student)]
+        if (why := same_reference_set(*reports)) is not None:  # pairing two copies' poses would be silently wrong
+            raise SystemExit(f"bench_fast --distribution: {teacher} and {student}: {why}")
+        ref.update(load(index, teacher, reports[0]))
+        stu.update(load(index, student, reports[1]))
     out = []
     for window in sorted({k[4] for k in ref}):
         keys = sorted(k for k in ref if k[4] == window and k in stu)

@@ -132,3 +132,19 @@ def test_pose_statistics_tell_a_sampler_from_a_regressor():
     assert 0 <= oracle["refs_medoid"]["medoid"] < 8 and oracle["refs_medoid"]["spread_samples"] == 0.0
     with pytest.raises(ValueError, match=">= 2 true states"):
         pose_statistics(refs[:1], refs[:1], None, probes)
+
+
+def test_same_reference_set_tells_two_copies_of_a_set_apart():
+    from pocoloco.evaluation.judge import same_reference_set
+
+    def report(spreads: dict, row: str = "pocoloco") -> dict:
+        return {"settings": {"probes": 4}, "per_pose": [
+            {"subject": s, "sequence": "test_0000", "frame": f, "window": w,
+             "rows": {row: {"spread_refs": v, "energy_score": 0.1}}} for (s, f, w), v in spreads.items()]}  # fmt: skip
+
+    one = {("skirt_a", 3, "0"): 0.25, ("skirt_a", 3, "2"): 0.125, ("tight_a", 7, "0"): 0.0625}
+    assert same_reference_set(report(one), report(one, row="pop")) is None  # another model, the same true states
+    assert same_reference_set(report(one), report({("skirt_a", 3, "0"): 0.25})) is None  # a subset pairs
+    why = same_reference_set(report(one), report({**one, ("skirt_a", 3, "2"): 0.126}))
+    assert why is not None and "skirt_a test_0000/3 (2 s shared)" in why and "6.250 and 6.300 cm" in why
+    assert "no pose" in same_reference_set(report(one), report({("dress_a", 1, "0"): 0.25}))

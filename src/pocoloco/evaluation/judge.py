@@ -32,7 +32,10 @@ from pocoloco.methods import SamplerOptions, load_method
 from pocoloco.synth.histories import reference_sets
 from pocoloco.utils.atomic import jsonable, output_folder, write_json_atomic, write_text_atomic
 
-__all__ = ["JUDGE_COLUMNS", "JUDGE_HISTORY_MODES", "ORACLE_ROWS", "bench_distribution", "bootstrap_means", "distribution_markdown"]
+__all__ = [
+    "JUDGE_COLUMNS", "JUDGE_HISTORY_MODES", "ORACLE_ROWS", "bench_distribution", "bootstrap_means",
+    "distribution_markdown", "same_reference_set",
+]  # fmt: skip
 
 #: oracle / baseline rows, always present
 ORACLE_ROWS = {"truth_loo": "truth, leave one out (a perfect sampler)",
@@ -194,6 +197,31 @@ def bench_distribution(
     write_json_atomic(out / "distribution.json", jsonable(report, digits=6), indent=None)
     write_text_atomic(out / "distribution.md", distribution_markdown(report))
     return report
+
+
+def same_reference_set(a: Mapping[str, Any], b: Mapping[str, Any], rtol: float = 1e-5) -> str | None:
+    """Whether two ``bench_distribution`` reports were judged on the same copy of a reference set,
+    so that their poses may be paired. A pose's true states are the same for every model, and so is
+    their spread (``spread_refs``, any row); a set made again from the same seeds on another kind
+    of machine is not bit-identical (chaotic cloth) and shows in it. Returns None when every pose
+    both hold agrees within ``rtol``, else a one-line reason naming the first pose that does not
+    (or that they share no pose)."""
+    def truth_spread(report: Mapping[str, Any]) -> dict[tuple, float]:
+        return {(p["subject"], p["sequence"], p["frame"], p["window"]):
+                float(next(iter(p["rows"].values()))["spread_refs"]) for p in report["per_pose"] if p["rows"]}  # fmt: skip
+
+    sa, sb = truth_spread(a), truth_spread(b)
+    common = sorted(set(sa) & set(sb))
+    if not common:
+        return "the two reports share no pose (judged on different reference sets)"
+    for key in common:
+        if abs(sa[key] - sb[key]) > rtol * max(abs(sa[key]), abs(sb[key]), 1e-12):
+            subject, sequence, frame, window = key
+            cm = 100.0 / float(a.get("settings", {}).get("probes", 1)) ** 0.5  # per_pose: metres over the probes
+            return (f"the two reports were judged on different copies of a reference set: {subject} {sequence}/{frame} "
+                    f"({window} s shared) has true states {cm * sa[key]:.3f} and {cm * sb[key]:.3f} cm apart; "
+                    "judge both models on the same set")  # fmt: skip
+    return None
 
 
 def _aggregate(per_pose: list[dict], models: list[str], bootstrap: int, seed: int, probes: int) -> dict[str, Any]:
