@@ -207,8 +207,12 @@ def same_reference_set(a: Mapping[str, Any], b: Mapping[str, Any], rtol: float =
     both hold agrees within ``rtol``, else a one-line reason naming the first pose that does not
     (or that they share no pose)."""
     def truth_spread(report: Mapping[str, Any]) -> dict[tuple, float]:
-        return {(p["subject"], p["sequence"], p["frame"], p["window"]):
-                float(next(iter(p["rows"].values()))["spread_refs"]) for p in report["per_pose"] if p["rows"]}  # fmt: skip
+        out = {}
+        for p in report.get("per_pose", []):
+            spreads = [r["spread_refs"] for r in p["rows"].values() if "spread_refs" in r]
+            if spreads:
+                out[(p["subject"], p["sequence"], p["frame"], p["window"])] = float(spreads[0])
+        return out
 
     sa, sb = truth_spread(a), truth_spread(b)
     common = sorted(set(sa) & set(sb))
