@@ -136,18 +136,18 @@ def distribution(pairs: list[tuple[str, str]]) -> list[dict]:
     spread between samples against the teacher's, from ``bench distribution`` reports (``FILE:ROW``
     each), one (teacher, student) pair per reference set; several sets are pooled pose by pose (a
     pose is keyed by its set, so two sets may hold the same frame)."""
-    def load(index, spec, report):
-        row = spec.rpartition(":")[2]
+    def load(index, report, row):
         return {(index, p["subject"], p["sequence"], p["frame"], p["window"]): p["rows"][row]
                 for p in report["per_pose"] if row in p["rows"]}  # fmt: skip
 
     ref, stu = {}, {}
     for index, (teacher, student) in enumerate(pairs):
-        reports = [json.loads(Path(spec.rpartition(":")[0]).read_text()) for spec in (teacher, student)]
-        if (why := same_reference_set(*reports)) is not None:  # pairing two copies' poses would be silently wrong
+        (t_path, _, t_row), (s_path, _, s_row) = teacher.rpartition(":"), student.rpartition(":")
+        t_report, s_report = (json.loads(Path(path).read_text()) for path in (t_path, s_path))
+        if (why := same_reference_set(t_report, s_report)) is not None:  # pairing two copies would be silently wrong
             raise SystemExit(f"bench_fast --distribution: {teacher} and {student}: {why}")
-        ref.update(load(index, teacher, reports[0]))
-        stu.update(load(index, student, reports[1]))
+        ref.update(load(index, t_report, t_row))
+        stu.update(load(index, s_report, s_row))
     out = []
     for window in sorted({k[4] for k in ref}):
         keys = sorted(k for k in ref if k[4] == window and k in stu)

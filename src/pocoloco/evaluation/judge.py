@@ -199,6 +199,12 @@ def bench_distribution(
     return report
 
 
+def _embedding_cm(probes: int) -> float:
+    """cm per probe of a ``per_pose`` embedding statistic (a Euclidean distance in metres over the P
+    probes): 100 / sqrt(P), the rows' fixed scale."""
+    return 100.0 / float(np.sqrt(probes))
+
+
 def same_reference_set(a: Mapping[str, Any], b: Mapping[str, Any], rtol: float = 1e-5) -> str | None:
     """Whether two ``bench_distribution`` reports were judged on the same copy of a reference set,
     so that their poses may be paired. A pose's true states are the same for every model, and so is
@@ -221,7 +227,7 @@ def same_reference_set(a: Mapping[str, Any], b: Mapping[str, Any], rtol: float =
     for key in common:
         if abs(sa[key] - sb[key]) > rtol * max(abs(sa[key]), abs(sb[key]), 1e-12):
             subject, sequence, frame, window = key
-            cm = 100.0 / float(a.get("settings", {}).get("probes", 1)) ** 0.5  # per_pose: metres over the probes
+            cm = _embedding_cm(a.get("settings", {}).get("probes", 1))
             return (f"the two reports were judged on different copies of a reference set: {subject} {sequence}/{frame} "
                     f"({window} s shared) has true states {cm * sa[key]:.3f} and {cm * sb[key]:.3f} cm apart; "
                     "judge both models on the same set")  # fmt: skip
@@ -231,7 +237,7 @@ def same_reference_set(a: Mapping[str, Any], b: Mapping[str, Any], rtol: float =
 def _aggregate(per_pose: list[dict], models: list[str], bootstrap: int, seed: int, probes: int) -> dict[str, Any]:
     """Means over poses with paired bootstrap intervals. Embedding statistics are reported in cm
     per probe (the Euclidean distance of two embeddings / sqrt(P): a fixed scale, so still proper)."""
-    emb_scale = 100.0 / np.sqrt(probes)
+    emb_scale = _embedding_cm(probes)
     windows = sorted({r["window"] for r in per_pose}, key=float)
     names = [*models, *ORACLE_ROWS]
     rows: dict[str, dict[str, dict]] = {n: {} for n in names}
@@ -260,7 +266,7 @@ def by_garment(per_pose: list[dict], kinds: Mapping[str, str], names: list[str],
     pose: its floor for every per-frame score) and each row's energy score, means over the kind's
     poses, in cm per probe.
     ``{kind: {window: {"poses", "spread_refs", "energy_score": {name: mean}}}}``."""
-    emb_scale = 100.0 / np.sqrt(probes)
+    emb_scale = _embedding_cm(probes)
     out: dict[str, Any] = {}
     for kind in sorted({kinds.get(r["subject"], "none") for r in per_pose}):
         out[kind] = {}
