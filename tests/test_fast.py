@@ -328,7 +328,13 @@ def test_distill_on_the_teachers_data_made_again(latent_teacher, tiny_dataset, t
     with pytest.raises(ValueError, match="normalisation differs from the teacher's") as e:
         prepare_distillation(latent_teacher, made_again("far", 1e-3), tmp_path / "e", pairs=2, pair_points=16,
                              teacher_steps=4)  # fmt: skip
-    assert "\n" not in str(e.value)
+    assert "\n" not in str(e.value) and "--teacher-frame" in str(e.value)
+    # --teacher-frame: the teacher's subjects made with fewer motions, their poses in the teacher's frame
+    task = prepare_distillation(latent_teacher, made_again("fewer", 1e-3), tmp_path / "f", pairs=2, pair_points=16,
+                                teacher_steps=4, teacher_frame=True)  # fmt: skip
+    assert task.normalisation == teacher and task.dataset.normalisation == teacher
+    far = load_checkpoint(latent_teacher, expect_model="pocoloco", training_state=False)
+    assert [o["name"] for o in task.outfits] == [o["name"] for o in far.meta["outfits"]]
 
 
 def test_distill_init_from_a_student_of_the_same_teacher(latent_teacher, tiny_student, tiny_dataset, tmp_path):
@@ -756,6 +762,12 @@ def test_the_set_terms_chain_is_the_students_sampler(latent_teacher, tiny_datase
         want = sample_few_step(net, task.schedule, noise, cond, timesteps=[999, 749, 249], renoise=1.0,
                                rng=torch.Generator().manual_seed(5), prediction_type=task.config.prediction_type)  # fmt: skip
     torch.testing.assert_close(got.detach(), want, atol=1e-4, rtol=1e-4)
+    # the chain term's 2-call chain is the 2-call sampler (999, then 249)
+    got = task.student_chain(net, noise, cond, torch.Generator().manual_seed(6), grid=sampling_grid(1000, 2, 4))
+    with torch.no_grad():
+        want = sample_few_step(net, task.schedule, noise, cond, timesteps=[999, 249], renoise=1.0,
+                               rng=torch.Generator().manual_seed(6), prediction_type=task.config.prediction_type)  # fmt: skip
+    torch.testing.assert_close(got.detach(), want, atol=1e-4, rtol=1e-4)
     with pytest.raises(ValueError, match="end_at must be in"):  # the shared sampler stops only below its last step
         sample_ddim(net, task.schedule, noise, cond, timesteps=[999, 749], end_at=749)
 
@@ -823,4 +835,27 @@ def test_distill_with_the_teachers_answers_from_renoised_states(latent_teacher, 
     assert read_teacher_pairs(out / "pairs", renoised=None).renoised_states is None  # where they are all there
     with pytest.raises(ValueError, match="--renoised-share > 0") as e:
         distill(latent_teacher, tiny_dataset, tmp_path / "bad", steps=1, **{**kw, "distill_renoised": 0.0})
+    assert "\n" not in str(e.value) and not (tmp_path / "bad" / "pairs").exists()
+
+
+def test_distill_with_the_chain_term(latent_teacher, tiny_dataset, tmp_path, torch_single_thread):
+    """``--chain-weight``: each pair's noise down the student's 2-call sampler, scored against the
+    teacher's answer; the run logs its terms, records the weight, and its gradient moves the
+    student (a run with it ends elsewhere than one without); a chain longer than the grid is refused
+    in one line before any pair is made."""
+    from pocoloco.methods import load_method
+    from pocoloco.methods.pocoloco.distill import distill
+
+    kw = dict(calls=4, pairs=4, pair_points=32, teacher_steps=8, batch_size=4, progress=False, log_every=1)
+    distill(latent_teacher, tiny_dataset, tmp_path / "c", steps=2, distill_chain=1.0, **kw)
+    logged = [json.loads(line) for line in (tmp_path / "c" / "metrics.jsonl").read_text().splitlines()]
+    assert logged and all(r["chain_huber"] > 0 and r["chain_chamfer"] > 0 and r["loss"] > r["huber"] for r in logged)
+    meta = json.loads((tmp_path / "c" / "model" / "meta.json").read_text())
+    assert meta["config"]["distill_chain"] == 1.0 and meta["config"]["distill_chain_calls"] == 2
+    distill(latent_teacher, tiny_dataset, tmp_path / "p", steps=2, **kw)
+    a = load_method(tmp_path / "c" / "model").model.state_dict()
+    b = load_method(tmp_path / "p" / "model").model.state_dict()
+    assert any(not torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match="--chain-calls") as e:
+        distill(latent_teacher, tiny_dataset, tmp_path / "bad", steps=1, distill_chain=1.0, distill_chain_calls=5, **kw)
     assert "\n" not in str(e.value) and not (tmp_path / "bad" / "pairs").exists()

@@ -406,7 +406,8 @@ def cmd_distill(args: argparse.Namespace) -> None:
     overrides = {k: v for k, v in {"steps": args.steps, "batch_size": args.batch_size, "lr": args.lr,
                                    "distill_chamfer": args.chamfer_weight, "distill_renoised": args.renoised_share,
                                    "student_renoise": args.renoise, "distill_set": args.set_weight,
-                                   "distill_renoised_targets": args.renoised_targets}.items()
+                                   "distill_renoised_targets": args.renoised_targets,
+                                   "distill_chain": args.chain_weight, "distill_chain_calls": args.chain_calls}.items()
                  if v is not None}  # fmt: skip
     out = output_folder(args.out)
     with exclusive_lock(out, "pocoloco distill"):
@@ -424,7 +425,7 @@ def cmd_distill(args: argparse.Namespace) -> None:
             task = prepare_distillation(resolve_ckpt_arg(args.ckpt), data, out, calls=args.calls, pairs=args.pairs,
                                         pair_points=args.pair_points, teacher_sampler=args.teacher_sampler,
                                         teacher_steps=args.teacher_steps, draws=args.draws_per_frame,
-                                        seed=args.seed, device=device,
+                                        seed=args.seed, device=device, teacher_frame=args.teacher_frame,
                                         init_from=None if args.init_from is None else resolve_ckpt_arg(args.init_from),
                                         pair_progress=lambda d, n: update(d, n), **overrides)  # fmt: skip
         result = run_training(task, out, device=device, resume=resume, progress=True,
@@ -453,6 +454,13 @@ def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set-weight", type=float, default=None, help="weight of the set-level term: the energy "
                         "distance between a frame's student draws and the teacher's (the judge's embedding; keeps "
                         "the draws' spread; needs --draws-per-frame >= 2; default 0)")  # fmt: skip
+    parser.add_argument("--chain-weight", type=float, default=None, help="weight of the chain term: each pair's "
+                        "noise down the student's own --chain-calls sampler, scored against the teacher's answer "
+                        "(the last call learns to mend the earlier ones; default 0)")  # fmt: skip
+    parser.add_argument("--chain-calls", type=int, default=None, help="calls of the chain term's sampler (2 .. "
+                        "--calls; default 2: 999 then 249)")  # fmt: skip
+    parser.add_argument("--teacher-frame", action="store_true", help="data of the teacher's subjects with another "
+                        "normalisation (made with fewer train motions): take its poses in the teacher's frame")  # fmt: skip
     parser.add_argument("--steps", type=int, default=None, help="student training steps (default 2000)")
     parser.add_argument("--batch-size", type=int, default=None, help="pairs per step (default 16)")
     parser.add_argument("--lr", type=float, default=None, help="learning rate (default 5e-5)")

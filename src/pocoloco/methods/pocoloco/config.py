@@ -82,7 +82,11 @@ class PocoLocoTrainConfig(Config):
     deterministic answer from the re-noised state, made once with the pairs). distill_set: weight
     of the set-level term (teacher pairs made with several draws per frame): the energy distance
     between a frame's student answers and the teacher's, on the judge's probe-distance embedding
-    (per-draw regression pulls the draws to their mean; this keeps their spread).
+    (per-draw regression pulls the draws to their mean; this keeps their spread). distill_chain:
+    weight of the chain term: each pair's initial noise taken down the student's own
+    ``distill_chain_calls``-call sampler (fresh re-noising between calls, a gradient through the
+    last call), its answer scored against the teacher's answer for that noise by the per-pair loss
+    (the last call learns to mend what the earlier ones left, as the few-call sampler hands it).
     student_renoise: the few-step sampler's share of fresh noise when re-noising (1: the
     consistency models' multistep sampler, 0: deterministic; :mod:`pocoloco.diffusion.few_step`).
     """
@@ -132,6 +136,8 @@ class PocoLocoTrainConfig(Config):
     distill_renoised: float = 0.0
     distill_renoised_targets: str = "answer"
     distill_set: float = 0.0
+    distill_chain: float = 0.0
+    distill_chain_calls: int = 2
     student_renoise: float = 1.0
 
     def __post_init__(self):
@@ -167,6 +173,11 @@ class PocoLocoTrainConfig(Config):
             raise ValueError("--renoised-targets ode: no re-noised draws to give them to; set --renoised-share > 0")
         if not (self.distill_set >= 0 and math.isfinite(self.distill_set)):
             raise ValueError(f"distill_set (--set-weight) must be a number >= 0, got {self.distill_set}")
+        if not (self.distill_chain >= 0 and math.isfinite(self.distill_chain)):
+            raise ValueError(f"distill_chain (--chain-weight) must be a number >= 0, got {self.distill_chain}")
+        if self.distill_chain and not 2 <= self.distill_chain_calls <= max(self.student_calls, 2):
+            raise ValueError(f"distill_chain_calls (--chain-calls) must be in [2, {max(self.student_calls, 2)}] (the "
+                             f"student's calls), got {self.distill_chain_calls}")  # fmt: skip
         if self.student_calls < 0 or self.distill_chamfer < 0 or not self.distill_huber > 0:
             raise ValueError(f"student_calls and distill_chamfer must be >= 0 and distill_huber > 0, got "
                              f"{self.student_calls}, {self.distill_chamfer}, {self.distill_huber}")  # fmt: skip

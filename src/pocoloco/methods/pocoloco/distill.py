@@ -28,7 +28,13 @@
    the loss adds the energy score, whose gradient is the energy distance's and which is never
    negative). Each call keeps most of a frame's spread on the teacher's path, but every fresh
    re-noising pulls the next answer toward the mean: the chain loses it call after call, which
-   Chamfer rewards and the proper score does not (docs/lab/fast.md).
+   Chamfer rewards and the proper score does not (docs/lab/fast.md). Optionally (``distill_chain``)
+   a chain term: each pair's initial noise taken down the student's own few-call sampler
+   (``distill_chain_calls``, e.g. 2: 999 then 249, fresh re-noising between them, a gradient through
+   the last call only) and its answer scored against the teacher's answer for that noise by the
+   per-pair loss: the last call learns to mend the earlier calls' answers, which are further from
+   the teacher's path the fewer they are (one call: +50 % Chamfer), rather than only the teacher's
+   own states.
 3. Sampling: :func:`pocoloco.diffusion.few_step.sample_few_step` with 1 to 4 calls (and, with
    ``export-model --polish-with``, the teacher's finishing call, :func:`~pocoloco.diffusion.few_step.polish`).
 
@@ -50,7 +56,7 @@ import torch
 from torch import nn
 
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
-from pocoloco.diffusion.few_step import polished_grid, student_grid
+from pocoloco.diffusion.few_step import polished_grid, sampling_grid, student_grid
 from pocoloco.diffusion.samplers import StepInfo, make_timesteps, sample_ddim
 from pocoloco.engine.checkpoint import (Checkpoint, check_model_kind, load_checkpoint, meta_digest, read_meta,
                                        resolve_checkpoint)
@@ -348,12 +354,14 @@ class PairBatches(torch.utils.data.Dataset):
 
     grouped: whole frames instead of single pairs: B / D frames (D = the pairs' ``draws``), all D
     pairs of a frame consecutive in the batch and at the same grid time (the sets a set-level loss
-    compares)."""
+    compares). grouped or ``chain``: the batch also holds each pair's initial noise ``noise`` and the
+    teacher's answer for it ``answers`` (B, N, C), for a term on the student's own chain."""
 
     def __init__(self, pairs: TeacherPairs, batch_size: int, seed: int, steps: int, rank: int = 0,
-                 renoised: float = 0.0, alpha_bar: np.ndarray | None = None, grouped: bool = False):  # fmt: skip
+                 renoised: float = 0.0, alpha_bar: np.ndarray | None = None, grouped: bool = False,
+                 chain: bool = False):  # fmt: skip
         self.pairs, self.batch_size, self.seed, self.steps, self.rank = pairs, batch_size, seed, steps, rank
-        self.renoised, self.alpha_bar, self.grouped = renoised, alpha_bar, grouped
+        self.renoised, self.alpha_bar, self.grouped, self.chain = renoised, alpha_bar, grouped, chain
         if renoised and alpha_bar is None:
             raise ValueError("re-noised draws need the schedule's alpha_bar")
         if grouped:
@@ -374,7 +382,6 @@ class PairBatches(torch.utils.data.Dataset):
             first = D * rng.choice(groups, g, replace=groups < g)
             idx = (first[:, None] + np.arange(D)).reshape(-1)
             k = np.repeat(rng.choice(len(p.grid), g, p=self.time_p), D)
-            noise = p.states[idx, 0]  # the draws' initial noises, for the student's own chain
         else:
             idx = rng.choice(len(p.targets), self.batch_size, replace=len(p.targets) < self.batch_size)
             k = rng.choice(len(p.grid), self.batch_size, p=self.time_p)
@@ -398,9 +405,9 @@ class PairBatches(torch.utils.data.Dataset):
                  "subject": torch.from_numpy(p.subject[idx]), "trajectory": torch.from_numpy(corresponds)}  # fmt: skip
         if p.motion is not None:
             batch["motion"] = torch.from_numpy(p.motion[idx])
-        if self.grouped:
-            batch["noise"] = torch.from_numpy(noise)
-            batch["answers"] = torch.from_numpy(p.targets[idx])  # the draws' own answers: the set compared
+        if self.grouped or self.chain:  # the draws' initial noises, for the student's own chain, and their answers
+            batch["noise"] = torch.from_numpy(p.states[idx, 0])
+            batch["answers"] = torch.from_numpy(p.targets[idx])
         return batch
 
 
@@ -420,14 +427,15 @@ class DistillTask(PocoLocoTask):
 
     def step_bytes(self) -> int | None:
         per = super().step_bytes()
-        return None if per is None else 2 * per  # the student's forward and the Chamfer terms
+        chained = self.config.distill_chain > 0 or self.config.distill_set > 0  # a second forward, on the chain
+        return None if per is None else (4 if chained else 2) * per  # the student's forward and the Chamfer terms
 
     def step_batches(self, model: nn.Module, rank: int, world: int) -> PairBatches:
         if self.pairs is None:
             raise RuntimeError("DistillTask: make or read the teacher pairs first")
         return PairBatches(self.pairs, self.config.batch_size, self.config.seed, self.config.steps, rank,
                            self.config.distill_renoised, self.schedule.alphas_cumprod.double().numpy(),
-                           grouped=self.config.distill_set > 0)  # fmt: skip
+                           grouped=self.config.distill_set > 0, chain=self.config.distill_chain > 0)  # fmt: skip
 
     def loss(self, net: nn.Module, batch: dict[str, torch.Tensor], step: int, rank: int):
         c = self.config
@@ -435,16 +443,16 @@ class DistillTask(PocoLocoTask):
         cond = self.condition(batch["joints"], batch["subject"], motion=batch.get("motion"))
         out = net(x, t, cond)
         _, x0 = self.schedule.pred_to_eps_x0(out.float(), x.float(), t, c.prediction_type)  # (B, N, C)
-        d2 = (x0 - target).square().sum(-1)  # (B, N)
         per_point = batch.get("trajectory", torch.ones(len(x), dtype=torch.bool, device=x.device))
         # points correspond only along the teacher's path; a re-noised draw is scored by Chamfer alone
-        huber = (((d2 + c.distill_huber**2).sqrt() - c.distill_huber).mean(-1) * per_point).sum() / len(x)
-        loss = huber
-        logs = {"huber": huber.detach()}
-        if c.distill_chamfer > 0:
-            cham = chamfer_distance(x0[..., :3], target[..., :3]).chamfer.mean()
-            loss = loss + c.distill_chamfer * cham
-            logs["chamfer"] = cham.detach()
+        loss, logs = self.pair_loss(x0, target, per_point)
+        if c.distill_chain > 0:  # each pair's noise down the student's few-call chain, to the teacher's answer
+            gen = torch.Generator(device=x.device).manual_seed(seed_of(c.seed, 14, int(step), rank))
+            grid = sampling_grid(c.num_timesteps, c.distill_chain_calls, c.student_calls)
+            chained = self.student_chain(net, batch["noise"], cond, gen, grid=grid)
+            chain_loss, chain_logs = self.pair_loss(chained, batch["answers"].float(), torch.ones_like(per_point))
+            loss = loss + c.distill_chain * chain_loss
+            logs.update({f"chain_{k}": v for k, v in chain_logs.items()})
         if c.distill_set > 0:  # each frame's draws down the student's chain, scored against the teacher's set
             ed = self.set_loss(net, batch, cond, step, rank)
             loss = loss + c.distill_set * ed["energy_score"]  # = energy distance / 2 + a constant; never < 0
@@ -453,12 +461,29 @@ class DistillTask(PocoLocoTask):
         as_tensors = x.device.type != "cpu"
         return loss, {k: v if as_tensors else float(v) for k, v in logs.items()}
 
-    def student_chain(self, net: nn.Module, noise: torch.Tensor, cond: Any, gen: torch.Generator) -> torch.Tensor:
-        """(B, N, C) the student's answers from ``noise`` (B, N, C) down :func:`chain_grid`, as
-        :func:`~pocoloco.diffusion.few_step.sample_few_step` gives them (``student_renoise`` fresh
-        noise from ``gen`` at each re-noising), with a gradient through the last call only."""
+    def pair_loss(self, x0: torch.Tensor, target: torch.Tensor,
+                  per_point: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # fmt: skip
+        """The per-pair loss of answers ``x0`` (B, N, C) against the teacher's ``target`` (B, N, C):
+        mean pseudo-Huber distance of corresponding points (only where ``per_point`` (B,) bool says
+        they correspond) + ``distill_chamfer`` x Chamfer; returns it and its terms (detached)."""
         c = self.config
-        grid = chain_grid(c.num_timesteps, c.student_calls)
+        d2 = (x0 - target).square().sum(-1)  # (B, N)
+        huber = (((d2 + c.distill_huber**2).sqrt() - c.distill_huber).mean(-1) * per_point).sum() / len(x0)
+        loss, logs = huber, {"huber": huber.detach()}
+        if c.distill_chamfer > 0:
+            cham = chamfer_distance(x0[..., :3], target[..., :3]).chamfer.mean()
+            loss = loss + c.distill_chamfer * cham
+            logs["chamfer"] = cham.detach()
+        return loss, logs
+
+    def student_chain(self, net: nn.Module, noise: torch.Tensor, cond: Any, gen: torch.Generator,
+                      grid: list[int] | None = None) -> torch.Tensor:  # fmt: skip
+        """(B, N, C) the student's answers from ``noise`` (B, N, C) down ``grid`` (default
+        :func:`chain_grid`), as :func:`~pocoloco.diffusion.few_step.sample_few_step` gives them
+        (``student_renoise`` fresh noise from ``gen`` at each re-noising), with a gradient through
+        the last call only."""
+        c = self.config
+        grid = chain_grid(c.num_timesteps, c.student_calls) if grid is None else grid
         x = noise.float()
         if len(grid) > 1:  # every call but the last, without a gradient, ending at the last call's state
             with torch.no_grad():
@@ -513,13 +538,15 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
                          pairs: int = 1024, pair_points: int = 512, teacher_sampler: str = "dpm++",
                          teacher_steps: int = 20, draws: int = 1, seed: int = 0,
                          device: str | torch.device = "cpu", init_from: str | Path | None = None,
-                         pair_progress: Callable[[int, int], None] | None = None, **overrides: Any) -> DistillTask:  # fmt: skip
+                         teacher_frame: bool = False, pair_progress: Callable[[int, int], None] | None = None, **overrides: Any) -> DistillTask:  # fmt: skip
     """The first half of ``pocoloco distill``: the student's task (:func:`distill_config` with
     ``overrides``: steps, batch_size, lr, ...) with its teacher pairs made or finished in
     ``out/pairs`` (``pair_progress(done, total)`` after each shard); one-line errors for a bad
     teacher, data, settings or ``init_from`` (:func:`student_start`) before any work.
     ``task.teacher`` is the teacher's checkpoint folder, ``task.start`` the one a fresh student
-    starts from."""
+    starts from. ``teacher_frame``: data of the teacher's subjects whose normalisation differs (made
+    with fewer train motions, say) is taken in the teacher's frame instead of refused: the pairs need
+    only its training poses, and the student sees the teacher's frame either way."""
     if not 1 <= calls <= 8:
         raise ValueError(f"--calls must be in [1, 8], got {calls}")
     if overrides.get("distill_set"):  # before any pair is made
@@ -530,9 +557,15 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
     sha = teacher_sha(ck)
     task = DistillTask(config, data, teacher=str(ck.path), teacher_sha256=sha)
     if task.normalisation != ck.normalisation:
-        if not ck.normalisation.matches(task.normalisation):
+        if teacher_frame:
+            stored = [o["name"] for o in ck.meta.get("outfits", [])]
+            if stored != [o["name"] for o in task.outfits]:
+                raise ValueError(f"--data {data}: --teacher-frame needs the teacher's subjects {stored}, the data has "
+                                 f"{[o['name'] for o in task.outfits]}")  # fmt: skip
+        elif not ck.normalisation.matches(task.normalisation):
             raise ValueError(f"--data {data}: its normalisation differs from the teacher's; distil on the data the "
-                             "teacher was trained on")  # fmt: skip
+                             "teacher was trained on (or, for data of its subjects made with fewer motions, "
+                             "--teacher-frame)")  # fmt: skip
         # the teacher's data made again (its statistics moved in their last digits): the teacher's frame, exactly
         task.dataset.normalisation = task.normalisation = ck.normalisation
     task.start = student_start(task, init_from)
