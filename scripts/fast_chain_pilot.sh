@@ -3,7 +3,7 @@
 # each pair's noise to its answer at 999, re-noised to 249, the last call scored against the
 # teacher's answer) close the 2-call gap (+11 % / +9 % Chamfer against the 25-call teacher, target
 # 6 %)? A paired pilot at equal wall-clock: both arms go on from the shipped `default:fast` on the
-# same new teacher pairs, one thread each, side by side: `chain` with the chain term at weight 1,
+# same new teacher pairs, one thread each, side by side: `chain` with the chain term at weight 2,
 # `plain` without (the control: what the same minutes of the shipped recipe give). Then each arm,
 # the shipped student and the teacher are scored by `bench quality` at 2 and 4 calls on both
 # splits (28 frames x 2 seeds, 2,048 points) and paired per frame against the teacher.
@@ -20,7 +20,7 @@ PL=.venv/bin/pocoloco
 DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v4_eval}
 OUT=${OUT:-$HOME/.cache/pocoloco/runs/fast_chain}
 MINUTES=${MINUTES:-60}
-read -r -a ARMS <<< "${ARMS:-chain:1 plain:0}"  # NAME:WEIGHT ...
+read -r -a ARMS <<< "${ARMS:-chain:2 plain:0}"  # NAME:WEIGHT ...
 THREADS=${THREADS:-1}
 PAIRS=(--pairs 512 --seed 2 --teacher-frame)
 RESULTS=${RESULTS:-benchmarks/results/fast_chain_pilot}

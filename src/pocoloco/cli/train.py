@@ -455,7 +455,7 @@ def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
                         "distance between a frame's student draws and the teacher's (the judge's embedding; keeps "
                         "the draws' spread; needs --draws-per-frame >= 2; default 0)")  # fmt: skip
     parser.add_argument("--chain-weight", type=float, default=None, help="weight of the chain term: each pair's "
-                        "noise down the student's own --chain-calls sampler, scored against the teacher's answer "
+                        "noise down the student's own --chain-calls sampler, scored by Chamfer against the teacher's answer "
                         "(the last call learns to mend the earlier ones; default 0)")  # fmt: skip
     parser.add_argument("--chain-calls", type=int, default=None, help="calls of the chain term's sampler (2 .. "
                         "--calls; default 2: 999 then 249)")  # fmt: skip

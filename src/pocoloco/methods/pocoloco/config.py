@@ -85,7 +85,7 @@ class PocoLocoTrainConfig(Config):
     (per-draw regression pulls the draws to their mean; this keeps their spread). distill_chain:
     weight of the chain term: each pair's initial noise taken down the student's own
     ``distill_chain_calls``-call sampler (fresh re-noising between calls, a gradient through the
-    last call), its answer scored against the teacher's answer for that noise by the per-pair loss
+    last call), its answer scored against the teacher's answer for that noise by Chamfer
     (the last call learns to mend what the earlier ones left, as the few-call sampler hands it).
     student_renoise: the few-step sampler's share of fresh noise when re-noising (1: the
     consistency models' multistep sampler, 0: deterministic; :mod:`pocoloco.diffusion.few_step`).

@@ -31,8 +31,8 @@
    Chamfer rewards and the proper score does not (docs/lab/fast.md). Optionally (``distill_chain``)
    a chain term: each pair's initial noise taken down the student's own few-call sampler
    (``distill_chain_calls``, e.g. 2: 999 then 249, fresh re-noising between them, a gradient through
-   the last call only) and its answer scored against the teacher's answer for that noise by the
-   per-pair loss: the last call learns to mend the earlier calls' answers, which are further from
+   the last call only) and its answer scored against the teacher's answer for that noise by Chamfer
+   (the fresh noise breaks the points' correspondence): the last call learns to mend the earlier calls' answers, which are further from
    the teacher's path the fewer they are (one call: +50 % Chamfer), rather than only the teacher's
    own states.
 3. Sampling: :func:`pocoloco.diffusion.few_step.sample_few_step` with 1 to 4 calls (and, with
@@ -450,7 +450,8 @@ class DistillTask(PocoLocoTask):
             gen = torch.Generator(device=x.device).manual_seed(seed_of(c.seed, 14, int(step), rank))
             grid = sampling_grid(c.num_timesteps, c.distill_chain_calls, c.student_calls)
             chained = self.student_chain(net, batch["noise"], cond, gen, grid=grid)
-            chain_loss, chain_logs = self.pair_loss(chained, batch["answers"].float(), torch.ones_like(per_point))
+            # fresh noise between the calls: its points no longer correspond to the answer's, so Chamfer alone
+            chain_loss, chain_logs = self.pair_loss(chained, batch["answers"].float(), None)
             loss = loss + c.distill_chain * chain_loss
             logs.update({f"chain_{k}": v for k, v in chain_logs.items()})
         if c.distill_set > 0:  # each frame's draws down the student's chain, scored against the teacher's set
@@ -462,15 +463,18 @@ class DistillTask(PocoLocoTask):
         return loss, {k: v if as_tensors else float(v) for k, v in logs.items()}
 
     def pair_loss(self, x0: torch.Tensor, target: torch.Tensor,
-                  per_point: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # fmt: skip
+                  per_point: torch.Tensor | None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # fmt: skip
         """The per-pair loss of answers ``x0`` (B, N, C) against the teacher's ``target`` (B, N, C):
         mean pseudo-Huber distance of corresponding points (only where ``per_point`` (B,) bool says
-        they correspond) + ``distill_chamfer`` x Chamfer; returns it and its terms (detached)."""
+        they correspond; None: nowhere, Chamfer alone) + ``distill_chamfer`` x Chamfer; returns it and
+        its terms (detached)."""
         c = self.config
-        d2 = (x0 - target).square().sum(-1)  # (B, N)
-        huber = (((d2 + c.distill_huber**2).sqrt() - c.distill_huber).mean(-1) * per_point).sum() / len(x0)
-        loss, logs = huber, {"huber": huber.detach()}
-        if c.distill_chamfer > 0:
+        loss, logs = x0.new_zeros(()), {}
+        if per_point is not None:
+            d2 = (x0 - target).square().sum(-1)  # (B, N)
+            huber = (((d2 + c.distill_huber**2).sqrt() - c.distill_huber).mean(-1) * per_point).sum() / len(x0)
+            loss, logs = huber, {"huber": huber.detach()}
+        if c.distill_chamfer > 0 or per_point is None:
             cham = chamfer_distance(x0[..., :3], target[..., :3]).chamfer.mean()
             loss = loss + c.distill_chamfer * cham
             logs["chamfer"] = cham.detach()
