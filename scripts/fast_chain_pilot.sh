@@ -71,16 +71,18 @@ for who in shipped "${NAMES[@]}"; do
     "heldout=$OUT/quality_teacher/heldout/quality.json:pocoloco" --student-quality "${args[@]}" \
     --json "$RESULTS/${who}_vs_teacher.json" > "$RESULTS/${who}_vs_teacher.txt"
 done
-# ... and each arm against the control on the same clock, per call count
+# ... and each arm against the control on the same clock and against the shipped student, per call count
 for who in "${NAMES[@]}"; do
   [ "$who" = plain ] && continue
-  for calls in 4 2; do
-    $PY benchmarks/bench_fast.py --no-speed --student "$who" \
-      --quality "test=$OUT/quality_plain_$calls/test/quality.json:pocoloco" \
-      "heldout=$OUT/quality_plain_$calls/heldout/quality.json:pocoloco" \
-      --student-quality "test:$calls=$OUT/quality_${who}_$calls/test/quality.json:pocoloco" \
-      "heldout:$calls=$OUT/quality_${who}_$calls/heldout/quality.json:pocoloco" \
-      --json "$RESULTS/${who}_vs_plain_$calls.json" > "$RESULTS/${who}_vs_plain_$calls.txt"
+  for base in plain shipped; do
+    for calls in 4 2; do
+      $PY benchmarks/bench_fast.py --no-speed --student "$who" --teacher "$base" \
+        --quality "test=$OUT/quality_${base}_$calls/test/quality.json:pocoloco" \
+        "heldout=$OUT/quality_${base}_$calls/heldout/quality.json:pocoloco" \
+        --student-quality "test:$calls=$OUT/quality_${who}_$calls/test/quality.json:pocoloco" \
+        "heldout:$calls=$OUT/quality_${who}_$calls/heldout/quality.json:pocoloco" \
+        --json "$RESULTS/${who}_vs_${base}_$calls.json" > "$RESULTS/${who}_vs_${base}_$calls.txt"
+    done
   done
 done
 echo "fast_chain_pilot: done ($OUT, $RESULTS)"
