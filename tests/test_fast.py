@@ -123,7 +123,9 @@ def test_distill_end_to_end_resumes_and_samples(latent_teacher, tiny_dataset, tm
     from pocoloco.methods.pocoloco.sampling import sample_clouds
 
     out = tmp_path / "d"
-    kw = dict(calls=4, pairs=6, pair_points=32, teacher_steps=8, batch_size=4, lr=1e-3, log_every=1, lr_schedule="constant",
+    # lr 3e-4: at 1e-3 the raw weights of 30 steps of batch 4 land anywhere from 0.5x to 1.3x the start's loss,
+    # depending on the CPU the tiny teacher was trained on; at 3e-4 about 0.5x
+    kw = dict(calls=4, pairs=6, pair_points=32, teacher_steps=8, batch_size=4, lr=3e-4, log_every=1, lr_schedule="constant",
               warmup_steps=0, progress=False)
     r = distill(latent_teacher, tiny_dataset, out, steps=30, **kw)
     pairs = read_teacher_pairs(out / "pairs")
