@@ -32,9 +32,9 @@
    a chain term: each pair's initial noise taken down the student's own few-call sampler
    (``distill_chain_calls``, e.g. 2: 999 then 249, fresh re-noising between them, a gradient through
    the last call only) and its answer scored against the teacher's answer for that noise by Chamfer
-   (the fresh noise breaks the points' correspondence): the last call learns to mend the earlier calls' answers, which are further from
-   the teacher's path the fewer they are (one call: +50 % Chamfer), rather than only the teacher's
-   own states.
+   alone, ``distill_chain`` x it (the fresh noise breaks the points' correspondence): the last call
+   learns to mend the earlier calls' answers, which are further from the teacher's path the fewer
+   they are (one call: +50 % Chamfer), rather than only the teacher's own states.
 3. Sampling: :func:`pocoloco.diffusion.few_step.sample_few_step` with 1 to 4 calls (and, with
    ``export-model --polish-with``, the teacher's finishing call, :func:`~pocoloco.diffusion.few_step.polish`).
 
@@ -445,15 +445,22 @@ class DistillTask(PocoLocoTask):
         _, x0 = self.schedule.pred_to_eps_x0(out.float(), x.float(), t, c.prediction_type)  # (B, N, C)
         per_point = batch.get("trajectory", torch.ones(len(x), dtype=torch.bool, device=x.device))
         # points correspond only along the teacher's path; a re-noised draw is scored by Chamfer alone
-        loss, logs = self.pair_loss(x0, target, per_point)
+        d2 = (x0 - target).square().sum(-1)  # (B, N)
+        huber = (((d2 + c.distill_huber**2).sqrt() - c.distill_huber).mean(-1) * per_point).sum() / len(x)
+        loss = huber
+        logs = {"huber": huber.detach()}
+        if c.distill_chamfer > 0:
+            cham = chamfer_distance(x0[..., :3], target[..., :3]).chamfer.mean()
+            loss = loss + c.distill_chamfer * cham
+            logs["chamfer"] = cham.detach()
         if c.distill_chain > 0:  # each pair's noise down the student's few-call chain, to the teacher's answer
             gen = torch.Generator(device=x.device).manual_seed(seed_of(c.seed, 14, int(step), rank))
             grid = sampling_grid(c.num_timesteps, c.distill_chain_calls, c.student_calls)
             chained = self.student_chain(net, batch["noise"], cond, gen, grid=grid)
             # fresh noise between the calls: its points no longer correspond to the answer's, so Chamfer alone
-            chain_loss, chain_logs = self.pair_loss(chained, batch["answers"].float(), None)
-            loss = loss + c.distill_chain * chain_loss
-            logs.update({f"chain_{k}": v for k, v in chain_logs.items()})
+            chain_cham = chamfer_distance(chained[..., :3], batch["answers"][..., :3].float()).chamfer.mean()
+            loss = loss + c.distill_chain * chain_cham
+            logs["chain_chamfer"] = chain_cham.detach()
         if c.distill_set > 0:  # each frame's draws down the student's chain, scored against the teacher's set
             ed = self.set_loss(net, batch, cond, step, rank)
             loss = loss + c.distill_set * ed["energy_score"]  # = energy distance / 2 + a constant; never < 0
@@ -461,24 +468,6 @@ class DistillTask(PocoLocoTask):
         logs["loss"] = loss.detach()
         as_tensors = x.device.type != "cpu"
         return loss, {k: v if as_tensors else float(v) for k, v in logs.items()}
-
-    def pair_loss(self, x0: torch.Tensor, target: torch.Tensor,
-                  per_point: torch.Tensor | None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # fmt: skip
-        """The per-pair loss of answers ``x0`` (B, N, C) against the teacher's ``target`` (B, N, C):
-        mean pseudo-Huber distance of corresponding points (only where ``per_point`` (B,) bool says
-        they correspond; None: nowhere, Chamfer alone) + ``distill_chamfer`` x Chamfer; returns it and
-        its terms (detached)."""
-        c = self.config
-        loss, logs = x0.new_zeros(()), {}
-        if per_point is not None:
-            d2 = (x0 - target).square().sum(-1)  # (B, N)
-            huber = (((d2 + c.distill_huber**2).sqrt() - c.distill_huber).mean(-1) * per_point).sum() / len(x0)
-            loss, logs = huber, {"huber": huber.detach()}
-        if c.distill_chamfer > 0 or per_point is None:
-            cham = chamfer_distance(x0[..., :3], target[..., :3]).chamfer.mean()
-            loss = loss + c.distill_chamfer * cham
-            logs["chamfer"] = cham.detach()
-        return loss, logs
 
     def student_chain(self, net: nn.Module, noise: torch.Tensor, cond: Any, gen: torch.Generator,
                       grid: list[int] | None = None) -> torch.Tensor:  # fmt: skip
@@ -561,17 +550,14 @@ def prepare_distillation(teacher: str | Path, data: str | Path, out: str | Path,
     sha = teacher_sha(ck)
     task = DistillTask(config, data, teacher=str(ck.path), teacher_sha256=sha)
     if task.normalisation != ck.normalisation:
-        if teacher_frame:
-            stored = [o["name"] for o in ck.meta.get("outfits", [])]
-            if stored != [o["name"] for o in task.outfits]:
-                raise ValueError(f"--data {data}: --teacher-frame needs the teacher's subjects {stored}, the data has "
-                                 f"{[o['name'] for o in task.outfits]}")  # fmt: skip
-        elif not ck.normalisation.matches(task.normalisation):
+        if not (teacher_frame or ck.normalisation.matches(task.normalisation)):
             raise ValueError(f"--data {data}: its normalisation differs from the teacher's; distil on the data the "
                              "teacher was trained on (or, for data of its subjects made with fewer motions, "
                              "--teacher-frame)")  # fmt: skip
         # the teacher's data made again (its statistics moved in their last digits): the teacher's frame, exactly
         task.dataset.normalisation = task.normalisation = ck.normalisation
+        if teacher_frame:  # its poses in the teacher's frame: the teacher's subjects (and body points), one-line error
+            task.check_resume(ck)
     task.start = student_start(task, init_from)
     settings = PairSettings(pairs=pairs, num_points=pair_points, calls=calls, sampler=teacher_sampler,
                             steps=teacher_steps, seed=seed, shard=16, teacher=str(ck.path), teacher_sha256=sha,
