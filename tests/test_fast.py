@@ -770,6 +770,23 @@ def test_the_set_terms_chain_is_the_students_sampler(latent_teacher, tiny_datase
         want = sample_few_step(net, task.schedule, noise, cond, timesteps=[999, 249], renoise=1.0,
                                rng=torch.Generator().manual_seed(6), prediction_type=task.config.prediction_type)  # fmt: skip
     torch.testing.assert_close(got.detach(), want, atol=1e-4, rtol=1e-4)
+    # --chain-grad all: the same answers, the gradient through every call (the first call's too)
+    for grid, seed in (([999, 249], 6), ([999, 749, 249], 5)):
+        net.zero_grad()
+        got = task.student_chain(net, noise, cond, torch.Generator().manual_seed(seed), grid=grid, grad="all")
+        with torch.no_grad():
+            want = sample_few_step(net, task.schedule, noise, cond, timesteps=grid, renoise=1.0,
+                                   rng=torch.Generator().manual_seed(seed), prediction_type=task.config.prediction_type)  # fmt: skip
+        torch.testing.assert_close(got.detach(), want, atol=1e-4, rtol=1e-4)
+    # the first call gets a gradient through the re-noised state only with "all"
+    grads = {}
+    for grad in ("last", "all"):
+        x = noise.clone().requires_grad_(True)
+        task.student_chain(net, x, cond, torch.Generator().manual_seed(6), grid=[999, 249], grad=grad).square().sum().backward()
+        grads[grad] = x.grad
+    assert grads["last"] is None and grads["all"].abs().sum() > 0
+    with pytest.raises(ValueError, match="grad must be last or all"):
+        task.student_chain(net, noise, cond, torch.Generator().manual_seed(6), grad="first")
     with pytest.raises(ValueError, match="end_at must be in"):  # the shared sampler stops only below its last step
         sample_ddim(net, task.schedule, noise, cond, timesteps=[999, 749], end_at=749)
 
@@ -862,3 +879,11 @@ def test_distill_with_the_chain_term(latent_teacher, tiny_dataset, tmp_path, tor
     with pytest.raises(ValueError, match="--chain-calls") as e:
         distill(latent_teacher, tiny_dataset, tmp_path / "bad", steps=1, distill_chain=1.0, distill_chain_calls=5, **kw)
     assert "\n" not in str(e.value) and not (tmp_path / "bad" / "pairs").exists()
+    # --chain-grad all: the first call learns from the chain too, so the run ends elsewhere again
+    distill(latent_teacher, tiny_dataset, tmp_path / "g", steps=2, distill_chain=1.0, distill_chain_grad="all", **kw)
+    g = load_method(tmp_path / "g" / "model").model.state_dict()
+    assert json.loads((tmp_path / "g" / "model" / "meta.json").read_text())["config"]["distill_chain_grad"] == "all"
+    assert any(not torch.equal(a[k], g[k]) for k in a)
+    with pytest.raises(ValueError, match="--chain-grad") as e:
+        distill(latent_teacher, tiny_dataset, tmp_path / "bad2", steps=1, distill_chain=1.0, distill_chain_grad="first", **kw)
+    assert "\n" not in str(e.value) and not (tmp_path / "bad2" / "pairs").exists()

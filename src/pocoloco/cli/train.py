@@ -407,7 +407,8 @@ def cmd_distill(args: argparse.Namespace) -> None:
                                    "distill_chamfer": args.chamfer_weight, "distill_renoised": args.renoised_share,
                                    "student_renoise": args.renoise, "distill_set": args.set_weight,
                                    "distill_renoised_targets": args.renoised_targets,
-                                   "distill_chain": args.chain_weight, "distill_chain_calls": args.chain_calls}.items()
+                                   "distill_chain": args.chain_weight, "distill_chain_calls": args.chain_calls,
+                                   "distill_chain_grad": args.chain_grad}.items()
                  if v is not None}  # fmt: skip
     out = output_folder(args.out)
     with exclusive_lock(out, "pocoloco distill"):
@@ -459,6 +460,9 @@ def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
                         "(the last call learns to mend the earlier ones; default 0)")  # fmt: skip
     parser.add_argument("--chain-calls", type=int, default=None, help="calls of the chain term's sampler (2 .. "
                         "--calls; default 2: 999 then 249)")  # fmt: skip
+    parser.add_argument("--chain-grad", choices=("last", "all"), default=None, help="the chain term's gradient: "
+                        "through its last call (default) or through every call (the earlier calls learn to hand "
+                        "the last a state it can mend)")  # fmt: skip
     parser.add_argument("--teacher-frame", action="store_true", help="data of the teacher's subjects with another "
                         "normalisation (made with fewer train motions): take its poses in the teacher's frame")  # fmt: skip
     parser.add_argument("--steps", type=int, default=None, help="student training steps (default 2000)")

@@ -84,9 +84,11 @@ class PocoLocoTrainConfig(Config):
     between a frame's student answers and the teacher's, on the judge's probe-distance embedding
     (per-draw regression pulls the draws to their mean; this keeps their spread). distill_chain:
     weight of the chain term: each pair's initial noise taken down the student's own
-    ``distill_chain_calls``-call sampler (fresh re-noising between calls, a gradient through the
-    last call), its answer scored against the teacher's answer for that noise by Chamfer
-    (the last call learns to mend what the earlier ones left, as the few-call sampler hands it).
+    ``distill_chain_calls``-call sampler (fresh re-noising between calls), its answer scored
+    against the teacher's answer for that noise by Chamfer (the last call learns to mend what the
+    earlier ones left, as the few-call sampler hands it). distill_chain_grad: "last" (a gradient
+    through the chain's last call) or "all" (through every call: the earlier calls also learn to
+    hand the last a state it can mend).
     student_renoise: the few-step sampler's share of fresh noise when re-noising (1: the
     consistency models' multistep sampler, 0: deterministic; :mod:`pocoloco.diffusion.few_step`).
     """
@@ -138,6 +140,7 @@ class PocoLocoTrainConfig(Config):
     distill_set: float = 0.0
     distill_chain: float = 0.0
     distill_chain_calls: int = 2
+    distill_chain_grad: str = "last"
     student_renoise: float = 1.0
 
     def __post_init__(self):
@@ -178,6 +181,8 @@ class PocoLocoTrainConfig(Config):
         if self.distill_chain and not 2 <= self.distill_chain_calls <= max(self.student_calls, 2):
             raise ValueError(f"distill_chain_calls (--chain-calls) must be in [2, {max(self.student_calls, 2)}] (the "
                              f"student's calls), got {self.distill_chain_calls}")  # fmt: skip
+        if self.distill_chain_grad not in ("last", "all"):
+            raise ValueError(f"distill_chain_grad (--chain-grad) must be last or all, got {self.distill_chain_grad!r}")
         if self.student_calls < 0 or self.distill_chamfer < 0 or not self.distill_huber > 0:
             raise ValueError(f"student_calls and distill_chamfer must be >= 0 and distill_huber > 0, got "
                              f"{self.student_calls}, {self.distill_chamfer}, {self.distill_huber}")  # fmt: skip

@@ -31,7 +31,7 @@
    Chamfer rewards and the proper score does not (docs/lab/fast.md). Optionally (``distill_chain``)
    a chain term: each pair's initial noise taken down the student's own few-call sampler
    (``distill_chain_calls``, e.g. 2: 999 then 249, fresh re-noising between them, a gradient through
-   the last call only) and its answer scored against the teacher's answer for that noise by Chamfer
+   the last call, or with ``distill_chain_grad`` "all" through every call) and its answer scored against the teacher's answer for that noise by Chamfer
    alone, ``distill_chain`` x it (the fresh noise breaks the points' correspondence): the last call
    learns to mend the earlier calls' answers, which are further from the teacher's path the fewer
    they are (one call: +50 % Chamfer), rather than only the teacher's own states.
@@ -57,6 +57,7 @@ from torch import nn
 
 from pocoloco.diffusion import NoiseSchedule, PerSampleRNG, sample
 from pocoloco.diffusion.few_step import polished_grid, sampling_grid, student_grid
+from pocoloco.diffusion.sampler_base import randn_like
 from pocoloco.diffusion.samplers import StepInfo, make_timesteps, sample_ddim
 from pocoloco.engine.checkpoint import (Checkpoint, check_model_kind, load_checkpoint, meta_digest, read_meta,
                                        resolve_checkpoint)
@@ -456,7 +457,7 @@ class DistillTask(PocoLocoTask):
         if c.distill_chain > 0:  # each pair's noise down the student's few-call chain, to the teacher's answer
             gen = torch.Generator(device=x.device).manual_seed(seed_of(c.seed, 14, int(step), rank))
             grid = sampling_grid(c.num_timesteps, c.distill_chain_calls, c.student_calls)
-            chained = self.student_chain(net, batch["noise"], cond, gen, grid=grid)
+            chained = self.student_chain(net, batch["noise"], cond, gen, grid=grid, grad=c.distill_chain_grad)
             # fresh noise between the calls: its points no longer correspond to the answer's, so Chamfer alone
             chain_cham = chamfer_distance(chained[..., :3], batch["answers"][..., :3].float()).chamfer.mean()
             loss = loss + c.distill_chain * chain_cham
@@ -470,14 +471,28 @@ class DistillTask(PocoLocoTask):
         return loss, {k: v if as_tensors else float(v) for k, v in logs.items()}
 
     def student_chain(self, net: nn.Module, noise: torch.Tensor, cond: Any, gen: torch.Generator,
-                      grid: list[int] | None = None) -> torch.Tensor:  # fmt: skip
+                      grid: list[int] | None = None, grad: str = "last") -> torch.Tensor:  # fmt: skip
         """(B, N, C) the student's answers from ``noise`` (B, N, C) down ``grid`` (default
         :func:`chain_grid`), as :func:`~pocoloco.diffusion.few_step.sample_few_step` gives them
         (``student_renoise`` fresh noise from ``gen`` at each re-noising), with a gradient through
-        the last call only."""
+        the last call (``grad`` "last") or through every call ("all": backpropagation through the
+        unrolled chain, x_s = sqrt(abar_s) x0 + sqrt(1 - abar_s) (sqrt(1 - r^2) eps_hat + r z))."""
         c = self.config
         grid = chain_grid(c.num_timesteps, c.student_calls) if grid is None else grid
+        if grad not in ("last", "all"):
+            raise ValueError(f"grad must be last or all, got {grad!r}")
         x = noise.float()
+        if grad == "all":
+            for i, t in enumerate(grid):
+                tt = torch.full((len(x),), t, device=x.device)
+                eps, x0 = self.schedule.pred_to_eps_x0(net(x, tt, cond).float(), x, tt, c.prediction_type)
+                if i + 1 == len(grid):
+                    return x0
+                ab = float(self.schedule.alpha_bar(grid[i + 1]))
+                sigma = c.student_renoise * (1.0 - ab) ** 0.5
+                x = ab**0.5 * x0 + max(1.0 - ab - sigma**2, 0.0) ** 0.5 * eps
+                if sigma > 0:  # the same draw as the sampler's (float32 noise from ``gen``)
+                    x = x + sigma * randn_like(x, gen)
         if len(grid) > 1:  # every call but the last, without a gradient, ending at the last call's state
             with torch.no_grad():
                 x = sample_ddim(net, self.schedule, x, cond, prediction_type=c.prediction_type, timesteps=grid[:-1],
