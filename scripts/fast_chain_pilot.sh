@@ -10,6 +10,7 @@
 #
 #   bash scripts/fast_chain_pilot.sh                 # 60 min per arm, both at once on 2 cores
 #   MINUTES=90 ARMS="chain:1 chain3:3 plain:0" bash scripts/fast_chain_pilot.sh
+#   ARMS="lo_last:2:last lo_all:2:all" CONTROL=lo_last LR=3e-5 bash scripts/fast_chain_pilot.sh   # the gradient's reach
 #
 # $DATA: `medium` v4 with a train split; the evaluation copy (`--train-sequences 1`) serves, its
 # poses taken in the teacher's frame (`--teacher-frame`). Every step skips what is done; rerun to go on.
@@ -20,7 +21,9 @@ PL=.venv/bin/pocoloco
 DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v4_eval}
 OUT=${OUT:-$HOME/.cache/pocoloco/runs/fast_chain}
 MINUTES=${MINUTES:-60}
-read -r -a ARMS <<< "${ARMS:-chain:2 plain:0}"  # NAME:WEIGHT ...
+read -r -a ARMS <<< "${ARMS:-chain:2 plain:0}"  # NAME:WEIGHT[:GRAD] ... (GRAD: --chain-grad, default last)
+CONTROL=${CONTROL:-plain}  # the arm the others are paired against on the same clock
+LR=${LR:-1e-4}
 THREADS=${THREADS:-1}
 PAIRS=(--pairs 512 --seed 2 --teacher-frame)
 RESULTS=${RESULTS:-benchmarks/results/fast_chain_pilot}
@@ -33,15 +36,16 @@ if [ ! -f "$OUT/pairs_run/model/meta.json" ]; then
     --steps 1 --threads 2 "${again[@]}" >> "$OUT/pairs.log" 2>&1
 fi
 # 2. the arms, side by side
-arm() {  # arm NAME WEIGHT
+arm() {  # arm NAME WEIGHT [GRAD]
   local run=$OUT/$1 again=()
   [ -f "$run/model/meta.json" ] && return 0
   if [ -d "$run/checkpoints" ]; then again=(--resume); else mkdir -p "$run"; cp -rn "$OUT/pairs_run/pairs" "$run/"; fi
   nice $PL distill --ckpt default --data "$DATA" --out "$run" --init-from default:fast "${PAIRS[@]}" \
-    --chain-weight "$2" --steps 100000 --batch-size 16 --lr 1e-4 --renoised-share 0.5 --time-budget "$MINUTES" \
+    --chain-weight "$2" --chain-grad "${3:-last}" --steps 100000 --batch-size 16 --lr "$LR" --renoised-share 0.5 \
+    --time-budget "$MINUTES" \
     --threads "$THREADS" "${again[@]}" >> "$run.log" 2>&1
 }
-for a in "${ARMS[@]}"; do arm "${a%%:*}" "${a##*:}" & done
+for a in "${ARMS[@]}"; do IFS=: read -r name weight grad <<< "$a"; arm "$name" "$weight" "$grad" & done
 wait
 NAMES=("${ARMS[@]%%:*}")
 for a in "${NAMES[@]}"; do
@@ -73,8 +77,8 @@ for who in shipped "${NAMES[@]}"; do
 done
 # ... and each arm against the control on the same clock and against the shipped student, per call count
 for who in "${NAMES[@]}"; do
-  [ "$who" = plain ] && continue
-  for base in plain shipped; do
+  [ "$who" = "$CONTROL" ] && continue
+  for base in "$CONTROL" shipped; do
     for calls in 4 2; do
       $PY benchmarks/bench_fast.py --no-speed --student "$who" --teacher "$base" \
         --quality "test=$OUT/quality_${base}_$calls/test/quality.json:pocoloco" \
