@@ -130,6 +130,15 @@ def test_pose_statistics_tell_a_sampler_from_a_regressor():
     oracle = truth_rows(refs, None, probes)
     assert oracle["truth_loo"]["energy_score"] < regressor["energy_score"]
     assert 0 <= oracle["refs_medoid"]["medoid"] < 8 and oracle["refs_medoid"]["spread_samples"] == 0.0
+    # their Chamfer to the true states, as a model's: the mean over distinct pairs, and the medoid's to the others
+    from pocoloco.evaluation.metrics import chamfer_cm
+
+    pairs = [chamfer_cm(a, b) for i, a in enumerate(refs) for j, b in enumerate(refs) if i != j]
+    assert oracle["truth_loo"]["chamfer_to_refs"] == pytest.approx(np.mean(pairs))
+    m = int(oracle["refs_medoid"]["medoid"])
+    assert oracle["refs_medoid"]["chamfer_to_refs"] == pytest.approx(np.mean([chamfer_cm(refs[m], b) for j, b in
+                                                                               enumerate(refs) if j != m]))  # fmt: skip
+    assert "chamfer_to_refs" not in truth_rows(refs, None, probes, chamfer=False)["truth_loo"]
     with pytest.raises(ValueError, match=">= 2 true states"):
         pose_statistics(refs[:1], refs[:1], None, probes)
 

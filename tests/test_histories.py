@@ -144,6 +144,8 @@ def test_bench_distribution_ranks_the_truth_first_and_reports_every_row(tiny_dat
     # a 2-step model is far from the truth; the truth itself is the floor
     assert es["truth_loo"] < es["pocoloco"] and es["truth_loo"] <= es["refs_medoid"] + 1e-9
     assert rows["truth_loo"][w]["es_minus_truth"]["mean"] == pytest.approx(0.0, abs=1e-9)
+    # by Chamfer too: a perfect sampler's (two distinct true states) is below the 2-step model's
+    assert rows["truth_loo"][w]["chamfer_to_refs"]["mean"] < rows["pocoloco"][w]["chamfer_to_refs"]["mean"]
     st = rows["pocoloco"][w]
     assert st["energy_score"]["lo"] <= st["energy_score"]["mean"] <= st["energy_score"]["hi"]
     for key in ("spread_refs", "spread_samples", "to_refs", "energy_distance", "chamfer_to_refs", "cov", "mmd",

@@ -166,12 +166,15 @@ def pose_statistics(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], j
     return out
 
 
-def truth_rows(refs: Sequence[np.ndarray], joints: np.ndarray | None, probes: np.ndarray) -> dict[str, dict]:
+def truth_rows(refs: Sequence[np.ndarray], joints: np.ndarray | None, probes: np.ndarray,
+               chamfer: bool = True) -> dict[str, dict]:  # fmt: skip
     """The two oracle rows of a pose's true states (K >= 3): ``truth_loo``, a perfect sampler (each
     true state in turn is the outcome and the other K - 1 are the forecast's samples; statistics
     averaged over the K), and ``refs_medoid``, the best single guess an oracle could make (the true
     state with the smallest summed embedding distance to the others, as a point mass scored against
-    the other K - 1)."""
+    the other K - 1). With ``chamfer``, each row's ``chamfer_to_refs`` (cm) as for a model: the mean
+    Chamfer between two distinct true states (what a perfect sampler scores against one scan), and
+    the medoid's mean Chamfer to the others."""
     k = len(refs)
     if k < 3:
         raise ValueError(f"the oracle rows need >= 3 true states, got {k}")
@@ -180,10 +183,16 @@ def truth_rows(refs: Sequence[np.ndarray], joints: np.ndarray | None, probes: np
     d = np.linalg.norm(er[:, None] - er[None], axis=-1)
     medoid = int(d.sum(1).argmin())
     rest = np.delete(er, medoid, 0)
-    return {
+    rows = {
         "truth_loo": {key: float(np.mean([r[key] for r in loo])) for key in loo[0]},
         "refs_medoid": {**energy_distance(er[medoid : medoid + 1], rest), "medoid": float(medoid)},
     }
+    if chamfer:
+        d_rr = _chamfer_matrix(refs, refs)
+        off = ~np.eye(k, dtype=bool)
+        rows["truth_loo"]["chamfer_to_refs"] = float(d_rr[off].mean())
+        rows["refs_medoid"]["chamfer_to_refs"] = float(np.delete(d_rr[medoid], medoid).mean())
+    return rows
 
 
 # ------------------------------------------------------------------ why not Chamfer (documented)
