@@ -119,7 +119,7 @@ def energy_distance(samples: np.ndarray, refs: np.ndarray) -> dict[str, float]:
 
 
 # ---------------------------------------------------------------------- one pose, many states
-def _chamfer_matrix(a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> np.ndarray:
+def chamfer_matrix(a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> np.ndarray:
     """(len(a), len(b)) Chamfer distances [cm] (``metrics.chamfer_cm``: S2M + M2S)."""
     return np.array([[chamfer_cm(x, y) for y in b] for x in a], np.float64).reshape(len(a), len(b))
 
@@ -142,13 +142,14 @@ def nearest_neighbour_accuracy(d_ss: np.ndarray, d_rr: np.ndarray, d_sr: np.ndar
 
 
 def pose_statistics(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], joints: np.ndarray | None,
-                    probes: np.ndarray, chamfer: bool = True) -> dict[str, float]:  # fmt: skip
+                    probes: np.ndarray, chamfer: bool = True, d_rr: np.ndarray | None = None) -> dict[str, float]:  # fmt: skip
     """Every statistic of the distribution judge for one pose: M forecast clouds against K true
     states (clouds (N, 3) in metres; every cloud at the same point count). Embedding statistics
     (:func:`energy_distance`, metres) and, with ``chamfer``, the Chamfer ones (cm):
     ``chamfer_to_refs`` (mean over sample-reference pairs), ``cov`` (share of references that are
     some sample's nearest reference), ``mmd`` (mean over references of the nearest sample's
-    Chamfer), ``nna_refs`` / ``nna_samples`` (:func:`nearest_neighbour_accuracy`)."""
+    Chamfer), ``nna_refs`` / ``nna_samples`` (:func:`nearest_neighbour_accuracy`). ``d_rr``: the
+    true states' :func:`chamfer_matrix` when the caller has it (one per pose, shared by its rows)."""
     if len(samples) < 1 or len(refs) < 2:
         raise ValueError(f"need >= 1 sample and >= 2 true states, got {len(samples)} and {len(refs)}")
     es = np.stack([embed_cloud(x, joints, probes) for x in samples])
@@ -156,9 +157,9 @@ def pose_statistics(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], j
     out = energy_distance(es, er)
     out["num_samples"], out["num_refs"] = float(len(samples)), float(len(refs))
     if chamfer:
-        d_sr = _chamfer_matrix(samples, refs)
-        d_ss = _chamfer_matrix(samples, samples)
-        d_rr = _chamfer_matrix(refs, refs)
+        d_sr = chamfer_matrix(samples, refs)
+        d_ss = chamfer_matrix(samples, samples)
+        d_rr = chamfer_matrix(refs, refs) if d_rr is None else d_rr
         out["chamfer_to_refs"] = float(d_sr.mean())
         out["cov"] = float(len(set(d_sr.argmin(1).tolist())) / len(refs))
         out["mmd"] = float(d_sr.min(0).mean())
@@ -167,14 +168,14 @@ def pose_statistics(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], j
 
 
 def truth_rows(refs: Sequence[np.ndarray], joints: np.ndarray | None, probes: np.ndarray,
-               chamfer: bool = True) -> dict[str, dict]:  # fmt: skip
+               chamfer: bool = True, d_rr: np.ndarray | None = None) -> dict[str, dict]:  # fmt: skip
     """The two oracle rows of a pose's true states (K >= 3): ``truth_loo``, a perfect sampler (each
     true state in turn is the outcome and the other K - 1 are the forecast's samples; statistics
     averaged over the K), and ``refs_medoid``, the best single guess an oracle could make (the true
     state with the smallest summed embedding distance to the others, as a point mass scored against
     the other K - 1). With ``chamfer``, each row's ``chamfer_to_refs`` (cm) as for a model: the mean
     Chamfer between two distinct true states (what a perfect sampler scores against one scan), and
-    the medoid's mean Chamfer to the others."""
+    the medoid's mean Chamfer to the others (``d_rr``: their :func:`chamfer_matrix`, if at hand)."""
     k = len(refs)
     if k < 3:
         raise ValueError(f"the oracle rows need >= 3 true states, got {k}")
@@ -188,7 +189,7 @@ def truth_rows(refs: Sequence[np.ndarray], joints: np.ndarray | None, probes: np
         "refs_medoid": {**energy_distance(er[medoid : medoid + 1], rest), "medoid": float(medoid)},
     }
     if chamfer:
-        d_rr = _chamfer_matrix(refs, refs)
+        d_rr = chamfer_matrix(refs, refs) if d_rr is None else d_rr
         off = ~np.eye(k, dtype=bool)
         rows["truth_loo"]["chamfer_to_refs"] = float(d_rr[off].mean())
         rows["refs_medoid"]["chamfer_to_refs"] = float(np.delete(d_rr[medoid], medoid).mean())
