@@ -11,6 +11,8 @@
 #   bash scripts/fast_chain_pilot.sh                 # 60 min per arm, both at once on 2 cores
 #   MINUTES=90 ARMS="chain:1 chain3:3 plain:0" bash scripts/fast_chain_pilot.sh
 #   ARMS="lo_last:2:last lo_all:2:all" CONTROL=lo_last LR=3e-5 bash scripts/fast_chain_pilot.sh   # the gradient's reach
+#   DRAWS=4 PAIRS_N=1024 ARMS="cs:2:last:20 c:2:last" CONTROL=c LR=3e-5 bash scripts/fast_chain_pilot.sh
+#       # the chain term with the set-level term on the same 2-call chain (4th field: its weight, --set-calls 2)
 #
 # $DATA: `medium` v4 with a train split; the evaluation copy (`--train-sequences 1`) serves, its
 # poses taken in the teacher's frame (`--teacher-frame`). Every step skips what is done; rerun to go on.
@@ -21,11 +23,12 @@ PL=.venv/bin/pocoloco
 DATA=${DATA:-$HOME/.cache/pocoloco/data/medium_v4_eval}
 OUT=${OUT:-$HOME/.cache/pocoloco/runs/fast_chain}
 MINUTES=${MINUTES:-60}
-read -r -a ARMS <<< "${ARMS:-chain:2 plain:0}"  # NAME:WEIGHT[:GRAD] ... (GRAD: --chain-grad, default last)
+read -r -a ARMS <<< "${ARMS:-chain:2 plain:0}"  # NAME:WEIGHT[:GRAD[:SET]] ... (GRAD: --chain-grad, default last; SET: --set-weight on 2 calls)
 CONTROL=${CONTROL:-plain}  # the arm the others are paired against on the same clock
 LR=${LR:-1e-4}
 THREADS=${THREADS:-1}
-PAIRS=(--pairs 512 --seed 2 --teacher-frame)
+PAIRS=(--pairs "${PAIRS_N:-512}" --seed 2 --teacher-frame)
+[ "${DRAWS:-1}" -gt 1 ] && PAIRS+=(--draws-per-frame "$DRAWS")  # frames of several draws, for the set term
 RESULTS=${RESULTS:-benchmarks/results/fast_chain_pilot}
 mkdir -p "$OUT" "$RESULTS"
 
@@ -36,16 +39,17 @@ if [ ! -f "$OUT/pairs_run/model/meta.json" ]; then
     --steps 1 --threads 2 "${again[@]}" >> "$OUT/pairs.log" 2>&1
 fi
 # 2. the arms, side by side
-arm() {  # arm NAME WEIGHT [GRAD]
-  local run=$OUT/$1 again=()
+arm() {  # arm NAME WEIGHT [GRAD [SET]]
+  local run=$OUT/$1 again=() setargs=()
+  [ -n "${4:-}" ] && setargs=(--set-weight "$4" --set-calls 2)
   [ -f "$run/model/meta.json" ] && return 0
   if [ -d "$run/checkpoints" ]; then again=(--resume); else mkdir -p "$run"; cp -rn "$OUT/pairs_run/pairs" "$run/"; fi
   nice $PL distill --ckpt default --data "$DATA" --out "$run" --init-from default:fast "${PAIRS[@]}" \
-    --chain-weight "$2" --chain-grad "${3:-last}" --steps 100000 --batch-size 16 --lr "$LR" --renoised-share 0.5 \
+    --chain-weight "$2" --chain-grad "${3:-last}" "${setargs[@]}" --steps 100000 --batch-size 16 --lr "$LR" --renoised-share 0.5 \
     --time-budget "$MINUTES" \
     --threads "$THREADS" "${again[@]}" >> "$run.log" 2>&1
 }
-for a in "${ARMS[@]}"; do IFS=: read -r name weight grad <<< "$a"; arm "$name" "$weight" "$grad" & done
+for a in "${ARMS[@]}"; do IFS=: read -r name weight grad setw <<< "$a"; arm "$name" "$weight" "$grad" "$setw" & done
 wait
 NAMES=("${ARMS[@]%%:*}")
 for a in "${NAMES[@]}"; do

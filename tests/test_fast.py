@@ -887,3 +887,33 @@ def test_distill_with_the_chain_term(latent_teacher, tiny_dataset, tmp_path, tor
     with pytest.raises(ValueError, match="--chain-grad") as e:
         distill(latent_teacher, tiny_dataset, tmp_path / "bad2", steps=1, distill_chain=1.0, distill_chain_grad="first", **kw)
     assert "\n" not in str(e.value) and not (tmp_path / "bad2" / "pairs").exists()
+
+
+def test_the_set_term_on_the_2_call_chain(latent_teacher, tiny_dataset, tmp_path, torch_single_thread, monkeypatch):
+    """``--set-calls 2``: the set-level term scores the student's 2-call draws (999, then 249); beside
+    the chain term on the same 2 calls the two share one chain per step (the set term's own chain
+    runs only where the grids differ); the run logs both terms and records the calls; a count
+    beyond the student's grid is refused in one line before any pair is made."""
+    from pocoloco.methods import load_method
+    from pocoloco.methods.pocoloco.distill import DistillTask, distill, distill_config
+
+    teacher = load_method(latent_teacher)
+    assert DistillTask(distill_config(teacher.config, 4, distill_set=1.0, distill_set_calls=2), tiny_dataset).set_grid() \
+        == [999, 249]  # fmt: skip
+    assert DistillTask(distill_config(teacher.config, 4, distill_set=1.0), tiny_dataset).set_grid() == [999, 749, 249]
+    chains = []
+    real = DistillTask.student_chain
+    monkeypatch.setattr(DistillTask, "student_chain", lambda self, *a, **k: chains.append(k.get("grid")) or real(self, *a, **k))
+    kw = dict(calls=4, pairs=4, pair_points=32, teacher_steps=8, batch_size=4, draws=2, progress=False, log_every=1)
+    distill(latent_teacher, tiny_dataset, tmp_path / "s", steps=2, distill_set=1.0, distill_set_calls=2,
+            distill_chain=1.0, **kw)  # fmt: skip
+    assert chains == [[999, 249]] * 2  # one shared chain per step
+    logged = [json.loads(line) for line in (tmp_path / "s" / "metrics.jsonl").read_text().splitlines()]
+    assert logged and all(r["chain_chamfer"] > 0 and np.isfinite(r["set_energy_distance"]) for r in logged)
+    assert json.loads((tmp_path / "s" / "model" / "meta.json").read_text())["config"]["distill_set_calls"] == 2
+    chains.clear()
+    distill(latent_teacher, tiny_dataset, tmp_path / "d", steps=2, distill_set=1.0, distill_chain=1.0, **kw)
+    assert chains == [[999, 249], [999, 749, 249]] * 2  # the default set grid differs: its own chain
+    with pytest.raises(ValueError, match="--set-calls") as e:
+        distill(latent_teacher, tiny_dataset, tmp_path / "bad", steps=1, distill_set=1.0, distill_set_calls=5, **kw)
+    assert "\n" not in str(e.value) and not (tmp_path / "bad" / "pairs").exists()

@@ -408,7 +408,8 @@ def cmd_distill(args: argparse.Namespace) -> None:
                                    "student_renoise": args.renoise, "distill_set": args.set_weight,
                                    "distill_renoised_targets": args.renoised_targets,
                                    "distill_chain": args.chain_weight, "distill_chain_calls": args.chain_calls,
-                                   "distill_chain_grad": args.chain_grad}.items()
+                                   "distill_chain_grad": args.chain_grad,
+                                   "distill_set_calls": args.set_calls}.items()
                  if v is not None}  # fmt: skip
     out = output_folder(args.out)
     with exclusive_lock(out, "pocoloco distill"):
@@ -455,6 +456,9 @@ def add_distill_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set-weight", type=float, default=None, help="weight of the set-level term: the energy "
                         "distance between a frame's student draws and the teacher's (the judge's embedding; keeps "
                         "the draws' spread; needs --draws-per-frame >= 2; default 0)")  # fmt: skip
+    parser.add_argument("--set-calls", type=int, default=None, help="calls of the chain the set-level term runs "
+                        "(1 .. --calls; default: the student's default sampler, e.g. 2 to keep the 2-call draws' "
+                        "spread; shared with the chain term's chain when both run the same calls)")  # fmt: skip
     parser.add_argument("--chain-weight", type=float, default=None, help="weight of the chain term: each pair's "
                         "noise down the student's own --chain-calls sampler, scored by Chamfer against the teacher's answer "
                         "(the last call learns to mend the earlier ones; default 0)")  # fmt: skip

@@ -88,7 +88,10 @@ class PocoLocoTrainConfig(Config):
     against the teacher's answer for that noise by Chamfer (the last call learns to mend what the
     earlier ones left, as the few-call sampler hands it). distill_chain_grad: "last" (a gradient
     through the chain's last call) or "all" (through every call: the earlier calls also learn to
-    hand the last a state it can mend).
+    hand the last a state it can mend). distill_set_calls: the calls of the chain the set-level
+    term runs (0, the default: the grid the student samples with by default, a teacher's finishing
+    call after it; 1 .. student_calls: its sampling grid of that many calls, e.g. 2 to keep the
+    2-call draws' spread; shared with the chain term's chain where the two grids are the same).
     student_renoise: the few-step sampler's share of fresh noise when re-noising (1: the
     consistency models' multistep sampler, 0: deterministic; :mod:`pocoloco.diffusion.few_step`).
     """
@@ -141,6 +144,7 @@ class PocoLocoTrainConfig(Config):
     distill_chain: float = 0.0
     distill_chain_calls: int = 2
     distill_chain_grad: str = "last"
+    distill_set_calls: int = 0
     student_renoise: float = 1.0
 
     def __post_init__(self):
@@ -181,6 +185,9 @@ class PocoLocoTrainConfig(Config):
         if self.distill_chain and not 2 <= self.distill_chain_calls <= max(self.student_calls, 2):
             raise ValueError(f"distill_chain_calls (--chain-calls) must be in [2, {max(self.student_calls, 2)}] (the "
                              f"student's calls), got {self.distill_chain_calls}")  # fmt: skip
+        if self.distill_set and not 0 <= self.distill_set_calls <= self.student_calls:
+            raise ValueError(f"distill_set_calls (--set-calls) must be in [1, {self.student_calls}] (the student's "
+                             f"calls) or 0 (its default sampler), got {self.distill_set_calls}")  # fmt: skip
         if self.distill_chain_grad not in ("last", "all"):
             raise ValueError(f"distill_chain_grad (--chain-grad) must be last or all, got {self.distill_chain_grad!r}")
         if self.student_calls < 0 or self.distill_chamfer < 0 or not self.distill_huber > 0:

@@ -454,16 +454,18 @@ class DistillTask(PocoLocoTask):
             cham = chamfer_distance(x0[..., :3], target[..., :3]).chamfer.mean()
             loss = loss + c.distill_chamfer * cham
             logs["chamfer"] = cham.detach()
+        chained, chain_grid_ = None, None
         if c.distill_chain > 0:  # each pair's noise down the student's few-call chain, to the teacher's answer
             gen = torch.Generator(device=x.device).manual_seed(seed_of(c.seed, 14, int(step), rank))
-            grid = sampling_grid(c.num_timesteps, c.distill_chain_calls, c.student_calls)
-            chained = self.student_chain(net, batch["noise"], cond, gen, grid=grid, grad=c.distill_chain_grad)
+            chain_grid_ = sampling_grid(c.num_timesteps, c.distill_chain_calls, c.student_calls)
+            chained = self.student_chain(net, batch["noise"], cond, gen, grid=chain_grid_, grad=c.distill_chain_grad)
             # fresh noise between the calls: its points no longer correspond to the answer's, so Chamfer alone
             chain_cham = chamfer_distance(chained[..., :3], batch["answers"][..., :3].float()).chamfer.mean()
             loss = loss + c.distill_chain * chain_cham
             logs["chain_chamfer"] = chain_cham.detach()
         if c.distill_set > 0:  # each frame's draws down the student's chain, scored against the teacher's set
-            ed = self.set_loss(net, batch, cond, step, rank)
+            shared = chained if chain_grid_ is not None and chain_grid_ == self.set_grid() else None
+            ed = self.set_loss(net, batch, cond, step, rank, answers=shared)
             loss = loss + c.distill_set * ed["energy_score"]  # = energy distance / 2 + a constant; never < 0
             logs.update({f"set_{k}": v.detach() for k, v in ed.items()})
         logs["loss"] = loss.detach()
@@ -500,22 +502,32 @@ class DistillTask(PocoLocoTask):
         tt = torch.full((len(x),), grid[-1], device=x.device)
         return self.schedule.pred_to_eps_x0(net(x, tt, cond).float(), x, tt, c.prediction_type)[1]
 
+    def set_grid(self) -> list[int]:
+        """The timesteps of the chain the set-level term runs: the student's default sampler
+        (:func:`chain_grid`) or, with ``distill_set_calls``, its sampling grid of that many calls."""
+        c = self.config
+        if c.distill_set_calls:
+            return sampling_grid(c.num_timesteps, c.distill_set_calls, c.student_calls)
+        return chain_grid(c.num_timesteps, c.student_calls)
+
     def set_loss(self, net: nn.Module, batch: dict[str, torch.Tensor], cond: Any, step: int,
-                 rank: int) -> dict[str, torch.Tensor]:  # fmt: skip
+                 rank: int, answers: torch.Tensor | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
         """The set-level term, on the student's own chain: each frame's D initial noises (a batch of
-        whole frames, :class:`PairBatches` ``grouped``) taken down the grid the student samples
-        with (:func:`chain_grid`; each call re-noised with ``student_renoise`` fresh noise, as
+        whole frames, :class:`PairBatches` ``grouped``) taken down :meth:`set_grid` (each call
+        re-noised with ``student_renoise`` fresh noise, as
         :func:`~pocoloco.diffusion.few_step.sample_few_step` does; no gradient but the last call's),
         and the last call's answers scored as a set against the teacher's D answers the way the
         judge scores a sampler: the energy distance / score of the probe-distance embeddings
         (:mod:`pocoloco.ops.probe_energy`; SET_PROBES probes drawn afresh each step in each
-        frame's bounding box). Returns the statistics averaged over the frames, normalised units."""
+        frame's bounding box). ``answers`` (B, N, C): the chain's answers already made for these
+        noises on the same grid (the chain term's), used instead of running it again. Returns the
+        statistics averaged over the frames, normalised units."""
         if self.pairs is None:
             raise RuntimeError("DistillTask: make or read the teacher pairs first")
         c, D = self.config, self.pairs.settings.draws
         noise = batch["noise"]
         gen = torch.Generator(device=noise.device).manual_seed(seed_of(c.seed, 13, int(step), rank))
-        x0 = self.student_chain(net, noise, cond, gen)
+        x0 = self.student_chain(net, noise, cond, gen, grid=self.set_grid()) if answers is None else answers
         target = batch["answers"][..., :3].float()
         s, t = x0[..., :3].reshape(-1, D, x0.shape[1], 3), target.reshape(-1, D, target.shape[1], 3)  # (G, D, N, 3)
         probes = box_probes(t, SET_PROBES, gen).unsqueeze(1)  # (G, 1, P, 3): one fixed map per frame
