@@ -139,13 +139,17 @@ def test_pose_statistics_tell_a_sampler_from_a_regressor():
     assert oracle["refs_medoid"]["chamfer_to_refs"] == pytest.approx(np.mean([chamfer_cm(refs[m], b) for j, b in
                                                                                enumerate(refs) if j != m]))  # fmt: skip
     assert "chamfer_to_refs" not in truth_rows(refs, None, probes, chamfer=False)["truth_loo"]
-    # the judge computes the true states' Chamfer matrix once per pose and hands it to every row: the same numbers
-    from pocoloco.evaluation.distribution import chamfer_matrix
+    # the judge computes the true states' Chamfer matrix and embeddings once per pose and hands them to every
+    # row: the same numbers
+    from pocoloco.evaluation.distribution import chamfer_matrix, embed_cloud, embed_refs
 
-    d_rr = chamfer_matrix(refs, refs)
+    d_rr, e_rr = chamfer_matrix(refs, refs), embed_refs(refs, None, probes)
+    np.testing.assert_array_equal(e_rr[1], embed_cloud(refs[1], None, probes))
     assert truth_rows(refs, None, probes, d_rr=d_rr) == oracle
+    assert truth_rows(refs, None, probes, d_rr=d_rr, e_rr=e_rr) == oracle
     two = states(2)  # two samples: no NaN among the statistics, so the dicts compare exactly
     assert pose_statistics(two, refs, None, probes, d_rr=d_rr) == pose_statistics(two, refs, None, probes)
+    assert pose_statistics(two, refs, None, probes, d_rr=d_rr, e_rr=e_rr) == pose_statistics(two, refs, None, probes)
     with pytest.raises(ValueError, match=">= 2 true states"):
         pose_statistics(refs[:1], refs[:1], None, probes)
 

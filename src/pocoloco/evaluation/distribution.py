@@ -141,19 +141,26 @@ def nearest_neighbour_accuracy(d_ss: np.ndarray, d_rr: np.ndarray, d_sr: np.ndar
     return nna_refs, nna_samples
 
 
+def embed_refs(refs: Sequence[np.ndarray], joints: np.ndarray | None, probes: np.ndarray) -> np.ndarray:
+    """(K, E) the :func:`embed_cloud` embeddings of K clouds (a pose's true states), stacked."""
+    return np.stack([embed_cloud(y, joints, probes) for y in refs])
+
+
 def pose_statistics(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], joints: np.ndarray | None,
-                    probes: np.ndarray, chamfer: bool = True, d_rr: np.ndarray | None = None) -> dict[str, float]:  # fmt: skip
+                    probes: np.ndarray, chamfer: bool = True, d_rr: np.ndarray | None = None,
+                    e_rr: np.ndarray | None = None) -> dict[str, float]:  # fmt: skip
     """Every statistic of the distribution judge for one pose: M forecast clouds against K true
     states (clouds (N, 3) in metres; every cloud at the same point count). Embedding statistics
     (:func:`energy_distance`, metres) and, with ``chamfer``, the Chamfer ones (cm):
     ``chamfer_to_refs`` (mean over sample-reference pairs), ``cov`` (share of references that are
     some sample's nearest reference), ``mmd`` (mean over references of the nearest sample's
     Chamfer), ``nna_refs`` / ``nna_samples`` (:func:`nearest_neighbour_accuracy`). ``d_rr``: the
-    true states' :func:`chamfer_matrix` when the caller has it (one per pose, shared by its rows)."""
+    true states' :func:`chamfer_matrix` and ``e_rr`` (K, E) their :func:`embed_cloud` embeddings when
+    the caller has them (one per pose, shared by its rows)."""
     if len(samples) < 1 or len(refs) < 2:
         raise ValueError(f"need >= 1 sample and >= 2 true states, got {len(samples)} and {len(refs)}")
     es = np.stack([embed_cloud(x, joints, probes) for x in samples])
-    er = np.stack([embed_cloud(y, joints, probes) for y in refs])
+    er = embed_refs(refs, joints, probes) if e_rr is None else e_rr
     out = energy_distance(es, er)
     out["num_samples"], out["num_refs"] = float(len(samples)), float(len(refs))
     if chamfer:
@@ -168,18 +175,20 @@ def pose_statistics(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], j
 
 
 def truth_rows(refs: Sequence[np.ndarray], joints: np.ndarray | None, probes: np.ndarray,
-               chamfer: bool = True, d_rr: np.ndarray | None = None) -> dict[str, dict]:  # fmt: skip
+               chamfer: bool = True, d_rr: np.ndarray | None = None,
+               e_rr: np.ndarray | None = None) -> dict[str, dict]:  # fmt: skip
     """The two oracle rows of a pose's true states (K >= 3): ``truth_loo``, a perfect sampler (each
     true state in turn is the outcome and the other K - 1 are the forecast's samples; statistics
     averaged over the K), and ``refs_medoid``, the best single guess an oracle could make (the true
     state with the smallest summed embedding distance to the others, as a point mass scored against
     the other K - 1). With ``chamfer``, each row's ``chamfer_to_refs`` (cm) as for a model: the mean
     Chamfer between two distinct true states (what a perfect sampler scores against one scan), and
-    the medoid's mean Chamfer to the others (``d_rr``: their :func:`chamfer_matrix`, if at hand)."""
+    the medoid's mean Chamfer to the others (``d_rr``: their :func:`chamfer_matrix`, ``e_rr``: their
+    embeddings, if at hand)."""
     k = len(refs)
     if k < 3:
         raise ValueError(f"the oracle rows need >= 3 true states, got {k}")
-    er = np.stack([embed_cloud(y, joints, probes) for y in refs])
+    er = embed_refs(refs, joints, probes) if e_rr is None else e_rr
     loo = [energy_distance(np.delete(er, i, 0), er[i : i + 1]) for i in range(k)]
     d = np.linalg.norm(er[:, None] - er[None], axis=-1)
     medoid = int(d.sum(1).argmin())

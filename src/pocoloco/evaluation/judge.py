@@ -27,7 +27,7 @@ import numpy as np
 from pocoloco.data.format import DatasetLayout, read_card, read_frame
 from pocoloco.data.poses import Pose
 from pocoloco.engine.shipped import describe_checkpoint, resolve_ckpt_arg
-from pocoloco.evaluation.distribution import chamfer_matrix, pose_statistics, probe_points, truth_rows
+from pocoloco.evaluation.distribution import chamfer_matrix, embed_refs, pose_statistics, probe_points, truth_rows
 from pocoloco.methods import SamplerOptions, load_method
 from pocoloco.synth.histories import reference_sets
 from pocoloco.utils.atomic import jsonable, output_folder, write_json_atomic, write_text_atomic
@@ -170,10 +170,11 @@ def bench_distribution(
             row: dict[str, Any] = {"subject": subject, "sequence": key[1], "frame": key[2],
                                    "window": f"{w['shared_seconds']:g}", "rows": {}}  # fmt: skip
             here = {n: c for (n, win), c in drawn.items() if win == row["window"]}
-            d_rr = chamfer_matrix(truth, truth)  # the true states' Chamfer matrix, once for every row of the pose
+            # the true states' Chamfer matrix and embeddings, once for every row of the pose
+            d_rr, e_rr = chamfer_matrix(truth, truth), embed_refs(truth, joints, probe)
             for name, clouds in {**here, "posed_body": body}.items():
-                row["rows"][name] = pose_statistics(clouds, truth, joints, probe, d_rr=d_rr)
-            oracle = truth_rows(truth, joints, probe, d_rr=d_rr)
+                row["rows"][name] = pose_statistics(clouds, truth, joints, probe, d_rr=d_rr, e_rr=e_rr)
+            oracle = truth_rows(truth, joints, probe, d_rr=d_rr, e_rr=e_rr)
             for stats in oracle.values():  # the true states' spread, as in every other row (not the K - 1's)
                 stats["spread_refs"] = row["rows"]["posed_body"]["spread_refs"]
             row["rows"].update(oracle)
